@@ -1,0 +1,24 @@
+# The two commands of the README: `make demo` and `make test`. Both set everything up first.
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.osteonav-installed
+
+.PHONY: demo test bench-rate setup clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml scripts/setup.sh
+	bash scripts/setup.sh $(VENV)
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/osteonav demo
+
+test: $(STAMP)
+	$(PY) -m pytest
+
+bench-rate: $(STAMP)
+	$(VENV)/bin/osteonav bench-rate
+
+clean:
+	rm -rf $(VENV) recordings/demo

@@ -1,0 +1,33 @@
+"""Exceptions shared across osteonav. Each message says what was expected, what arrived and the fix."""
+from __future__ import annotations
+
+
+class OsteonavError(Exception):
+    """Base of osteonav's own errors."""
+
+
+class ConfigError(OsteonavError, ValueError):
+    """A configuration value is wrong. The message names the key (dotted path) and the fix."""
+
+    def __init__(self, key: str, message: str, source: str | None = None):
+        self.key = key
+        where = f"{source}: " if source else ""
+        super().__init__(f"{where}config key '{key}': {message}")
+
+
+class TrialFormatError(OsteonavError, ValueError):
+    """A recorded trial does not follow RECORDING_FORMAT.md. Names the file and the line or frame."""
+
+    def __init__(self, path, message: str, location: str | None = None):
+        self.path = str(path)
+        self.location = location
+        loc = f" ({location})" if location else ""
+        super().__init__(f"{self.path}{loc}: {message}")
+
+
+class MeshError(OsteonavError, ValueError):
+    """A mesh cannot be used for tracking (wrong units, empty, unreadable)."""
+
+
+class GLError(OsteonavError, RuntimeError):
+    """OpenGL context or shader failure; the message names the file, the stage and the driver log."""
