@@ -1,0 +1,40 @@
+"""``osteonav simulate``: write a simulated recorded trial (see :mod:`app.sim.simulator`)."""
+from __future__ import annotations
+
+
+def register(subparsers) -> None:
+    from app.sim.scenarios import DEFAULT_SCENARIO, SCENARIOS
+
+    p = subparsers.add_parser(
+        "simulate", help="simulate a trial (robot, depth camera, bone, occluders) in the recorded-trial format",
+        description="Scenarios: " + "; ".join(f"{name}: {s.description}" for name, s in SCENARIOS.items()),
+    )
+    p.add_argument("--out", required=True, help="trial directory to write")
+    p.add_argument("--mesh", help="bone mesh in metres (default: meshes/iliac_crest.ply)")
+    p.add_argument("--scenario", default=DEFAULT_SCENARIO, help=f"one of: {', '.join(SCENARIOS)}")
+    p.add_argument("--seconds", type=float, help="duration (default: the scenario's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--overwrite", action="store_true", help="replace an existing trial in --out")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from tqdm import tqdm
+
+    from app.errors import OsteonavError
+    from app.sim.scenarios import SCENARIOS
+    from app.sim.simulator import simulate
+
+    if args.scenario not in SCENARIOS:
+        raise OsteonavError(f"unknown scenario '{args.scenario}'; valid: {', '.join(SCENARIOS)}")
+    bar = tqdm(desc=f"simulate {args.scenario}", unit="frame")
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    summary = simulate(args.out, args.mesh, args.scenario, args.seconds, args.seed, args.overwrite, progress=progress)
+    bar.close()
+    print(f"wrote {summary.frames} frames ({summary.seconds:.1f} s, scenario {summary.scenario}, "
+          f"occlusion mean {100 * summary.mean_occlusion:.0f} % max {100 * summary.max_occlusion:.0f} %) to {summary.out}")
+    return 0

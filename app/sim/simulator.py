@@ -1,0 +1,247 @@
+"""``osteonav simulate``: write a complete recorded trial of a simulated operating-room scene.
+
+A UR5e moves a flange-mounted depth camera (640x480 at 90 Hz, RealSense D415-like intrinsics;
+joint samples at 500 Hz) over a bone lying on a table inside soft tissue so that only the crest
+protrudes. Moving occluders (a hand whose edge is placed to cover a target fraction of the bone's
+visible pixels, an instrument) cross the view; the bone may be repositioned; frames drop; the
+depth image gets the stereo sensor's errors (:mod:`app.sim.sensor`). Rendering uses the project's
+own :class:`app.render.scene.SceneRenderer`, so simulated and tracked depth share one camera model.
+
+Besides the trial format's files it writes ``simulation.csv`` (per frame: occlusion fraction,
+visible bone pixels) and ``simulation.yaml`` (scenario, seed, the true hand-eye); readers ignore them.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+import yaml
+
+from app.geometry import quaternion as quat
+from app.geometry import se3
+from app.geometry.camera import PinholeCamera
+from app.geometry.ur import UR_MODELS, forward_kinematics
+from app.sim import world
+from app.sim.scenarios import Scenario, get_scenario
+from app.sim.sensor import SensorModel, apply_sensor
+
+log = logging.getLogger(__name__)
+
+REPO = Path(__file__).resolve().parents[2]
+DEFAULT_MESH = REPO / "meshes" / "iliac_crest.ply"
+D415_640x480 = PinholeCamera(
+    K=np.array([[612.4, 0.0, 318.9], [0.0, 612.0, 241.3], [0.0, 0.0, 1.0]]), width=640, height=480
+)
+FPS = 90.0
+JOINT_RATE = 500.0
+DEPTH_SCALE_MM = 0.1
+CLOCK_START = 100.0          # s, arbitrary start of the shared clock
+LABEL_BONE, LABEL_TISSUE, LABEL_TABLE, LABEL_HAND, LABEL_INSTRUMENT = 1, 2, 3, 4, 5
+GRAFT_SIZE = np.array([0.020, 0.010, 0.010])   # m, along bone x, y, z
+
+
+@dataclass
+class SimulationSummary:
+    out: str
+    scenario: str
+    frames: int
+    seconds: float
+    mean_occlusion: float
+    max_occlusion: float
+
+
+def frame_schedule(scenario: Scenario, rng: np.random.Generator, fps: float = FPS) -> tuple[np.ndarray, np.ndarray]:
+    """Frame counters and stamps after random drops and scenario gaps."""
+    n = int(round(scenario.seconds * fps))
+    frame_ids = np.arange(n)
+    t = frame_ids / fps
+    keep = rng.random(n) >= scenario.drop_probability
+    keep[0] = True
+    for start, duration in scenario.gaps:
+        keep &= ~((t >= start) & (t < start + duration))
+    return frame_ids[keep], CLOCK_START + t[keep]
+
+
+def perturb_pose(T: np.ndarray, mm: float, deg: float, rng: np.random.Generator) -> np.ndarray:
+    """T with a translation of ``mm`` and a rotation of ``deg`` about random directions (bone frame origin)."""
+    if mm == 0 and deg == 0:
+        return T.copy()
+    direction = rng.normal(size=3)
+    axis = rng.normal(size=3)
+    out = T.copy()
+    out[:3, 3] += mm * 1e-3 * direction / np.linalg.norm(direction)
+    out[:3, :3] = quat.to_matrix(quat.exp_map(np.deg2rad(deg) * axis / np.linalg.norm(axis))) @ T[:3, :3]
+    return out
+
+
+def target_occlusion(scenario: Scenario, t: float) -> float:
+    """The hand's target fraction of the bone's visible pixels at scenario time ``t``."""
+    if scenario.full_occlusion and scenario.full_occlusion[0] <= t < sum(scenario.full_occlusion):
+        return 1.0
+    if not scenario.occlusion_profile:
+        return 0.0
+    knots = np.array(scenario.occlusion_profile)
+    return float(np.interp(t, knots[:, 0], knots[:, 1]))
+
+
+class _GraftCut:
+    """Depth of the crest after a graft (box in the bone frame at the crest's top) is cut out."""
+
+    def __init__(self, bone: trimesh.Trimesh):
+        top = bone.vertices[np.argmax(bone.vertices[:, 2])]
+        self.centre = np.array([top[0], top[1], top[2] - GRAFT_SIZE[2] / 2])
+        self.half = GRAFT_SIZE / 2
+
+    def apply(self, depth, labels, T_camera_bone, camera: PinholeCamera) -> np.ndarray:
+        rows, cols = np.nonzero(labels == LABEL_BONE)
+        if len(rows) == 0:
+            return depth
+        rays = np.linalg.solve(camera.K, np.stack([cols, rows, np.ones_like(cols)]).astype(float)).T
+        p_camera = rays * depth[rows, cols, None]
+        T_bone_camera = se3.inverse(T_camera_bone)
+        p_bone = p_camera @ T_bone_camera[:3, :3].T + T_bone_camera[:3, 3]
+        inside = np.all(np.abs(p_bone - self.centre) <= self.half, axis=1)
+        if not inside.any():
+            return depth
+        # new surface: the graft floor, plane z_bone = centre_z - half_z, intersected with each ray
+        n_camera = T_camera_bone[:3, 2]
+        floor_point = T_camera_bone[:3, :3] @ (self.centre - [0, 0, self.half[2]]) + T_camera_bone[:3, 3]
+        s = (n_camera @ floor_point) / (rays[inside] @ n_camera)
+        out = depth.copy()
+        out[rows[inside], cols[inside]] = np.maximum(s, depth[rows[inside], cols[inside]])
+        return out
+
+
+def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name: str = "static_occluded",
+             seconds: float | None = None, seed: int = 0, overwrite: bool = False,
+             camera: PinholeCamera = D415_640x480, progress=None) -> SimulationSummary:
+    """Simulate ``scenario_name`` and write the trial to ``out`` (see the module docstring)."""
+    from app.mesh import check_units, load_mesh
+    from app.render.context import shared_context
+    from app.render.scene import SceneRenderer
+    from app.trial.meta import TrialMeta
+    from app.trial.writer import TrialWriter
+
+    scenario = get_scenario(scenario_name, seconds)
+    rng = np.random.default_rng(seed)
+    mesh_path = Path(mesh_path) if mesh_path else DEFAULT_MESH
+    bone = load_mesh(mesh_path)
+    check_units(bone, mesh_path)
+    dh = UR_MODELS["ur5e"]
+    T_flange_camera = world.T_FLANGE_CAMERA
+    T_base_bone0 = world.initial_bone_pose(dh, T_flange_camera, rng)
+    frame_ids, stamps = frame_schedule(scenario, rng)
+    t_rel = stamps - CLOCK_START
+    T_base_bone = world.bone_trajectory(t_rel, T_base_bone0, scenario.bone_motion)
+    q_frames = world.joint_trajectory(t_rel)
+    T_base_camera = forward_kinematics(dh, q_frames) @ T_flange_camera
+
+    # the table 6 cm below the bone's lowest point, in the base frame (z up)
+    T_base_table = np.eye(4)
+    T_base_table[2, 3] = (T_base_bone0[:3, :3] @ bone.vertices.T).T[:, 2].min() + T_base_bone0[2, 3] - 0.06
+    tissue = world.soft_tissue_mesh(bone, rng)
+    renderer = SceneRenderer(shared_context(), camera)
+    for name, mesh, label in (("bone", bone, LABEL_BONE), ("tissue", tissue, LABEL_TISSUE),
+                              ("table", world.table_mesh(), LABEL_TABLE), ("hand", world.hand_mesh(), LABEL_HAND),
+                              ("instrument", world.instrument_mesh(), LABEL_INSTRUMENT)):
+        renderer.add_mesh(name, mesh.vertices, mesh.faces, label)
+    sensor = SensorModel(invalid_probability=scenario.invalid_probability, scale_error=scenario.depth_scale_error,
+                         bias=scenario.depth_bias_m, specular_fraction=scenario.specular_fraction)
+    graft = _GraftCut(bone)
+
+    hand_eye_in_file = perturb_pose(T_flange_camera, scenario.hand_eye_error_mm, scenario.hand_eye_error_deg, rng)
+    initial_pose = perturb_pose(T_base_bone[0], scenario.init_error_mm, scenario.init_error_deg, rng)
+    top = bone.vertices[np.argmax(bone.vertices[:, 2])]
+    point_prior = T_base_bone[0, :3, :3] @ top + T_base_bone[0, :3, 3]
+    meta = TrialMeta(
+        camera=camera, depth_scale=DEPTH_SCALE_MM, robot={"model": "ur5e"}, dh=dh,
+        T_flange_camera=hand_eye_in_file, mesh=mesh_path.name, initial_pose=initial_pose,
+        point_prior=point_prior, extra={},
+    )
+    out = Path(out)
+    occlusions = []
+    with TrialWriter(out, meta, mesh_source=mesh_path, overwrite=overwrite) as writer:
+        _write_joints(writer, stamps, scenario, rng)
+        with open(out / "simulation.csv", "w") as sim_csv:
+            sim_csv.write("frame,stamp,occlusion,bone_pixels\n")
+            for k, (frame_id, stamp) in enumerate(zip(frame_ids, stamps)):
+                T_camera_base = se3.inverse(T_base_camera[k])
+                T_camera_bone = T_camera_base @ T_base_bone[k]
+                poses = {"bone": T_camera_bone, "tissue": T_camera_bone, "table": T_camera_base @ T_base_table}
+                _, labels_clear = renderer.render(poses)
+                bone_mask = labels_clear == LABEL_BONE
+                _add_occluders(poses, scenario, t_rel[k], bone_mask, camera)
+                depth, labels = renderer.render(poses)
+                if scenario.graft_cut_at_s is not None and t_rel[k] >= scenario.graft_cut_at_s:
+                    depth = graft.apply(depth, labels, T_camera_bone, camera)
+                if scenario.tissue_patch_m:
+                    depth = _tissue_patch(depth, labels, camera, scenario.tissue_patch_m)
+                measured = apply_sensor(depth, sensor, rng, bone_mask=labels == LABEL_BONE)
+                n_bone = int(bone_mask.sum())
+                occlusion = 1.0 - float((bone_mask & (labels == LABEL_BONE)).sum()) / n_bone if n_bone else 1.0
+                occlusions.append(occlusion)
+                writer.write_frame(int(frame_id), float(stamp), measured)
+                writer.write_groundtruth(float(stamp), T_base_bone[k])
+                sim_csv.write(f"{frame_id},{stamp:.6f},{occlusion:.4f},{n_bone}\n")
+                if progress:
+                    progress(k + 1, len(stamps))
+        _write_simulation_yaml(out, scenario, seed, T_flange_camera, mesh_path)
+    renderer.release()
+    log.info("simulated %s: %d frames in %s", scenario.name, len(stamps), out)
+    return SimulationSummary(str(out), scenario.name, len(stamps), scenario.seconds,
+                             float(np.mean(occlusions)), float(np.max(occlusions)))
+
+
+def _write_joints(writer, stamps: np.ndarray, scenario: Scenario, rng: np.random.Generator) -> None:
+    """Joint samples at 500 Hz covering every frame, stamped on the robot's clock (offset, jitter)."""
+    t_robot = np.arange(stamps[0] - 0.02, stamps[-1] + 0.02, 1.0 / JOINT_RATE)
+    t_true = t_robot - scenario.clock_offset_s
+    q = world.joint_trajectory(t_true - CLOCK_START)
+    q = q + rng.normal(0.0, scenario.encoder_noise_rad, q.shape)
+    writer.write_joints(t_robot, q)
+
+
+def _add_occluders(poses: dict, scenario: Scenario, t: float, bone_mask: np.ndarray, camera: PinholeCamera) -> None:
+    fraction = target_occlusion(scenario, t)
+    if fraction > 0 and bone_mask.any():
+        rows, cols = np.nonzero(bone_mask)
+        u_edge = cols.max() + 20.0 if fraction >= 1.0 else float(np.quantile(cols, fraction))
+        poses["hand"] = world.hand_pose_for_fraction(u_edge, float(rows.mean()), camera.fx, camera.fy, camera.cx, camera.cy)
+    if scenario.instrument:
+        poses["instrument"] = world.instrument_pose(t)
+
+
+def _tissue_patch(depth: np.ndarray, labels: np.ndarray, camera: PinholeCamera, thickness: float) -> np.ndarray:
+    """Residual soft tissue of ``thickness`` m on the left third of the bone's visible pixels."""
+    rows, cols = np.nonzero(labels == LABEL_BONE)
+    if len(cols) == 0:
+        return depth
+    patch = cols < np.quantile(cols, 0.33)
+    out = depth.copy()
+    out[rows[patch], cols[patch]] -= thickness
+    return out
+
+
+def _write_simulation_yaml(out: Path, scenario: Scenario, seed: int, T_flange_camera_true: np.ndarray, mesh_path: Path) -> None:
+    info = {
+        "generator": "osteonav simulate",
+        "scenario": _plain(asdict(scenario)),
+        "seed": int(seed),
+        "mesh_source": str(mesh_path),
+        "true_hand_eye": T_flange_camera_true.tolist(),
+    }
+    (out / "simulation.yaml").write_text(yaml.safe_dump(info, sort_keys=False))
+
+
+def _plain(value):
+    """Tuples to lists, numpy scalars to floats, recursively (for yaml.safe_dump)."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
