@@ -26,6 +26,7 @@ import numpy as np
 
 from app.geometry.camera import PinholeCamera
 from app.render import shaders
+from app.render.context import unbind_framebuffer
 from app.render.glmath import gl_rows_to_image, mat4_to_glsl, tile_grid
 
 log = logging.getLogger(__name__)
@@ -146,6 +147,7 @@ class BatchedDepthRenderer:
         return gl_rows_to_image(tiles[:n])
 
     def release(self) -> None:
+        unbind_framebuffer(self.ctx)
         for obj in (self.fbo, self.zbuffer, self.depth_texture, self.label_texture, self.poses, self.program):
             obj.release()
         self.mesh.release()

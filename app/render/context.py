@@ -72,3 +72,19 @@ def describe_default_context() -> str:
         return describe(ctx)
     finally:
         ctx.release()
+
+
+def unbind_framebuffer(ctx: moderngl.Context) -> None:
+    """Bind a 1x1 framebuffer kept for this purpose.
+
+    A standalone EGL context has no default framebuffer; moderngl rebinds the last bound one after
+    creating another, so releasing a bound framebuffer would leave GL_INVALID_OPERATION behind.
+    Renderers call this before releasing their own framebuffer.
+    """
+    extra = ctx.extra if isinstance(ctx.extra, dict) else {}
+    idle = extra.get("idle_framebuffer")
+    if idle is None:
+        idle = ctx.framebuffer(color_attachments=[ctx.renderbuffer((1, 1))])
+        extra["idle_framebuffer"] = idle
+        ctx.extra = extra
+    idle.use()

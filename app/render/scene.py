@@ -18,6 +18,7 @@ import numpy as np
 
 from app.geometry.camera import PinholeCamera
 from app.render import shaders
+from app.render.context import unbind_framebuffer
 from app.render.batched import DEFAULT_FAR, DEFAULT_NEAR, MeshBuffers, enable_clip_distances
 from app.render.glmath import gl_rows_to_image, mat4_to_glsl
 
@@ -83,6 +84,7 @@ class SceneRenderer:
         return gl_rows_to_image(depth), gl_rows_to_image(labels).astype(np.int32)
 
     def release(self) -> None:
+        unbind_framebuffer(self.ctx)
         for mesh, _ in self.meshes.values():
             mesh.release()
         for obj in (self.fbo, self.zbuffer, self.depth_texture, self.label_texture, self.poses, self.program):
