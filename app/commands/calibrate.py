@@ -1,0 +1,264 @@
+"""``osteonav calibrate``: camera intrinsics (ChArUco) and eye-in-hand hand-eye calibration.
+
+Subcommands::
+
+    osteonav calibrate simulate  --out DIR [--captures 20] [--noise] [--seed N] [--corrupt 3:blank]
+    osteonav calibrate intrinsics --images DIR [--board SPEC] [--out camera.yaml]
+    osteonav calibrate hand-eye  --captures DIR [--camera camera.yaml] [--method auto] [--out FILE]
+                                 [--rrd FILE]
+    osteonav calibrate capture   --config session.yaml --out DIR [--count 15]
+
+Try it without hardware::
+
+    osteonav calibrate simulate --out /tmp/cal --noise
+    osteonav calibrate intrinsics --images /tmp/cal/images --out /tmp/cal/camera_fit.yaml
+    osteonav calibrate hand-eye --captures /tmp/cal --rrd /tmp/cal/hand_eye.rrd
+
+Formats: the board SPEC in ``calibration.board``, capture folders in ``calibration.captures``,
+the camera YAML in ``calibration.intrinsics``, the hand-eye YAML in ``calibration.handeye``.
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+DEFAULT_BOARD = "charuco:7x5:0.04:0.03:DICT_5X5_100"   # = calibration.board.DEFAULT_BOARD_SPEC
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "calibrate", help="camera intrinsics and hand-eye calibration (ChArUco board)",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="calibrate_command", metavar="STEP")
+    p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+
+    s = sub.add_parser("intrinsics", help="K and distortion from ChArUco images")
+    s.add_argument("--images", required=True, type=Path, help="folder of board images")
+    s.add_argument("--board", default=DEFAULT_BOARD,
+                   help=f"board SPEC 'charuco:SXxSY:SQUARE_M:MARKER_M:DICT' or a YAML file "
+                        f"(default {DEFAULT_BOARD})")
+    s.add_argument("--out", type=Path, help="camera YAML to write (default IMAGES/camera.yaml)")
+    s.add_argument("--fix-k3", action="store_true",
+                   help="keep the distortion's k3 at 0 (ordinary lenses, few views)")
+    s.set_defaults(func=run_intrinsics)
+
+    s = sub.add_parser("hand-eye", help="T_flange_camera from captures (AX = XB), all methods compared")
+    s.add_argument("--captures", required=True, type=Path, help="capture folder")
+    s.add_argument("--camera", type=Path,
+                   help="camera YAML with the intrinsics (default CAPTURES/camera.yaml)")
+    s.add_argument("--board", help="board SPEC (default: capture.yaml's, else the default board)")
+    s.add_argument("--robot", help="robot model, e.g. ur5e (default: capture.yaml's robot block)")
+    s.add_argument("--method", default="auto",
+                   choices=["auto", "tsai", "park", "horaud", "andreff", "daniilidis"],
+                   help="method whose result is written (auto: lowest reprojection error)")
+    s.add_argument("--backend", choices=["opencv", "numpy"],
+                   help="solver implementation (default: OpenCV when it exposes calibrateHandEye)")
+    s.add_argument("--out", type=Path, help="hand-eye YAML to write (default CAPTURES/hand_eye.yaml)")
+    s.add_argument("--rrd", type=Path, help="also log captures, frusta and board to this rerun file")
+    s.set_defaults(func=run_hand_eye)
+
+    s = sub.add_parser("capture", help="collect captures live from a session's camera and robot")
+    s.add_argument("--config", required=True, type=Path, help="session YAML (camera: simulated)")
+    s.add_argument("--out", required=True, type=Path, help="capture folder to create")
+    s.add_argument("--count", type=int, default=15, help="captures to take (default 15)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the simulated source")
+    s.set_defaults(func=run_capture)
+
+    s = sub.add_parser("simulate", help="write a folder of simulated captures (no hardware needed)")
+    s.add_argument("--out", required=True, type=Path, help="capture folder to create")
+    s.add_argument("--captures", type=int, default=20, help="number of captures (default 20)")
+    s.add_argument("--noise", action="store_true", help="blur, image noise and encoder noise")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--corrupt", default="",
+                   help="captures to spoil, e.g. '3:blank,7:missing' (blank, noise, missing, garbage)")
+    s.set_defaults(func=run_simulate)
+
+
+def _board_arg(text: str):
+    from app.errors import ConfigError
+    from calibration.board import parse_board_spec
+
+    try:
+        return parse_board_spec(text)
+    except (ValueError, OSError) as exc:
+        raise ConfigError("--board", str(exc)) from None
+
+
+def run_intrinsics(args) -> int:
+    from app.errors import ConfigError
+    from calibration.intrinsics import calibrate_intrinsics_folder, result_info, write_camera_yaml
+
+    spec = _board_arg(args.board)
+    try:
+        result = calibrate_intrinsics_folder(args.images, spec, fix_k3=args.fix_k3)
+    except ValueError as exc:
+        raise ConfigError("--images", str(exc)) from None
+    out = args.out or args.images / "camera.yaml"
+    write_camera_yaml(out, result.camera, result_info(result))
+    K = result.camera.K
+    print(f"board {result.board}: {len(result.per_image)} images used, {len(result.skipped)} skipped")
+    for s in result.skipped:
+        print(f"  skipped {s['image']}: {s['reason']}")
+    for r in result.per_image:
+        print(f"  {r['image']}: {r['error_px']:.3f} px RMS ({r['corners']} corners)")
+    print(f"RMS reprojection error {result.rms_px:.3f} px")
+    print(f"fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f}  "
+          f"dist {[round(float(v), 5) for v in result.camera.dist]}")
+    print(f"wrote {out}")
+    return 0
+
+
+def run_hand_eye(args) -> int:
+    import numpy as np
+
+    from app.errors import ConfigError
+    from calibration import handeye
+    from calibration.intrinsics import read_camera_yaml
+
+    camera_path = args.camera or args.captures / "camera.yaml"
+    if not camera_path.is_file():
+        raise ConfigError("--camera", f"no intrinsics: {camera_path} does not exist; run "
+                          f"`osteonav calibrate intrinsics` first or pass --camera FILE")
+    camera = read_camera_yaml(camera_path)
+    board = _board_arg(args.board).to_string() if args.board else None
+    robot = {"model": args.robot} if args.robot else None
+    obs, skipped, robot = handeye.observations_from_folder(
+        args.captures, camera.K, camera.dist, board=board, robot=robot, keep_images=args.rrd is not None)
+    try:
+        result = handeye.calibrate_hand_eye(obs, camera.K, camera.dist, args.method, args.backend)
+    except ValueError as exc:
+        raise ConfigError("--captures", f"{args.captures}: {exc}") from None
+    result.skipped = skipped
+    data = handeye.result_to_dict(result, robot=robot, camera=camera.to_dict())
+    out = args.out or args.captures / "hand_eye.yaml"
+    handeye.write_hand_eye_yaml(out, data)
+
+    print(f"{len(obs)} captures used, {len(skipped)} skipped (solver backend: {result.backend})")
+    for s in skipped:
+        print(f"  skipped capture {s['capture']}: {s['reason']}")
+    print(f"{'method':<11} {'rot deg':>8} {'trans mm':>9} {'reproj px':>10} {'vs chosen mm':>13}")
+    for m, mr in result.methods.items():
+        summ, d = mr.summary(), data["methods"][m]
+        rp = summ["reprojection_px_rms"]
+        print(f"{m:<11} {summ['rotation_deg_rms']:8.3f} {summ['translation_mm_rms']:9.3f} "
+              f"{(f'{rp:10.3f}' if rp is not None else '         -')} "
+              f"{d['differs_from_chosen_mm']:13.3f}{'  <- chosen' if m == result.chosen.method else ''}")
+    c = result.chosen
+    print("per capture (chosen method): capture, rotation deg, translation mm, reprojection px")
+    for k, o in enumerate(obs):
+        print(f"  {o.capture:6d} {c.rotation_deg[k]:8.3f} {c.translation_mm[k]:9.3f} "
+              f"{c.reprojection_px[k]:10.3f}")
+    if result.robot_world:
+        rw = result.robot_world
+        dt = 1000 * np.linalg.norm(rw["hand_eye"][:3, 3] - c.T_flange_camera[:3, 3])
+        print(f"robot-world ({rw['method']}): board at {np.round(rw['T_base_board'][:3, 3], 4)} m in "
+              f"the base; its hand-eye differs by {dt:.3f} mm")
+    for w in result.warnings:
+        print(f"WARNING: {w}")
+    print("hand_eye (T_flange_camera):")
+    print(np.array2string(c.T_flange_camera, precision=5, suppress_small=True))
+    print(f"wrote {out}")
+    if args.rrd is not None:
+        from calibration.rerun_log import log_hand_eye
+
+        log_hand_eye(args.rrd, result, camera.K, camera.width, camera.height,
+                     board or _folder_board(args.captures))
+        print(f"wrote {args.rrd}")
+    return 0
+
+
+def _folder_board(root: Path) -> str:
+    from calibration.board import DEFAULT_BOARD_SPEC
+    from calibration.captures import read_captures
+
+    return read_captures(root).board or DEFAULT_BOARD_SPEC
+
+
+def _source_kind(config: dict, key: str, source: str) -> str:
+    from app.errors import ConfigError
+
+    value = config.get(key, "simulated" if key == "robot" else None)
+    if isinstance(value, dict):
+        value = value.get("plugin", value.get("type"))
+    if value is None:
+        raise ConfigError(key, "missing; calibration capture needs a camera (e.g. 'camera: simulated')",
+                          source)
+    if value != "simulated":
+        raise ConfigError(key, f"source {value!r} is not supported by `calibrate capture` yet; "
+                          f"only 'simulated' (live camera and robot plugins are not wired in)", source)
+    return value
+
+
+def run_capture(args) -> int:
+    import numpy as np
+    import yaml
+
+    from app.errors import ConfigError
+    from calibration.board import parse_board_spec
+    from calibration.captures import CaptureWriter, collect_captures
+    from calibration.intrinsics import CameraIntrinsics, write_camera_yaml
+    from calibration.simulator import SimulatedCaptureRig, SimulationConfig, make_scene, plan_captures
+
+    if not args.config.is_file():
+        raise ConfigError("--config", f"{args.config} does not exist")
+    config = yaml.safe_load(args.config.read_text()) or {}
+    if not isinstance(config, dict):
+        raise ConfigError("(top level)", "expected a mapping", str(args.config))
+    _source_kind(config, "camera", str(args.config))
+    _source_kind(config, "robot", str(args.config))
+    if args.count < 1:
+        raise ConfigError("--count", f"must be at least 1, got {args.count}")
+    sim = SimulationConfig()
+    rng = np.random.default_rng(args.seed)
+    scene = make_scene(sim)
+    rig = SimulatedCaptureRig(scene, plan_captures(scene, args.count, rng), rng)
+    with CaptureWriter(args.out, robot=sim.robot, board=parse_board_spec(sim.board).to_string()) as w:
+        n = collect_captures(rig, rig, w, args.count, trigger=rig.move)
+    write_camera_yaml(args.out / "camera.yaml", CameraIntrinsics(sim.K, np.zeros(5), sim.width, sim.height),
+                      {"source": "simulated camera (true intrinsics)"})
+    print(f"wrote {n} captures to {args.out}")
+    return 0
+
+
+def _parse_corrupt(text: str) -> dict[int, str]:
+    from app.errors import ConfigError
+    from calibration.simulator import CORRUPTIONS
+
+    out = {}
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        try:
+            k, kind = item.split(":")
+            out[int(k)] = kind
+        except ValueError:
+            raise ConfigError("--corrupt", f"expected INDEX:KIND items, got {item!r}") from None
+        if kind not in CORRUPTIONS:
+            raise ConfigError("--corrupt", f"unknown kind {kind!r}; valid: {', '.join(CORRUPTIONS)}")
+    return out
+
+
+def run_simulate(args) -> int:
+    import numpy as np
+
+    from app.errors import ConfigError
+    from calibration.simulator import SimulationConfig, noisy, simulate_captures
+
+    corrupt = _parse_corrupt(args.corrupt)
+    if args.captures < 3:
+        raise ConfigError("--captures", f"at least 3 needed, got {args.captures}")
+    bad = [k for k in corrupt if not 0 <= k < args.captures]
+    if bad:
+        raise ConfigError("--corrupt", f"capture indices {bad} outside 0..{args.captures - 1}")
+    config = noisy() if args.noise else SimulationConfig()
+    try:
+        truth = simulate_captures(args.out, args.captures, np.random.default_rng(args.seed), config,
+                                  corrupt=corrupt)
+    except RuntimeError as exc:
+        raise ConfigError("--captures", str(exc)) from None
+    print(f"wrote {args.captures} simulated captures to {args.out} "
+          f"({'noisy' if args.noise else 'noise-free'}; truth in truth.yaml)")
+    print("true hand_eye (T_flange_camera):")
+    print(np.array2string(truth.T_flange_camera, precision=5, suppress_small=True))
+    return 0
