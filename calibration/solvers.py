@@ -41,7 +41,7 @@ opencv/opencv issue 29565, fixed by PR 29584 after that release); then the numpy
 here, written from the papers above, are used. ``backend()`` says which one runs, and
 ``backend_name="numpy"`` forces the numpy path. Cross-checked against OpenCV 4.14's
 ``calibrateHandEye``: Park, Horaud, Daniilidis, Andreff, Shah and Li agree to 1e-12 on noisy data;
-Tsai differs slightly (hundredths of a degree) because OpenCV's minimal quaternions do not fix
+Tsai differs (up to ~0.1 deg with 0.5 deg of rotation noise, equally accurate) because OpenCV's minimal quaternions do not fix
 the sign of the scalar part, while here every rotation's quaternion has w >= 0.
 """
 from __future__ import annotations

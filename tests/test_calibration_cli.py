@@ -1,0 +1,102 @@
+"""`osteonav calibrate ...` end to end on simulated captures."""
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from app.cli import main
+
+
+@pytest.fixture(scope="module")
+def captures(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cal") / "captures"
+    assert main(["calibrate", "simulate", "--out", str(root), "--captures", "10", "--seed", "1",
+                 "--corrupt", "2:blank"]) == 0
+    return root
+
+
+def test_simulate_writes_a_capture_folder(captures):
+    assert (captures / "captures.csv").read_text().splitlines()[0].startswith("capture,stamp,q0,q1")
+    assert len(list((captures / "images").glob("*.png"))) == 10
+    for name in ("camera.yaml", "capture.yaml", "truth.yaml"):
+        assert (captures / name).is_file()
+
+
+def test_intrinsics_command_writes_camera_yaml(captures, tmp_path, capsys):
+    out = tmp_path / "camera.yaml"
+    assert main(["calibrate", "intrinsics", "--images", str(captures / "images"), "--out", str(out),
+                 "--fix-k3"]) == 0
+    printed = capsys.readouterr().out
+    assert "skipped 000002.png" in printed and "px RMS" in printed
+    cam = yaml.safe_load(out.read_text())["camera"]
+    assert (cam["width"], cam["height"]) == (640, 480)
+    np.testing.assert_allclose(cam["K"], [[600, 0, 320], [0, 600, 240], [0, 0, 1]], atol=3.0)
+    assert len(cam["dist"]) == 5
+
+
+def test_hand_eye_command_writes_trial_compatible_yaml_and_rrd(captures, tmp_path, capsys):
+    out, rrd = tmp_path / "hand_eye.yaml", tmp_path / "hand_eye.rrd"
+    assert main(["calibrate", "hand-eye", "--captures", str(captures), "--out", str(out),
+                 "--rrd", str(rrd)]) == 0
+    printed = capsys.readouterr().out
+    for m in ("tsai", "park", "horaud", "andreff", "daniilidis", "robot-world", "skipped capture 2"):
+        assert m in printed
+    data = yaml.safe_load(out.read_text())
+    truth = yaml.safe_load((captures / "truth.yaml").read_text())
+    X = np.asarray(data["hand_eye"], dtype=float)
+    assert X.shape == (4, 4) and np.allclose(X[3], [0, 0, 0, 1])
+    assert np.linalg.norm(X[:3, 3] - np.asarray(truth["hand_eye"])[:3, 3]) < 1e-3
+    assert np.asarray(data["T_base_board"]).shape == (4, 4)
+    assert data["robot"] == {"model": "ur5e"} and data["camera"]["width"] == 640
+    assert [c["capture"] for c in data["captures"]] == [0, 1, 3, 4, 5, 6, 7, 8, 9]
+    assert data["skipped"][0]["capture"] == 2
+    assert set(data["methods"]) == {"tsai", "park", "horaud", "andreff", "daniilidis"}
+    assert rrd.read_bytes()[:4] == b"RRF2"
+
+
+def test_hand_eye_rrd_holds_a_frustum_per_capture(captures, tmp_path):
+    rerun = Path(shutil.which("rerun") or Path(__import__("sys").executable).parent / "rerun")
+    if not rerun.exists():
+        pytest.skip("rerun CLI not installed")
+    rrd = tmp_path / "he.rrd"
+    assert main(["calibrate", "hand-eye", "--captures", str(captures), "--out",
+                 str(tmp_path / "he.yaml"), "--rrd", str(rrd)]) == 0
+    text = subprocess.run([str(rerun), "rrd", "print", str(rrd)], capture_output=True, text=True,
+                          timeout=120).stdout
+    for k in (0, 9):
+        assert f"world/captures/{k:06d}/flange/camera/image" in text
+    assert "world/board" in text
+
+
+def test_hand_eye_without_intrinsics_names_the_option(captures, tmp_path, capsys):
+    folder = tmp_path / "nocam"
+    shutil.copytree(captures, folder)
+    (folder / "camera.yaml").unlink()
+    assert main(["calibrate", "hand-eye", "--captures", str(folder)]) == 2
+    assert "--camera" in capsys.readouterr().err
+
+
+def test_capture_from_simulated_session(tmp_path):
+    session = tmp_path / "session.yaml"
+    session.write_text("camera: simulated\nrobot: simulated\n")
+    out = tmp_path / "live"
+    assert main(["calibrate", "capture", "--config", str(session), "--out", str(out), "--count", "5"]) == 0
+    assert len((out / "captures.csv").read_text().splitlines()) == 6
+    assert main(["calibrate", "hand-eye", "--captures", str(out), "--method", "park"]) == 0
+
+
+def test_capture_with_unsupported_camera_names_the_key(tmp_path, capsys):
+    session = tmp_path / "session.yaml"
+    session.write_text("camera: {plugin: realsense}\n")
+    assert main(["calibrate", "capture", "--config", str(session), "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert "config key 'camera'" in err and "realsense" in err
+
+
+def test_bad_board_spec_is_a_config_error(captures, capsys):
+    assert main(["calibrate", "intrinsics", "--images", str(captures / "images"),
+                 "--board", "charuco:7x5:0.04"]) == 2
+    assert "--board" in capsys.readouterr().err
