@@ -1,0 +1,93 @@
+"""Bone meshes: loading, the unit check, and preparation for tracking (centring, decimation).
+
+CT-derived meshes come in millimetres more often than not; osteonav works in metres, so a mesh
+whose largest extent exceeds ``MAX_EXTENT_M`` is rejected with the fix (``--scale 0.001``), never
+silently rescaled. Decimation uses fast-simplification (quadric error metrics) down to a triangle
+budget: the tracker renders the mesh N times per frame, so its cost is linear in the triangles.
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from app.errors import MeshError
+
+log = logging.getLogger(__name__)
+
+MAX_EXTENT_M = 1.0   # no bone is a metre long: larger means millimetres
+MIN_EXTENT_M = 0.005
+
+
+def load_mesh(path: str | Path) -> trimesh.Trimesh:
+    """One triangle mesh from any file trimesh reads (a scene's geometries are merged)."""
+    path = Path(path)
+    if not path.exists():
+        raise MeshError(f"{path}: mesh file not found")
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise MeshError(f"{path}: cannot read the mesh ({exc})") from exc
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise MeshError(f"{path}: no triangles found")
+    if not np.all(np.isfinite(loaded.vertices)):
+        raise MeshError(f"{path}: vertices contain NaN or infinite values")
+    return loaded
+
+
+def check_units(mesh: trimesh.Trimesh, source: str | Path = "mesh") -> None:
+    """Raise :class:`MeshError` unless the mesh's size is plausible for a bone in metres."""
+    extent = float(np.max(mesh.extents))
+    if extent > MAX_EXTENT_M:
+        raise MeshError(f"{source}: largest extent is {extent:g}; this looks like millimetres, osteonav needs metres. "
+                        "Convert it with: osteonav prepare-mesh INPUT --out OUTPUT --scale 0.001")
+    if extent < MIN_EXTENT_M:
+        raise MeshError(f"{source}: largest extent is {extent:g} m, too small for a bone; check the units")
+
+
+def decimate(mesh: trimesh.Trimesh, max_triangles: int) -> trimesh.Trimesh:
+    """The mesh reduced to at most ``max_triangles`` (quadric decimation), or unchanged if smaller."""
+    if len(mesh.faces) <= max_triangles:
+        return mesh.copy()
+    import fast_simplification
+
+    reduction = 1.0 - max_triangles / len(mesh.faces)
+    vertices, faces = fast_simplification.simplify(np.asarray(mesh.vertices, dtype=np.float32),
+                                                   np.asarray(mesh.faces, dtype=np.int32), target_reduction=reduction)
+    out = trimesh.Trimesh(np.asarray(vertices, dtype=float), faces, process=True)
+    if len(out.faces) > max_triangles:  # the simplifier can stop a little above its target
+        vertices, faces = fast_simplification.simplify(np.asarray(out.vertices, dtype=np.float32), np.asarray(out.faces, dtype=np.int32),
+                                                       target_count=max_triangles)
+        out = trimesh.Trimesh(np.asarray(vertices, dtype=float), faces, process=True)
+    return out
+
+
+def prepare_mesh(mesh: trimesh.Trimesh, max_triangles: int = 1000, center: bool = True) -> trimesh.Trimesh:
+    """A tracking mesh: optionally centred on its bounding-box centre, decimated to the budget.
+
+    The centring offset (metres, subtracted from every vertex) is in ``mesh.metadata['centering_offset']``;
+    a plan defined on the original mesh must be moved by the same offset.
+    """
+    out = mesh.copy()
+    offset = np.zeros(3)
+    if center:
+        offset = out.bounds.mean(axis=0)
+        out.apply_translation(-offset)
+    out = decimate(out, max_triangles)
+    out.metadata["centering_offset"] = offset.tolist()
+    return out
+
+
+def outward_wound(mesh: trimesh.Trimesh) -> bool:
+    """True when triangles wind consistently and counter-clockwise seen from outside.
+
+    For an open surface (a cropped crest) "outside" is judged by the signed volume of the cone from
+    the centroid, positive when the normals point away from it.
+    """
+    if not mesh.is_winding_consistent:
+        return False
+    tri = mesh.triangles - mesh.centroid
+    signed = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum()
+    return bool(signed > 0)
