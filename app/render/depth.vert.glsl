@@ -9,7 +9,7 @@ layout(std430, binding = 0) readonly buffer Poses { mat4 T_camera_object[]; };
 
 uniform mat4 projection;     // OpenGL projection built from K (PinholeCamera.opengl_projection)
 uniform ivec2 grid;          // tiles per row, tile rows
-uniform int first_instance;  // offset into Poses (batches larger than one draw)
+uniform int first_instance;  // offset into Poses (the scene renderer draws one object per call)
 
 out float v_depth;           // linear depth: z in the OpenCV camera frame, metres
 
@@ -25,7 +25,7 @@ void main() {
     gl_ClipDistance[2] = clip.w + clip.y;
     gl_ClipDistance[3] = clip.w - clip.y;
     // Then move the tile into place: ndc_big = (ndc + 1) / grid + 2 tile / grid - 1.
-    vec2 tile = vec2(float(id % grid.x), float(id / grid.x));
+    vec2 tile = vec2(float(gl_InstanceID % grid.x), float(gl_InstanceID / grid.x));
     vec2 scale = 1.0 / vec2(grid);
     clip.xy = (clip.xy + clip.w) * scale + (2.0 * tile * scale - 1.0) * clip.w;
     gl_Position = clip;
