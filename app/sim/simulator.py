@@ -13,7 +13,7 @@ visible bone pixels) and ``simulation.yaml`` (scenario, seed, the true hand-eye)
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -115,7 +115,7 @@ class _GraftCut:
         return out
 
 
-def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name: str = "static_occluded",
+def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name: str | Scenario = "static_occluded",
              seconds: float | None = None, seed: int = 0, overwrite: bool = False,
              camera: PinholeCamera = D415_640x480, progress=None) -> SimulationSummary:
     """Simulate ``scenario_name`` and write the trial to ``out`` (see the module docstring)."""
@@ -125,7 +125,10 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
     from app.trial.meta import TrialMeta
     from app.trial.writer import TrialWriter
 
-    scenario = get_scenario(scenario_name, seconds)
+    if isinstance(scenario_name, Scenario):
+        scenario = replace(scenario_name, seconds=seconds) if seconds else scenario_name
+    else:
+        scenario = get_scenario(scenario_name, seconds)
     rng = np.random.default_rng(seed)
     mesh_path = Path(mesh_path) if mesh_path else DEFAULT_MESH
     bone = load_mesh(mesh_path)

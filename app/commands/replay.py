@@ -1,0 +1,33 @@
+"""``osteonav replay TRIAL --out DIR [--config FILE] [--realtime]``: track a recorded trial."""
+from __future__ import annotations
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("replay", help="run the tracker over a recorded trial and evaluate it")
+    p.add_argument("trial", help="trial directory (RECORDING_FORMAT.md)")
+    p.add_argument("--out", required=True, help="output directory: estimate.txt, status.csv, summary.json, log.rrd")
+    p.add_argument("--config", help="tracker YAML (default: configs/default.yaml's values)")
+    p.add_argument("--realtime", action="store_true", help="pace frames at their recorded stamps")
+    p.add_argument("--no-rrd", action="store_true", help="do not write log.rrd")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from tqdm import tqdm
+
+    from app.config import load_config
+    from app.pipeline.replay import replay
+    from app.pipeline.report import print_summary
+
+    config = load_config(args.config)
+    bar = tqdm(desc="replay", unit="frame")
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    result = replay(args.trial, args.out, config, realtime=args.realtime, rrd=not args.no_rrd, progress=progress)
+    bar.close()
+    print_summary(result.summary)
+    print(f"outputs in {args.out} (estimate.txt, status.csv, summary.json{', log.rrd' if not args.no_rrd else ''})")
+    return 0

@@ -1,0 +1,24 @@
+"""``osteonav view TRIAL [--save FILE.rrd]``: a recorded trial in rerun.
+
+Logs the camera (pinhole and depth image), the flange path, the bone mesh at the ground truth and
+the simulator's occlusion fraction when present, on timelines ``stamp`` and ``frame``, with the
+default blueprint. Without ``--save`` it spawns the viewer.
+"""
+from __future__ import annotations
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("view", help="log a recorded trial to rerun (viewer or .rrd file)")
+    p.add_argument("trial", help="trial directory")
+    p.add_argument("--save", metavar="FILE.rrd", help="write a .rrd file instead of spawning the viewer")
+    p.add_argument("--every", type=int, default=1, help="log every n-th depth image (default 1)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from app.viz.trial_view import log_trial
+
+    frames = log_trial(args.trial, save=args.save, every=args.every)
+    if args.save:
+        print(f"wrote {frames} frames to {args.save}; open it with: rerun {args.save}")
+    return 0

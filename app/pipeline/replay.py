@@ -1,0 +1,153 @@
+"""``osteonav replay``: the application loop over a recorded trial.
+
+For each frame: the joints interpolated at the frame's stamp give ``T_base_camera`` (FK and the
+trial's hand-eye); the depth image is reduced to the filter's resolution; the particle filter
+(started at the trial's ``initial_pose``) steps; the estimate goes to the sinks. Writes, in ``out``:
+
+- ``estimate.txt``: TUM, the bone in the robot base frame, one row per processed frame;
+- ``status.csv``: ``stamp,status`` per processed frame (RECORDING_FORMAT.md);
+- ``summary.json``: frames, processing rate and, with ground truth, ADD / translation / rotation
+  errors (median, p95, max), the lost fraction and the dangerous frames (status ok, error > 5 mm);
+- ``log.rrd``: camera and depth, the mesh at the estimate and the ground truth, particles, plots.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from app import metrics
+from app.config import TrackerConfig, load_config
+from app.pipeline.tracker import DepthTracker
+
+log = logging.getLogger(__name__)
+
+LOST_ADD_M = 0.010       # a frame whose ADD exceeds 10 mm counts as lost (issue 3's definition)
+DANGEROUS_ADD_M = 0.005  # status ok while ADD > 5 mm: the dangerous case
+
+
+@dataclass
+class ReplayResult:
+    summary: dict
+    stamps: np.ndarray
+    T_base_bone: np.ndarray
+    statuses: list[str]
+    errors: dict = field(default_factory=dict)
+
+
+def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerConfig | None = None,
+           realtime: bool = False, rrd: bool = True, progress=None, max_frames: int | None = None) -> ReplayResult:
+    """Run the tracker over a trial; write the outputs listed in the module docstring to ``out_dir``."""
+    from app.trial.reader import open_trial
+    from app.trial.tum import write_status_csv, write_tum
+
+    config = config or load_config(None)
+    reader = open_trial(trial_dir)
+    if reader.meta.initial_pose is None:
+        from app.errors import TrialFormatError
+
+        raise TrialFormatError(Path(trial_dir) / "trial.yaml", "replay needs 'initial_pose' to start the filter (none given)")
+    mesh = reader.load_mesh()
+    tracker = DepthTracker(config, mesh, reader.meta.camera)
+    tracker.start(reader.meta.initial_pose)
+    T_base_camera, pose_valid = reader.camera_poses()
+    out = Path(out_dir) if out_dir else None
+    sink = None
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        if rrd:
+            from app.viz.rerun_log import RerunLog
+
+            sink = RerunLog.to_file(out / "log.rrd")
+            sink.log_static_scene(reader.meta.camera, tracker.mesh_vertices, tracker.mesh_faces,
+                                  with_groundtruth=reader.groundtruth is not None)
+    points = np.asarray(mesh.vertices)
+    stamps, estimates, statuses, add_mm, trans_mm, rot_deg = [], [], [], [], [], []
+    t_start = time.perf_counter()
+    wall0, stamp0 = time.perf_counter(), None
+    n_total = len(reader.stamps) if max_frames is None else min(max_frames, len(reader.stamps))
+    for frame in reader.iter_frames():
+        i = frame.index
+        if i >= n_total:
+            break
+        if realtime:
+            stamp0 = frame.stamp if stamp0 is None else stamp0
+            delay = (frame.stamp - stamp0) - (time.perf_counter() - wall0)
+            if delay > 0:
+                time.sleep(delay)
+        result = tracker.process(frame.depth_m, frame.stamp, T_base_camera[i] if pose_valid[i] else None)
+        stamps.append(frame.stamp)
+        estimates.append(result.T_base_bone)
+        statuses.append(result.status)
+        if reader.groundtruth is not None:
+            T_gt = reader.groundtruth[i]
+            add_mm.append(1e3 * metrics.add(result.T_base_bone, T_gt, points))
+            trans_mm.append(1e3 * metrics.translation_error(result.T_base_bone, T_gt))
+            rot_deg.append(np.rad2deg(metrics.rotation_error(result.T_base_bone, T_gt)))
+        if sink is not None:
+            _log_frame(sink, frame, T_base_camera[i] if pose_valid[i] else None, result, tracker,
+                       reader.groundtruth[i] if reader.groundtruth is not None else None,
+                       add_mm[-1] if add_mm else None, rot_deg[-1] if rot_deg else None)
+        if progress:
+            progress(i + 1, n_total)
+    elapsed = time.perf_counter() - t_start
+    T_est = np.array(estimates)
+    summary = _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_deg, elapsed)
+    if out is not None:
+        write_tum(out / "estimate.txt", np.array(stamps), T_est)
+        write_status_csv(out / "status.csv", np.array(stamps), statuses)
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    if sink is not None:
+        sink.close()
+    tracker.release()
+    return ReplayResult(summary, np.array(stamps), T_est, statuses,
+                        {"add_mm": np.array(add_mm), "trans_mm": np.array(trans_mm), "rot_deg": np.array(rot_deg)})
+
+
+def _log_frame(sink, frame, T_base_camera, result, tracker, T_gt, add_mm, rot_deg) -> None:
+    sink.set_frame(frame.frame_id, frame.stamp)
+    T_base_flange = T_base_camera @ np.linalg.inv(tracker.T_flange_camera) if T_base_camera is not None and tracker.T_flange_camera is not None else None
+    sink.log_camera(T_base_flange, T_base_camera, frame.depth_m if frame.index % 3 == 0 else None)
+    sink.log_bone("estimate", result.T_base_bone if result.status != "lost" else None)
+    if T_gt is not None:
+        sink.log_bone("groundtruth", T_gt)
+    sink.log_particles(tracker.particle_positions())
+    sink.log_scalar("ess_ratio", result.ess_ratio)
+    sink.log_scalar("log_likelihood_max", result.log_likelihood_max)
+    sink.log_scalar("spread/position_mm", 1e3 * result.position_spread)
+    sink.log_scalar("spread/rotation_deg", np.rad2deg(result.rotation_spread))
+    sink.log_scalar("status", {"ok": 0, "uncertain": 1, "lost": 2}.get(result.status, 2))
+    if add_mm is not None:
+        sink.log_scalar("error/add_mm", add_mm)
+        sink.log_scalar("error/rotation_deg", rot_deg)
+
+
+def _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_deg, elapsed) -> dict:
+    n = len(stamps)
+    summary = {
+        "trial": str(reader.path),
+        "frames": n,
+        "seconds_of_data": float(stamps[-1] - stamps[0]) if n > 1 else 0.0,
+        "processing_rate_hz": n / elapsed if elapsed > 0 else float("nan"),
+        "particles": config.particles,
+        "resolution": list(config.resolution),
+        "sampling": config.sampling,
+        "gl": tracker.gl_description,
+        "status_fraction": {s: statuses.count(s) / n if n else 0.0 for s in ("ok", "uncertain", "lost")},
+        "timings_ms": tracker.mean_timings_ms(),
+    }
+    if add_mm:
+        add = np.array(add_mm)
+        ok = np.array([s == "ok" for s in statuses])
+        summary.update({
+            "add_mm": metrics.summarise(add),
+            "translation_mm": metrics.summarise(trans_mm),
+            "rotation_deg": metrics.summarise(rot_deg),
+            "lost_fraction": float(np.mean(add > 1e3 * LOST_ADD_M)),
+            "dangerous_frames": int(np.sum(ok & (add > 1e3 * DANGEROUS_ADD_M))),
+        })
+    return summary

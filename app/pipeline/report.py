@@ -1,0 +1,29 @@
+"""Human-readable tables of replay summaries (commands print them; the library does not)."""
+from __future__ import annotations
+
+
+def summary_rows(summary: dict) -> list[tuple[str, str]]:
+    rows = [
+        ("frames", f"{summary['frames']}"),
+        ("processing rate", f"{summary['processing_rate_hz']:.1f} frames/s  ({summary.get('gl', '?')})"),
+        ("particles / resolution", f"{summary['particles']} at {summary['resolution'][0]}x{summary['resolution'][1]}, {summary['sampling']}"),
+    ]
+    if "add_mm" in summary:
+        a, t, r = summary["add_mm"], summary["translation_mm"], summary["rotation_deg"]
+        rows += [
+            ("ADD mm (median / p95 / max)", f"{a['median']:.2f} / {a['p95']:.2f} / {a['max']:.2f}"),
+            ("translation mm", f"{t['median']:.2f} / {t['p95']:.2f} / {t['max']:.2f}"),
+            ("rotation deg", f"{r['median']:.2f} / {r['p95']:.2f} / {r['max']:.2f}"),
+            ("lost (ADD > 10 mm)", f"{100 * summary['lost_fraction']:.1f} %"),
+            ("dangerous (ok, ADD > 5 mm)", f"{summary['dangerous_frames']} frames"),
+        ]
+    s = summary["status_fraction"]
+    rows.append(("status ok / uncertain / lost", f"{100 * s['ok']:.0f} / {100 * s['uncertain']:.0f} / {100 * s['lost']:.0f} %"))
+    return rows
+
+
+def print_summary(summary: dict) -> None:
+    rows = summary_rows(summary)
+    width = max(len(k) for k, _ in rows)
+    for key, value in rows:
+        print(f"  {key:<{width}}  {value}")
