@@ -105,9 +105,9 @@ class BatchedDepthRenderer:
         self.poses = ctx.buffer(reserve=64 * self.capacity)
         self.depth_texture = ctx.texture(size, 1, dtype="f4")
         self.depth_texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
-        self.label_texture = ctx.texture(size, 1, dtype="f4")
         self.zbuffer = ctx.depth_renderbuffer(size)
-        self.fbo = ctx.framebuffer(color_attachments=[self.depth_texture, self.label_texture], depth_attachment=self.zbuffer)
+        # depth only: the fragment shader's label output has no attachment here and is discarded
+        self.fbo = ctx.framebuffer(color_attachments=[self.depth_texture], depth_attachment=self.zbuffer)
         self.n_rendered = 0
 
     @property
@@ -148,6 +148,6 @@ class BatchedDepthRenderer:
 
     def release(self) -> None:
         unbind_framebuffer(self.ctx)
-        for obj in (self.fbo, self.zbuffer, self.depth_texture, self.label_texture, self.poses, self.program):
+        for obj in (self.fbo, self.zbuffer, self.depth_texture, self.poses, self.program):
             obj.release()
         self.mesh.release()

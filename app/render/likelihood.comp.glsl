@@ -10,6 +10,9 @@ layout(local_size_x = LOCAL_SIZE) in;
 layout(binding = 0) uniform sampler2D rendered;   // tiled linear depth, GL row order, 0 = not covered
 layout(binding = 1) uniform sampler2D measured;   // h x w measured depth in image row order, <= 0 = invalid
 layout(std430, binding = 2) writeonly buffer LogLikelihood { float log_likelihood[]; };
+// Per particle, the image-space box (u0, v0, u1, v1), inclusive, that holds its whole rendering
+// (projected bounding box of the mesh, clamped to the tile): pixels outside it are not covered.
+layout(std430, binding = 3) readonly buffer Boxes { ivec4 box[]; };
 
 uniform float z_max;        // m, range of the uniform outlier density p_u = 1 / z_max
 uniform float lam;          // 1/m, rate of the occlusion exponential
@@ -77,11 +80,14 @@ void main() {
     uint particle = gl_WorkGroupID.x;
     uint lid = gl_LocalInvocationID.x;
     ivec2 tile_origin = ivec2(int(particle % uint(GRID_X)) * TILE_W, int(particle / uint(GRID_X)) * TILE_H);
+    ivec4 b = box[particle];
+    int box_w = max(b.z - b.x + 1, 0);
+    int box_h = max(b.w - b.y + 1, 0);
     float sum = 0.0;
     float count = 0.0;
-    for (uint i = lid; i < uint(TILE_W * TILE_H); i += uint(LOCAL_SIZE)) {
-        int u = int(i % uint(TILE_W));
-        int v = int(i / uint(TILE_W));
+    for (uint i = lid; i < uint(box_w * box_h); i += uint(LOCAL_SIZE)) {
+        int u = b.x + int(i % uint(box_w));
+        int v = b.y + int(i / uint(box_w));
         // GL rows run bottom-up inside the tile: image row v is tile row TILE_H - 1 - v.
         float z_star = texelFetch(rendered, tile_origin + ivec2(u, TILE_H - 1 - v), 0).r;
         if (z_star <= 0.0) continue;  // pose does not cover this pixel: log 1 = 0

@@ -75,6 +75,8 @@ class GLLikelihoodBackend:
         self.measured = ctx.texture((camera.width, camera.height), 1, dtype="f4")
         self.measured.filter = (moderngl.NEAREST, moderngl.NEAREST)
         self.output = ctx.buffer(reserve=4 * capacity)
+        self.boxes = ctx.buffer(reserve=16 * capacity)
+        self.corners_bone = bounding_box_corners(vertices)
         self.timings: dict[str, float] = {}
 
     def _set_uniforms(self, p: LikelihoodParams) -> None:
@@ -119,6 +121,8 @@ class GLLikelihoodBackend:
         self.renderer.depth_texture.use(location=0)
         self.measured.use(location=1)
         self.output.bind_to_storage_buffer(2)
+        self.boxes.write(image_boxes(self.camera, T_camera_bone, self.corners_bone).tobytes())
+        self.boxes.bind_to_storage_buffer(3)
         self.shader.run(group_x=n)
         t = self._mark("likelihood", t)
         values = np.frombuffer(self.output.read(size=4 * n), dtype=np.float32).astype(np.float64)
@@ -132,6 +136,38 @@ class GLLikelihoodBackend:
 
     def release(self) -> None:
         self.renderer.release()
-        for obj in (self.shader, self.measured, self.output):
+        for obj in (self.shader, self.measured, self.output, self.boxes):
             obj.release()
 
+
+
+def bounding_box_corners(vertices: np.ndarray) -> np.ndarray:
+    """(8, 3) corners of the axis-aligned bounding box of the mesh (bone frame)."""
+    lo, hi = np.min(vertices, axis=0), np.max(vertices, axis=0)
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+def image_boxes(camera: PinholeCamera, T_camera_bone: np.ndarray, corners_bone: np.ndarray,
+                min_depth: float = 1e-3) -> np.ndarray:
+    """(N, 4) int32 pixel boxes (u0, v0, u1, v1), inclusive, holding each pose's whole rendering.
+
+    The projection of the bounding box's corners bounds the mesh's projection when every corner is
+    in front of the camera; otherwise the box is the whole image (conservative). Empty boxes
+    (u1 < u0) mean the pose covers no pixel.
+    """
+    p = np.einsum("nij,kj->nki", T_camera_bone[:, :3, :3], corners_bone) + T_camera_bone[:, None, :3, 3]
+    z = p[..., 2]
+    in_front = np.all(z > min_depth, axis=1)
+    zs = np.where(z > min_depth, z, 1.0)
+    u = camera.fx * p[..., 0] / zs + camera.cx
+    v = camera.fy * p[..., 1] / zs + camera.cy
+    boxes = np.stack([np.floor(u.min(1)), np.floor(v.min(1)), np.ceil(u.max(1)), np.ceil(v.max(1))], axis=1)
+    boxes[~in_front] = [0, 0, camera.width - 1, camera.height - 1]
+    lo = np.array([0, 0, 0, 0])
+    hi = np.array([camera.width - 1, camera.height - 1, camera.width - 1, camera.height - 1])
+    boxes = np.clip(boxes, lo - 1, hi + 1)
+    boxes[:, :2] = np.maximum(boxes[:, :2], 0)
+    boxes[:, 2:] = np.minimum(boxes[:, 2:], hi[2:])
+    all_behind = np.all(z <= min_depth, axis=1)
+    boxes[all_behind] = [0, 0, -1, -1]
+    return np.ascontiguousarray(boxes.astype(np.int32))
