@@ -4,11 +4,11 @@
 set -euo pipefail
 VENV=${1:-.venv}
 PYTHON=${PYTHON:-python3}
-SYS_PKGS="libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libgbm1"
+SYS_PKGS="libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libusb-1.0-0"
 
 have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
 missing=0
-for lib in libEGL.so.1 libGL.so.1 libEGL_mesa.so.0; do
+for lib in libEGL.so.1 libGL.so.1 libEGL_mesa.so.0 libusb-1.0.so.0; do
     have_lib "$lib" || { echo "setup: $lib not found"; missing=1; }
 done
 if [ "$missing" = 1 ]; then
@@ -16,7 +16,7 @@ if [ "$missing" = 1 ]; then
         echo "setup: installing Mesa EGL/OpenGL: apt-get install -y $SYS_PKGS"
         apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $SYS_PKGS
     else
-        echo "setup: the OpenGL/EGL libraries are missing. Install them with:" >&2
+        echo "setup: system libraries are missing (Mesa OpenGL/EGL for moderngl, libusb for Open3D). Install them with:" >&2
         echo "    sudo apt-get install -y $SYS_PKGS" >&2
         exit 1
     fi
