@@ -1,0 +1,142 @@
+"""Tracking status ok / uncertain / lost, from the filter's own evidence.
+
+Import as ``from app.filter import status``. The projector must never show a confident template on
+a lost track (DESIGN.md "Output"), so the rules err towards caution. The status is per frame (it
+does not latch): a track that regains evidence returns to ok.
+
+Inputs (:class:`StatusInputs`): the particle spread (position m, rotation rad,
+:mod:`app.filter.estimate`), the ESS ratio, the fraction of the estimate's rendered pixels with a
+valid measurement that are inliers (|z - z*| < 3 σ(z*), :func:`app.filter.likelihood_ref.inlier_mask`,
+computed by the caller), the number of those pixels, the number of NaN log-likelihoods this frame,
+the seconds since the last frame with a camera pose, and whether this frame was weighed.
+
+Rules, first match wins (defaults in :class:`StatusThresholds`):
+
+LOST if
+- no camera pose for more than ``lost_no_pose_s`` = 0.5 s (the robot's data stopped), or
+- position spread > ``lost_position_spread`` = 10 mm, or rotation spread > ``lost_rotation_spread`` = 10°, or
+- every likelihood was NaN (n_nan >= n_particles), or
+- the frame was weighed, the estimate covers at least ``min_covered_pixels`` valid pixels and
+  fewer than ``lost_inlier_fraction`` = 20 % of them are inliers (the bone is not where we think:
+  a full occlusion, or a lost track).
+UNCERTAIN if
+- the frame had no camera pose or no valid depth (prediction only), or
+- position spread > ``uncertain_position_spread`` = 3 mm, or rotation spread > ``uncertain_rotation_spread`` = 2°, or
+- fewer than ``uncertain_inlier_fraction`` = 50 % inliers, or
+- fewer than ``min_covered_pixels`` = 30 covered valid pixels (the bone left the view or is
+  hidden behind invalid pixels: too little evidence, at 80x60 the crest covers a few hundred), or
+- any NaN log-likelihood, or
+- ESS / N < ``min_ess_ratio`` (default 0: disabled; peaked likelihoods make small ESS normal).
+OK otherwise.
+
+The thresholds of 3 mm / 2° follow the clinical accuracy the navigation needs (a template
+misplaced by more than a few millimetres is not useful); 10 mm matches the replay's definition of
+a lost frame (ADD > 10 mm, app/pipeline/replay.py).
+"""
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+LOST_NO_POSE_S = 0.5
+LOST_POSITION_SPREAD_M = 0.010
+LOST_ROTATION_SPREAD_RAD = math.radians(10.0)
+LOST_INLIER_FRACTION = 0.2
+UNCERTAIN_POSITION_SPREAD_M = 0.003
+UNCERTAIN_ROTATION_SPREAD_RAD = math.radians(2.0)
+UNCERTAIN_INLIER_FRACTION = 0.5
+MIN_COVERED_PIXELS = 30
+MIN_ESS_RATIO = 0.0
+
+
+class TrackingStatus(enum.StrEnum):
+    """The status shown to the surgeon; compares equal to its string value ('ok', ...)."""
+
+    OK = "ok"
+    UNCERTAIN = "uncertain"
+    LOST = "lost"
+
+
+@dataclass
+class StatusThresholds:
+    """Thresholds of the rules in the module docstring (metres, radians, seconds, fractions)."""
+
+    lost_no_pose_s: float = LOST_NO_POSE_S
+    lost_position_spread: float = LOST_POSITION_SPREAD_M
+    lost_rotation_spread: float = LOST_ROTATION_SPREAD_RAD
+    lost_inlier_fraction: float = LOST_INLIER_FRACTION
+    uncertain_position_spread: float = UNCERTAIN_POSITION_SPREAD_M
+    uncertain_rotation_spread: float = UNCERTAIN_ROTATION_SPREAD_RAD
+    uncertain_inlier_fraction: float = UNCERTAIN_INLIER_FRACTION
+    min_covered_pixels: int = MIN_COVERED_PIXELS
+    min_ess_ratio: float = MIN_ESS_RATIO
+
+
+@dataclass
+class StatusInputs:
+    """What the classifier looks at (module docstring).
+
+    position_spread : m; rotation_spread : rad; ess_ratio : ESS / N in (0, 1]
+    inlier_fraction : inliers / covered valid pixels of the estimate (NaN when none)
+    covered_pixels : the estimate's covered pixels with a valid measurement
+    n_nan : NaN log-likelihoods this frame; n_particles : N
+    weighed : the frame had a camera pose and depth and was weighed
+    seconds_without_pose : since the last frame that had a camera pose (0 when this one has)
+    """
+
+    position_spread: float
+    rotation_spread: float
+    ess_ratio: float
+    inlier_fraction: float
+    covered_pixels: int
+    n_nan: int
+    n_particles: int
+    weighed: bool
+    seconds_without_pose: float
+
+
+def lost_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
+    """The LOST rules that fire (empty when none)."""
+    reasons = []
+    if s.seconds_without_pose > t.lost_no_pose_s:
+        reasons.append(f"no camera pose for {s.seconds_without_pose:.2f} s")
+    if not s.position_spread <= t.lost_position_spread:
+        reasons.append(f"position spread {1e3 * s.position_spread:.1f} mm")
+    if not s.rotation_spread <= t.lost_rotation_spread:
+        reasons.append(f"rotation spread {math.degrees(s.rotation_spread):.1f} deg")
+    if s.n_particles > 0 and s.n_nan >= s.n_particles:
+        reasons.append("every log-likelihood was NaN")
+    if s.weighed and s.covered_pixels >= t.min_covered_pixels and s.inlier_fraction < t.lost_inlier_fraction:
+        reasons.append(f"inlier fraction {s.inlier_fraction:.2f}")
+    return reasons
+
+
+def uncertain_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
+    """The UNCERTAIN rules that fire (empty when none)."""
+    reasons = []
+    if not s.weighed:
+        reasons.append("prediction only (no camera pose or no valid depth)")
+    if s.position_spread > t.uncertain_position_spread:
+        reasons.append(f"position spread {1e3 * s.position_spread:.1f} mm")
+    if s.rotation_spread > t.uncertain_rotation_spread:
+        reasons.append(f"rotation spread {math.degrees(s.rotation_spread):.1f} deg")
+    if s.weighed and not s.inlier_fraction >= t.uncertain_inlier_fraction:
+        reasons.append(f"inlier fraction {s.inlier_fraction:.2f}")
+    if s.weighed and s.covered_pixels < t.min_covered_pixels:
+        reasons.append(f"{s.covered_pixels} covered valid pixels")
+    if s.n_nan > 0:
+        reasons.append(f"{s.n_nan} NaN log-likelihoods")
+    if s.ess_ratio < t.min_ess_ratio:
+        reasons.append(f"ESS ratio {s.ess_ratio:.3f}")
+    return reasons
+
+
+def classify(s: StatusInputs, t: StatusThresholds | None = None) -> TrackingStatus:
+    """OK / UNCERTAIN / LOST by the rules of the module docstring."""
+    t = t or StatusThresholds()
+    if lost_reasons(s, t):
+        return TrackingStatus.LOST
+    if uncertain_reasons(s, t):
+        return TrackingStatus.UNCERTAIN
+    return TrackingStatus.OK
