@@ -1,0 +1,271 @@
+"""The particle filter stepper: one call per frame through named stages.
+
+Import as ``from app.filter.particle_filter import ParticleFilter``. DESIGN.md "The particle
+filter"; the particles are poses ``T_base_bone`` (:mod:`app.filter.motion`), the likelihood comes
+from a :class:`LikelihoodBackend` (the GL one in ``app/render/likelihood.py``, or any object with
+the same two methods), which sees ``T_camera_bone = inv(T_base_camera) @ T_base_bone``.
+
+``step(depth, stamp, T_base_camera)``, with ΔT = stamp - previous stamp (``first_dt`` = 1/90 s on
+the first frame; a dropped frame simply doubles ΔT; a non-increasing stamp gives ΔT = 0):
+
+- sampling 'joint': predict (p, v, q, ω) → likelihood → weight → [resample]
+- sampling 'blockwise' ((B) 7.2.3): predict (p, v) → likelihood → weight → [resample] →
+  predict (q, ω) → likelihood → weight → [resample]
+- weight: lw += log p(z | x) (NaN or +inf values set to -inf in the filter's copy and counted),
+  normalised with log-sum-exp; if every weight is -inf the weights are reset to uniform (logged).
+- resample when ESS / N < ``resample_threshold`` ((B): 0.5) with the configured scheme
+  (:mod:`app.filter.resampling`); the estimate is taken from the weighted particles of the last
+  weighing, before that resampling (less noise).
+- estimate: weighted mean pose and spread (:mod:`app.filter.estimate`); the estimate is rendered
+  once more for the inlier fraction; status by :mod:`app.filter.status`.
+
+A frame without a camera pose (None) or without any valid depth pixel is predicted only; its
+status is at best uncertain. ``FilterOutput.timings`` gives seconds per stage: predict,
+likelihood (render + likelihood in the backend), weight, resample, estimate.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from app.filter import likelihood_ref
+from app.filter import motion
+from app.filter import resampling as rs
+from app.filter import weights as lw_ops
+from app.filter.estimate import PoseEstimate, estimate
+from app.filter.likelihood_ref import LikelihoodParams
+from app.filter.motion import MotionParams, ParticleState
+from app.filter.status import StatusInputs, StatusThresholds, TrackingStatus, classify
+from app.geometry import se3
+
+log = logging.getLogger(__name__)
+
+SAMPLING_MODES = ("joint", "blockwise")
+STAGES = ("predict", "likelihood", "weight", "resample", "estimate")
+
+
+class LikelihoodBackend(Protocol):
+    """Scores N pose hypotheses against one measured depth image (filter resolution h x w)."""
+
+    def log_likelihood(self, T_camera_bone: np.ndarray, depth_meas: np.ndarray) -> np.ndarray:
+        """(N, 4, 4) float64 poses, (h, w) float32 metres -> (N,) float64 log p(z | x_j)."""
+        ...
+
+    def render_depth(self, T_camera_bone: np.ndarray) -> np.ndarray:
+        """(N, 4, 4) poses -> (N, h, w) float32 linear depth, 0 = not covered."""
+        ...
+
+
+@dataclass
+class FilterConfig:
+    """Settings of the filter (``app.config.TrackerConfig`` extends this with the renderer's).
+
+    particles : N; sampling : 'joint' | 'blockwise'; resample_threshold : ESS/N below which to
+    resample; resampling : scheme name; first_dt : s, ΔT of the first frame; init_sigma_p (m) /
+    init_sigma_r (rad) : spread of :meth:`ParticleFilter.initialise`.
+    """
+
+    particles: int = 200
+    sampling: str = "joint"
+    resample_threshold: float = 0.5
+    resampling: str = rs.DEFAULT_SCHEME
+    first_dt: float = 1.0 / 90.0
+    init_sigma_p: float = 0.005
+    init_sigma_r: float = 0.05
+    motion: MotionParams = field(default_factory=MotionParams)
+    likelihood: LikelihoodParams = field(default_factory=LikelihoodParams)
+    status: StatusThresholds = field(default_factory=StatusThresholds)
+
+
+@dataclass
+class FilterOutput:
+    """One frame's result.
+
+    T_base_bone : (4, 4) weighted mean pose; position_spread (m); rotation_spread (rad);
+    ess : effective sample size after the last weighing (N when not weighed); ess_ratio : ess / N;
+    log_likelihood_max : max finite log-likelihood of the last weighing (NaN when not weighed);
+    status : TrackingStatus (a str); inlier_fraction : inliers / valid covered pixels of the
+    estimate (NaN when none); covered_pixels : that count; n_nan : NaN log-likelihoods this frame;
+    resampled : whether any block resampled; dt : s; weighed : whether the depth was used;
+    timings : seconds per stage (STAGES).
+    """
+
+    T_base_bone: np.ndarray
+    position_spread: float
+    rotation_spread: float
+    ess: float
+    ess_ratio: float
+    log_likelihood_max: float
+    status: TrackingStatus
+    inlier_fraction: float
+    covered_pixels: int
+    n_nan: int
+    resampled: bool
+    dt: float
+    weighed: bool
+    timings: dict[str, float]
+
+
+class ParticleFilter:
+    """The stepper (module docstring).
+
+    Parameters
+    ----------
+    config : FilterConfig (or TrackerConfig)
+    backend : LikelihoodBackend
+    rng : np.random.Generator, the only source of randomness
+    """
+
+    def __init__(self, config: FilterConfig, backend: LikelihoodBackend, rng: np.random.Generator):
+        if config.sampling not in SAMPLING_MODES:
+            raise ValueError(f"unknown sampling {config.sampling!r}; valid: {', '.join(SAMPLING_MODES)}")
+        rs.check_scheme(config.resampling)
+        self.config = config
+        self.backend = backend
+        self.rng = rng
+        self.state: ParticleState | None = None
+        self._first_stamp: float | None = None
+        self._last_stamp: float | None = None
+        self._last_pose_stamp: float | None = None
+
+    # -- initialisation ---------------------------------------------------------------------
+    def initialise(self, T_base_bone: np.ndarray, sigma_p: float | None = None,
+                   sigma_r: float | None = None) -> None:
+        """Particles around a coarse pose (defaults: config.init_sigma_p / init_sigma_r)."""
+        c = self.config
+        self.set_state(motion.initialise(T_base_bone, c.particles, c.init_sigma_p if sigma_p is None else sigma_p,
+                                         c.init_sigma_r if sigma_r is None else sigma_r, self.rng))
+
+    def set_state(self, state: ParticleState) -> None:
+        """Start from a given particle set (e.g. the single-point SMC initialiser's result)."""
+        self.state = state
+        self._first_stamp = None
+        self._last_stamp = None
+        self._last_pose_stamp = None
+
+    # -- stages -----------------------------------------------------------------------------
+    def _dt(self, stamp: float) -> float:
+        if not np.isfinite(stamp):
+            raise ValueError(f"frame stamp must be finite, got {stamp}")
+        if self._last_stamp is None:
+            return self.config.first_dt
+        dt = stamp - self._last_stamp
+        if dt <= 0:
+            log.warning("non-increasing frame stamp (%.6f after %.6f): predicting with dt = 0", stamp, self._last_stamp)
+            return 0.0
+        return dt
+
+    def _weigh(self, T_camera_base: np.ndarray, depth: np.ndarray, timings: dict) -> tuple[float, int]:
+        """lw += log p(z | x); returns (max finite log-likelihood, NaN count)."""
+        t = time.perf_counter()
+        log_lik = np.asarray(self.backend.log_likelihood(T_camera_base @ self.state.poses(), depth), dtype=float)
+        t = _tick(timings, "likelihood", t)
+        bad = lw_ops.nonfinite_mask(log_lik)
+        n_nan = int(bad.sum())
+        if n_nan:
+            log.warning("%d of %d log-likelihoods are NaN or +inf: weighted as -inf", n_nan, len(log_lik))
+            log_lik = np.where(bad, -np.inf, log_lik)
+        finite = log_lik[np.isfinite(log_lik)]
+        ll_max = float(finite.max()) if finite.size else float("nan")
+        lw = self.state.lw + log_lik
+        if lw_ops.log_sum_exp(lw) == -np.inf:
+            log.warning("every particle weight is zero after weighing: weights reset to uniform")
+            lw = lw_ops.uniform_log_weights(len(lw))
+        self.state.lw = lw_ops.normalise_log_weights(lw)
+        _tick(timings, "weight", t)
+        return ll_max, n_nan
+
+    def _maybe_resample(self, timings: dict) -> bool:
+        t = time.perf_counter()
+        ess = lw_ops.ess(self.state.lw)
+        resampled = ess < self.config.resample_threshold * self.state.n
+        if resampled:
+            self.state = self.state.take(rs.resample(self.config.resampling, self.state.lw, self.rng))
+        _tick(timings, "resample", t)
+        return resampled
+
+    def _predict(self, block: str, dt: float, timings: dict) -> None:
+        t = time.perf_counter()
+        fn = {"joint": motion.predict, "position": motion.predict_position,
+              "orientation": motion.predict_orientation}[block]
+        self.state = fn(self.state, dt, self.config.motion, self.rng)
+        _tick(timings, "predict", t)
+
+    # -- one frame --------------------------------------------------------------------------
+    def step(self, depth_meas: np.ndarray | None, stamp: float, T_base_camera: np.ndarray | None) -> FilterOutput:
+        """Process one frame (module docstring).
+
+        Parameters
+        ----------
+        depth_meas : (h, w) float32 metres at the backend's resolution (0 / non-finite invalid), or None
+        stamp : s, the frame's time stamp
+        T_base_camera : (4, 4) camera pose in the base frame at the stamp, or None when unknown
+        """
+        if self.state is None:
+            raise RuntimeError("ParticleFilter.step needs particles: call initialise(T_base_bone) or set_state() first")
+        timings = dict.fromkeys(STAGES, 0.0)
+        dt = self._dt(stamp)
+        self._last_stamp = stamp
+        if self._first_stamp is None:
+            self._first_stamp = stamp
+        if T_base_camera is not None:
+            self._last_pose_stamp = stamp
+        has_depth = depth_meas is not None and bool(np.any(likelihood_ref.valid_measurement(depth_meas, self.config.likelihood)))
+        weighed = T_base_camera is not None and has_depth
+        ll_max, n_nan, resampled = float("nan"), 0, False
+        ess = float(self.state.n)
+        if not weighed:
+            self._predict("joint", dt, timings)
+            ess = lw_ops.ess(self.state.lw)
+        else:
+            T_camera_base = se3.inverse(T_base_camera)
+            blocks = ("joint",) if self.config.sampling == "joint" else ("position", "orientation")
+            for i, block in enumerate(blocks):
+                self._predict(block, dt, timings)
+                ll_max, nan_block = self._weigh(T_camera_base, depth_meas, timings)
+                n_nan += nan_block
+                ess = lw_ops.ess(self.state.lw)
+                if i == len(blocks) - 1:
+                    t = time.perf_counter()
+                    pose = estimate(self.state.p, self.state.q, self.state.lw)
+                    _tick(timings, "estimate", t)
+                resampled |= self._maybe_resample(timings)
+        t = time.perf_counter()
+        if not weighed:
+            pose = estimate(self.state.p, self.state.q, self.state.lw)
+        inlier_fraction, covered = self._inliers(pose, depth_meas, T_base_camera) if weighed else (float("nan"), 0)
+        since = self._last_pose_stamp if self._last_pose_stamp is not None else self._first_stamp
+        seconds_without_pose = stamp - since
+        status = classify(StatusInputs(
+            position_spread=pose.position_spread, rotation_spread=pose.rotation_spread,
+            ess_ratio=ess / self.state.n, inlier_fraction=inlier_fraction, covered_pixels=covered,
+            n_nan=n_nan, n_particles=self.state.n, weighed=weighed, seconds_without_pose=seconds_without_pose,
+        ), self.config.status)
+        _tick(timings, "estimate", t)
+        return FilterOutput(
+            T_base_bone=pose.T_base_bone, position_spread=pose.position_spread, rotation_spread=pose.rotation_spread,
+            ess=ess, ess_ratio=ess / self.state.n, log_likelihood_max=ll_max, status=status,
+            inlier_fraction=inlier_fraction, covered_pixels=covered, n_nan=n_nan, resampled=resampled, dt=dt,
+            weighed=weighed, timings=timings,
+        )
+
+    def _inliers(self, pose: PoseEstimate, depth: np.ndarray, T_base_camera: np.ndarray) -> tuple[float, int]:
+        """Inlier fraction and count of valid covered pixels of the estimate's rendering."""
+        T_camera_bone = se3.inverse(T_base_camera) @ pose.T_base_bone
+        rendered = self.backend.render_depth(T_camera_bone[None])[0]
+        valid = likelihood_ref.valid_measurement(depth, self.config.likelihood) & (rendered > 0)
+        covered = int(valid.sum())
+        if covered == 0:
+            return float("nan"), 0
+        inliers = int(likelihood_ref.inlier_mask(depth, rendered, self.config.likelihood).sum())
+        return inliers / covered, covered
+
+
+def _tick(timings: dict, stage: str, t0: float) -> float:
+    t1 = time.perf_counter()
+    timings[stage] += t1 - t0
+    return t1

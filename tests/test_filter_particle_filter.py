@@ -1,0 +1,178 @@
+"""The particle filter stepper against a numpy test backend whose likelihood is a Gaussian around a
+hidden true pose: convergence from an offset start (joint and block-wise), following a moving pose,
+dt from stamps, prediction-only frames, NaN handling, timings."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from app.filter.motion import MotionParams
+from app.filter.particle_filter import STAGES, FilterConfig, ParticleFilter
+from app.filter.status import TrackingStatus
+from app.geometry import quaternion as quat
+from app.geometry import se3
+
+H, W = 12, 16
+
+
+class GaussianPoseBackend:
+    """log p(z | x) = -(|t - t*|² / σ_t² + θ² / σ_r²) / 2 around the hidden ``T_camera_bone_true``.
+
+    render_depth: the pose covers a fixed block of pixels at the depth of its origin, so the
+    measured image from :meth:`measure` makes the true pose's pixels inliers.
+    """
+
+    def __init__(self, sigma_t=0.002, sigma_r=0.02):
+        self.sigma_t, self.sigma_r = sigma_t, sigma_r
+        self.T_camera_bone_true = None
+        self.calls = 0
+        self.nan_indices = ()
+
+    def log_likelihood(self, T_camera_bone, depth_meas):
+        self.calls += 1
+        assert depth_meas.shape == (H, W)
+        dt = np.linalg.norm(T_camera_bone[:, :3, 3] - self.T_camera_bone_true[:3, 3], axis=1)
+        theta = se3.rotation_angle(T_camera_bone, self.T_camera_bone_true[None])
+        ll = -0.5 * ((dt / self.sigma_t) ** 2 + (theta / self.sigma_r) ** 2)
+        ll[list(self.nan_indices)] = np.nan
+        return ll
+
+    def render_depth(self, T_camera_bone):
+        out = np.zeros((len(T_camera_bone), H, W), np.float32)
+        out[:, 2:10, 3:13] = T_camera_bone[:, 2, 3, None, None]
+        return out
+
+    def measure(self, rng):
+        z = self.render_depth(self.T_camera_bone_true[None])[0]
+        return np.where(z > 0, z + rng.normal(0, 2e-4, z.shape), 0.8).astype(np.float32)
+
+
+def pose(rotvec, t):
+    return se3.from_quat_trans(quat.exp_map(np.asarray(rotvec, float)), np.asarray(t, float))
+
+
+T_BASE_CAMERA = pose([np.pi - 0.1, 0.05, 0.0], [0.3, 0.1, 0.6])  # looking down at the bone
+T_BASE_BONE = pose([2.9, 0.2, 0.1], [0.32, 0.12, 0.15])
+
+
+def run_filter(sampling, T_true_at, frames, rng, start_offset=None, config=None):
+    backend = GaussianPoseBackend()
+    config = config or FilterConfig(particles=300, sampling=sampling, init_sigma_p=0.008, init_sigma_r=0.08)
+    pf = ParticleFilter(config, backend, rng)
+    start = T_true_at(0) @ (start_offset if start_offset is not None else np.eye(4))
+    pf.initialise(start)
+    outputs = []
+    for i in range(frames):
+        backend.T_camera_bone_true = se3.inverse(T_BASE_CAMERA) @ T_true_at(i)
+        outputs.append(pf.step(backend.measure(rng), i / 90.0, T_BASE_CAMERA))
+    return pf, backend, outputs
+
+
+def errors(T_est, T_true):
+    return se3.translation_distance(T_est, T_true), se3.rotation_angle(T_est, T_true)
+
+
+@pytest.mark.parametrize("sampling", ["joint", "blockwise"])
+def test_converges_to_the_hidden_pose_from_an_offset_start(sampling):
+    rng = np.random.default_rng(3)
+    offset = pose([0.05, -0.04, 0.03], [0.006, -0.005, 0.004])  # ~9 mm, ~4 deg
+    _, backend, outputs = run_filter(sampling, lambda i: T_BASE_BONE, 40, rng, offset)
+    d0, r0 = errors(outputs[0].T_base_bone, T_BASE_BONE)
+    d, r = errors(outputs[-1].T_base_bone, T_BASE_BONE)
+    assert d < 1.5e-3 and r < np.radians(1.5), (d, np.degrees(r))
+    assert d < d0
+    assert outputs[-1].status == TrackingStatus.OK
+    assert backend.calls == 40 * (1 if sampling == "joint" else 2)
+    assert any(o.resampled for o in outputs)
+
+
+@pytest.mark.parametrize("sampling", ["joint", "blockwise"])
+def test_follows_a_moving_pose(sampling):
+    rng = np.random.default_rng(4)
+
+    def truth(i):  # 5 cm/s along x and 20 deg/s about the base z axis
+        t = i / 90.0
+        R = quat.to_matrix(quat.exp_map(np.array([0, 0, np.radians(20) * t])))
+        return se3.make_pose(R @ T_BASE_BONE[:3, :3], T_BASE_BONE[:3, 3] + [0.05 * t, 0, 0])
+
+    _, _, outputs = run_filter(sampling, truth, 90, rng)
+    d, r = zip(*(errors(o.T_base_bone, truth(i)) for i, o in enumerate(outputs)))
+    assert np.max(d[30:]) < 3e-3 and np.max(r[30:]) < np.radians(2.5), (np.max(d[30:]), np.degrees(np.max(r[30:])))
+
+
+def test_dt_comes_from_stamps_and_a_dropped_frame_doubles_it(rng):
+    backend = GaussianPoseBackend()
+    backend.T_camera_bone_true = se3.inverse(T_BASE_CAMERA) @ T_BASE_BONE
+    pf = ParticleFilter(FilterConfig(particles=50), backend, rng)
+    pf.initialise(T_BASE_BONE)
+    depth = backend.measure(rng)
+    dts = [pf.step(depth, s, T_BASE_CAMERA).dt for s in (10.0, 10.0 + 1 / 90, 10.0 + 3 / 90)]
+    np.testing.assert_allclose(dts, [1 / 90, 1 / 90, 2 / 90])
+
+
+def test_frames_without_camera_pose_or_depth_are_predicted_only(rng):
+    backend = GaussianPoseBackend()
+    backend.T_camera_bone_true = se3.inverse(T_BASE_CAMERA) @ T_BASE_BONE
+    pf = ParticleFilter(FilterConfig(particles=100, init_sigma_p=1e-4, init_sigma_r=1e-3,
+                                     motion=MotionParams(sigma_a=0.5, sigma_alpha=5.0)), backend, rng)
+    pf.initialise(T_BASE_BONE)
+    depth = backend.measure(rng)
+    assert pf.step(depth, 0.0, T_BASE_CAMERA).weighed
+    no_pose = pf.step(depth, 1 / 90, None)
+    no_depth = pf.step(np.zeros((H, W), np.float32), 2 / 90, T_BASE_CAMERA)
+    assert backend.calls == 1
+    for out in (no_pose, no_depth):
+        assert not out.weighed and out.status == TrackingStatus.UNCERTAIN
+        assert np.isnan(out.log_likelihood_max)
+    # a long gap in the robot's data: lost
+    for i in range(3, 60):
+        out = pf.step(depth, i / 90, None)
+    assert out.status == TrackingStatus.LOST
+
+
+def test_nan_likelihoods_are_counted_and_never_selected(rng):
+    backend = GaussianPoseBackend()
+    backend.T_camera_bone_true = se3.inverse(T_BASE_CAMERA) @ T_BASE_BONE
+    backend.nan_indices = (0, 5, 7)
+    pf = ParticleFilter(FilterConfig(particles=60), backend, rng)
+    pf.initialise(T_BASE_BONE)
+    out = pf.step(backend.measure(rng), 0.0, T_BASE_CAMERA)
+    assert out.n_nan == 3 and out.status != TrackingStatus.OK
+    assert np.all(np.isfinite(out.T_base_bone))
+
+
+def test_all_nan_likelihoods_reset_weights_and_report_lost(rng):
+    backend = GaussianPoseBackend()
+    backend.T_camera_bone_true = se3.inverse(T_BASE_CAMERA) @ T_BASE_BONE
+    backend.nan_indices = tuple(range(40))
+    pf = ParticleFilter(FilterConfig(particles=40), backend, rng)
+    pf.initialise(T_BASE_BONE)
+    out = pf.step(backend.measure(rng), 0.0, T_BASE_CAMERA)
+    assert out.n_nan == 40 and out.status == TrackingStatus.LOST
+    np.testing.assert_allclose(pf.state.lw, -np.log(40))
+
+
+def test_timings_name_every_stage_and_inliers_are_reported(rng):
+    _, _, outputs = run_filter("joint", lambda i: T_BASE_BONE, 5, rng)
+    out = outputs[-1]
+    assert set(out.timings) == set(STAGES) and all(v >= 0 for v in out.timings.values())
+    assert out.covered_pixels == 80 and out.inlier_fraction > 0.9
+    assert 0 < out.ess_ratio <= 1 and np.isfinite(out.log_likelihood_max)
+
+
+def test_same_seed_same_estimates():
+    a = run_filter("blockwise", lambda i: T_BASE_BONE, 10, np.random.default_rng(9))[2]
+    b = run_filter("blockwise", lambda i: T_BASE_BONE, 10, np.random.default_rng(9))[2]
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x.T_base_bone, y.T_base_bone)
+
+
+def test_bad_settings_and_missing_initialisation_are_reported(rng):
+    with pytest.raises(ValueError, match="joint, blockwise"):
+        ParticleFilter(replace(FilterConfig(), sampling="coordinate"), GaussianPoseBackend(), rng)
+    with pytest.raises(ValueError, match="systematic"):
+        ParticleFilter(replace(FilterConfig(), resampling="residual"), GaussianPoseBackend(), rng)
+    with pytest.raises(RuntimeError, match="initialise"):
+        ParticleFilter(FilterConfig(), GaussianPoseBackend(), rng).step(np.zeros((H, W), np.float32), 0.0, None)
