@@ -1,0 +1,73 @@
+"""``osteonav track --config SESSION.yaml``: the intraoperative tracking loop, until stopped.
+
+Ctrl-C ends it cleanly: sources stop, the recording and logs are flushed, and the summary
+(frames, statuses, events, frame-to-estimate latency median and p99) is printed and written to
+``out/summary.json``. See :mod:`app.session` for the session file.
+"""
+from __future__ import annotations
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("track", help="run a tracking session (camera + robot + tracker) until stopped")
+    add_session_arguments(p)
+    p.add_argument("--record", metavar="DIR", help="also record the sensors as a trial in DIR")
+    p.set_defaults(func=run)
+
+
+def add_session_arguments(p) -> None:
+    p.add_argument("--config", required=True, help="session YAML (see configs/sessions/)")
+    p.add_argument("--out", help="directory for estimate.txt, status.csv, events.csv, summary.json (overrides out:)")
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+
+
+def overrides_from(args) -> dict:
+    from pathlib import Path
+
+    overrides: dict = {}
+    if getattr(args, "out", None):
+        overrides["out"] = str(Path(args.out).resolve())
+    if getattr(args, "record", None):
+        overrides["record"] = str(Path(args.record).resolve())
+    return overrides
+
+
+def run(args) -> int:
+    from app.session import load_session, run_session
+
+    config = load_session(args.config, overrides_from(args))
+    if args.duration:
+        config.loop.duration_s = args.duration
+    result = run_session(config, progress=_progress_printer())
+    print_summary(result.summary)
+    return 0
+
+
+def _progress_printer():
+    import sys
+    import time
+
+    last = [0.0]
+
+    def progress(est) -> None:
+        now = time.monotonic()
+        if now - last[0] >= 1.0:
+            last[0] = now
+            latency = f"{1e3 * est.latency_s:.0f} ms" if est.latency_s is not None else "-"
+            print(f"frame {est.frame_id}: {est.status:9s} latency {latency}", file=sys.stderr)
+
+    return progress
+
+
+def print_summary(summary: dict) -> None:
+    lat = summary.get("latency_ms", {})
+    frames = summary.get("frames", {})
+    print(f"session: {summary.get('seconds', 0):.1f} s, {frames.get('frames_accepted', 0)} frames accepted, "
+          f"{summary.get('processed', 0)} tracked, {summary.get('frames_skipped_by_tracker', 0)} skipped by the tracker")
+    if lat.get("n"):
+        print(f"latency frame->estimate: median {lat['median']:.1f} ms, p99 {lat['p99']:.1f} ms, max {lat['max']:.1f} ms")
+    if summary.get("status_counts"):
+        print("status: " + ", ".join(f"{k} {v}" for k, v in sorted(summary["status_counts"].items())))
+    if summary.get("events"):
+        print("events: " + ", ".join(f"{k} x{v}" for k, v in sorted(summary["events"].items())))
+    for name, report in (summary.get("outputs") or {}).items():
+        print(f"{name}: {report}")

@@ -1,0 +1,233 @@
+"""What the live loop expects of its sources, tracker and sinks (Protocols), and the data they pass.
+
+One clock: every stamp a source hands over is in seconds on the host's monotonic clock
+(``time.monotonic()``, the same in every process of the machine). A source with its own clock (a
+camera's hardware timestamps, a robot controller's time) maps it to the host clock before
+pushing (``plugins/_clock.py``); a source that replays recorded time maps it through the session's
+shared replay anchor (:meth:`SessionClock.replay_to_host`), so that two replayed sources that
+recorded on one clock stay aligned.
+
+Sources run their own background threads and push through callbacks that never block
+(:class:`DropOldestQueue` behind them). The loop thread pops, interpolates, tracks, and hands the
+result to the sinks, which must return at once (they queue and drop, and count what they drop).
+
+Import as ``from app.interfaces import DepthFrame, JointSamples, CameraSource, ...``.
+"""
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Protocol, runtime_checkable
+
+import numpy as np
+
+from app.geometry.camera import PinholeCamera
+
+KINDS = ("camera", "robot", "tracker", "output")
+STATUSES = ("ok", "uncertain", "lost")
+
+
+@dataclass(frozen=True)
+class DepthFrame:
+    """One depth image.
+
+    frame_id : the camera's frame counter (increasing, gaps where frames were dropped)
+    stamp : capture time, s, host monotonic clock
+    depth_m : (H, W) float32 depth in metres along the optical axis, 0 = no measurement
+    arrival : host time the frame reached the session, s (for latency accounting)
+    """
+
+    frame_id: int
+    stamp: float
+    depth_m: np.ndarray
+    arrival: float
+
+
+@dataclass(frozen=True)
+class JointSamples:
+    """Joint encoder samples: stamps (N,) s on the host clock, q (N, 6) radians."""
+
+    stamps: np.ndarray
+    q: np.ndarray
+
+
+@dataclass(frozen=True)
+class SessionEvent:
+    """Something that happened: ``kind`` (e.g. ``camera.stall``), when (host s) and a sentence."""
+
+    stamp: float
+    source: str
+    kind: str
+    message: str
+
+
+@dataclass
+class Estimate:
+    """The loop's output for one frame (or for a tick without frames when a source is lost).
+
+    T_base_bone : (4, 4) bone pose in the robot base frame, or None
+    status : 'ok' | 'uncertain' | 'lost'; the projector shows the template only when 'ok'
+    latency_s : frame capture to estimate, s (None for a tick without a frame)
+    """
+
+    stamp: float
+    frame_id: int | None
+    T_base_bone: np.ndarray | None
+    status: str
+    T_base_camera: np.ndarray | None = None
+    latency_s: float | None = None
+    reasons: tuple[str, ...] = ()
+    diagnostics: dict = field(default_factory=dict)
+
+    @property
+    def show_template(self) -> bool:
+        return self.status == "ok" and self.T_base_bone is not None
+
+
+class SessionClock:
+    """The host clock and the anchor that maps replayed (recorded) time onto it.
+
+    ``replay_to_host(t)`` maps a recorded stamp to ``t0 + lead_in + (t - origin)``, where the
+    origin is fixed by the first call (from any source): recorded sources that shared one clock
+    when recorded stay aligned when replayed.
+    """
+
+    def __init__(self, lead_in_s: float = 0.2):
+        self.t0 = time.monotonic()
+        self.lead_in_s = lead_in_s
+        self._origin: float | None = None
+        self._lock = threading.Lock()
+
+    @staticmethod
+    def now() -> float:
+        return time.monotonic()
+
+    def replay_origin(self, t_first: float) -> float:
+        with self._lock:
+            if self._origin is None:
+                self._origin = float(t_first)
+            return self._origin
+
+    def replay_to_host(self, t: np.ndarray | float, t_first: float | None = None) -> np.ndarray | float:
+        origin = self.replay_origin(t if t_first is None else t_first) if self._origin is None else self._origin
+        return self.t0 + self.lead_in_s + (np.asarray(t, dtype=float) - origin)
+
+
+EventSink = Callable[[str, str, str], None]  # (source, kind, message)
+
+
+@runtime_checkable
+class CameraSource(Protocol):
+    """A depth camera plugin (kind ``camera``).
+
+    ``open`` connects (or opens the file) and returns the full-resolution intrinsics; ``start``
+    runs a background thread that calls ``push(frame)`` per frame and ``event(...)`` on faults,
+    reconnecting on its own; ``stop`` joins it. ``session_defaults`` may offer calibration, mesh
+    and initial pose (a recorded or simulated trial knows them), else returns {}.
+    """
+
+    name: str
+
+    def open(self, clock: SessionClock, event: EventSink) -> PinholeCamera: ...
+
+    def start(self, push: Callable[[DepthFrame], None]) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def session_defaults(self) -> dict: ...
+
+
+@runtime_checkable
+class RobotSource(Protocol):
+    """A robot plugin (kind ``robot``): pushes :class:`JointSamples` from a background thread."""
+
+    name: str
+
+    def open(self, clock: SessionClock, event: EventSink) -> None: ...
+
+    def start(self, push: Callable[[JointSamples], None]) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def session_defaults(self) -> dict: ...
+
+
+@runtime_checkable
+class Tracker(Protocol):
+    """A tracker plugin (kind ``tracker``), created and used on the loop thread only (GL)."""
+
+    def start(self, T_base_bone: np.ndarray) -> None: ...
+
+    def process(self, depth_m: np.ndarray, stamp: float, T_base_camera: np.ndarray | None) -> Any: ...
+
+    def release(self) -> None: ...
+
+
+@runtime_checkable
+class Output(Protocol):
+    """A sink plugin (kind ``output``). Every method returns at once (queue and drop, never block)."""
+
+    def open(self, context: dict) -> None: ...
+
+    def on_frame(self, frame: DepthFrame) -> None: ...
+
+    def on_joints(self, samples: JointSamples) -> None: ...
+
+    def on_estimate(self, estimate: Estimate) -> None: ...
+
+    def on_event(self, event: SessionEvent) -> None: ...
+
+    def close(self) -> dict: ...
+
+
+class DropOldestQueue:
+    """A bounded FIFO whose ``put`` never blocks: when full, the oldest item goes and is counted."""
+
+    def __init__(self, maxlen: int):
+        if maxlen < 1:
+            raise ValueError(f"maxlen must be >= 1, got {maxlen}")
+        self._items: collections.deque = collections.deque()
+        self._maxlen = maxlen
+        self._cond = threading.Condition()
+        self.dropped = 0
+        self.put_count = 0
+
+    def put(self, item) -> None:
+        with self._cond:
+            if len(self._items) >= self._maxlen:
+                self._items.popleft()
+                self.dropped += 1
+            self._items.append(item)
+            self.put_count += 1
+            self._cond.notify()
+
+    def get(self, timeout: float | None = None):
+        """The oldest item, or None after ``timeout`` seconds without one."""
+        with self._cond:
+            if not self._items:
+                self._cond.wait(timeout)
+            return self._items.popleft() if self._items else None
+
+    def get_latest(self, timeout: float | None = None):
+        """The newest item (older ones are discarded and counted as dropped), or None."""
+        with self._cond:
+            if not self._items:
+                self._cond.wait(timeout)
+            if not self._items:
+                return None
+            item = self._items.pop()
+            self.dropped += len(self._items)
+            self._items.clear()
+            return item
+
+    def drain(self) -> list:
+        with self._cond:
+            items = list(self._items)
+            self._items.clear()
+            return items
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._items)

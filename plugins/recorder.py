@@ -1,0 +1,107 @@
+"""The recorder: the session's sensor streams written as a trial (RECORDING_FORMAT.md) as they come.
+
+Used by ``osteonav record`` and by a session's ``record: DIR``. Every accepted frame and joint
+sample is queued (``on_frame``/``on_joints`` return at once) and a writer thread hands them to
+:class:`app.trial.writer.TrialWriter`: the loop never waits for the disk. The queue is bounded
+(``max_queue`` items, about 10 s of 30 Hz frames by default); if the disk falls that far behind,
+the oldest items are dropped, counted and reported, never silently lost.
+
+Crash safety rests on the writer's order of work: ``trial.yaml`` first, each PNG complete before
+its ``frames.csv`` row, rows flushed as written, so a kill leaves every frame listed so far
+readable. Frame ids that do not increase (a camera restarted its counter) are renumbered after the
+last one, and said so.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+from pathlib import Path
+
+from app.interfaces import DepthFrame, DropOldestQueue, Estimate, JointSamples, SessionEvent
+
+log = logging.getLogger(__name__)
+
+DEPTH_SCALE_MM = 0.1  # PNG unit: 0.1 mm, up to 6.55 m
+
+
+class Recorder:
+    kind, name = "output", "recorder"
+
+    def __init__(self, dir: str, overwrite: bool = False, max_queue: int = 2048):
+        self.dir = Path(dir)
+        self.overwrite = bool(overwrite)
+        self.queue = DropOldestQueue(int(max_queue))
+        self.writer = None
+        self._thread = None
+        self._done = threading.Event()
+        self.frames_written = 0
+        self.joints_written = 0
+        self.renumbered = 0
+        self._last_id = -1
+        self.error: str | None = None
+
+    def open(self, context: dict) -> None:
+        from app.errors import ConfigError
+        from app.trial.meta import TrialMeta
+        from app.trial.writer import TrialWriter
+
+        mesh_path = context.get("mesh_path")
+        if mesh_path is None:
+            raise ConfigError("bone.mesh", "missing: a recorded trial names its bone mesh (RECORDING_FORMAT.md)")
+        initial_pose = context.get("initial_pose")
+        meta = TrialMeta(camera=context["camera"], depth_scale=DEPTH_SCALE_MM, robot=dict(context["robot"]),
+                         dh=context["dh"], T_flange_camera=context["T_flange_camera"], mesh=Path(mesh_path).name,
+                         initial_pose=initial_pose, point_prior=None,
+                         extra={"recorded_by": "osteonav record", "session": str(context.get("session_file"))})
+        self.writer = TrialWriter(self.dir, meta, mesh_source=mesh_path, overwrite=self.overwrite)
+        self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
+        self._thread.start()
+
+    def on_frame(self, frame: DepthFrame) -> None:
+        self.queue.put(("frame", frame))
+
+    def on_joints(self, samples: JointSamples) -> None:
+        self.queue.put(("joints", samples))
+
+    def on_estimate(self, est: Estimate) -> None:
+        pass
+
+    def on_event(self, event: SessionEvent) -> None:
+        pass
+
+    def _write(self, item) -> None:
+        what, data = item
+        if what == "frame":
+            frame_id = data.frame_id
+            if frame_id <= self._last_id:
+                frame_id = self._last_id + 1
+                self.renumbered += 1
+            self.writer.write_frame(frame_id, data.stamp, data.depth_m)
+            self._last_id = frame_id
+            self.frames_written += 1
+        else:
+            self.writer.write_joints(data.stamps, data.q)
+            self.joints_written += len(data.stamps)
+
+    def _run(self) -> None:
+        try:
+            while not self._done.is_set() or len(self.queue):
+                item = self.queue.get(timeout=0.1)
+                if item is not None:
+                    self._write(item)
+        except Exception as exc:  # disk full, permissions: stop recording, keep the session going
+            log.exception("recorder failed")
+            self.error = f"{type(exc).__name__}: {exc}"
+
+    def close(self) -> dict:
+        self._done.set()
+        if self._thread is not None:
+            self._thread.join()
+        if self.writer is not None:
+            self.writer.close()
+        if self.queue.dropped:
+            log.warning("recorder: %d items dropped (the disk fell behind)", self.queue.dropped)
+        if self.renumbered:
+            log.warning("recorder: %d frames renumbered (the camera's counter went back)", self.renumbered)
+        return {"dir": str(self.dir), "frames": self.frames_written, "joint_samples": self.joints_written,
+                "dropped": self.queue.dropped, "renumbered": self.renumbered, "error": self.error}

@@ -1,0 +1,180 @@
+"""Recorded and simulated trials played as live sources, in real time.
+
+``camera: recorded`` / ``robot: recorded`` play a trial directory (RECORDING_FORMAT.md): each frame
+is pushed when the host clock reaches its stamp, and the joint samples stream alongside. Stamps
+go through the session's replay anchor (:meth:`app.interfaces.SessionClock.replay_to_host`) with
+the trial's earliest stamp as origin, so camera and robot stay on one clock as they were recorded.
+
+``camera: simulated`` / ``robot: simulated`` first simulate a trial (``app.sim.simulate``) into a
+cache directory named by scenario, seed and duration (reused when already there), then play it the
+same way: the simplest honest live source without hardware. Both plugins of a session given the
+same parameters play the same trial.
+
+A trial also knows its calibration, robot model, mesh and initial pose: ``session_defaults``
+offers them to the session, which uses them for any key its file leaves out.
+"""
+from __future__ import annotations
+
+import logging
+import tempfile
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from app.interfaces import DepthFrame, JointSamples, SessionClock
+from plugins._base import ThreadedSource
+
+log = logging.getLogger(__name__)
+
+_SIM_LOCK = threading.Lock()
+
+
+def _open(trial: str | Path):
+    from app.trial.reader import open_trial
+
+    return open_trial(trial)
+
+
+def trial_defaults(reader) -> dict:
+    """What a trial offers a session: camera, robot, dh, hand-eye, mesh path, initial pose."""
+    meta = reader.meta
+    mesh = Path(meta.mesh)
+    if not mesh.is_absolute():
+        mesh = Path(reader.path) / mesh
+    return {
+        "camera": meta.camera, "robot": dict(meta.robot), "dh": meta.dh,
+        "T_flange_camera": np.asarray(meta.T_flange_camera, float), "mesh": mesh,
+        "initial_pose": None if meta.initial_pose is None else np.asarray(meta.initial_pose, float),
+        "trial": Path(reader.path),
+    }
+
+
+def _trial_origin(reader) -> float:
+    stamps = np.asarray(reader.stamps, float)
+    joint_stamps = np.asarray(reader.joint_stamps, float)
+    return float(min(stamps[0], joint_stamps[0]) if len(joint_stamps) else stamps[0])
+
+
+def simulated_trial(scenario: str, seconds: float | None, seed: int, mesh: str | None, trial_dir: str | None) -> Path:
+    """Simulate once per (scenario, seconds, seed, mesh) into ``trial_dir`` (or a cache dir); return it."""
+    from app.sim.simulator import simulate
+
+    if trial_dir is None:
+        tag = f"{scenario}-s{seed}-{seconds or 'default'}s" + (f"-{Path(mesh).stem}" if mesh else "")
+        trial_dir = Path(tempfile.gettempdir()) / "osteonav-sim" / tag
+    out = Path(trial_dir)
+    with _SIM_LOCK:
+        if not (out / "trial.yaml").is_file() or not (out / "simulation.yaml").is_file():
+            log.info("simulating %s (%s s, seed %d) into %s", scenario, seconds, seed, out)
+            simulate(out, mesh_path=mesh, scenario_name=scenario, seconds=seconds, seed=seed, overwrite=True)
+    return out
+
+
+class RecordedCamera(ThreadedSource):
+    """Play a trial's depth frames at their stamps (``loop: true`` starts over at the end)."""
+
+    kind, name = "camera", "recorded"
+
+    def __init__(self, trial: str, loop: bool = False):
+        super().__init__()
+        self.trial = Path(trial)
+        self.loop = loop
+        self.reader = None
+
+    def open(self, clock: SessionClock, event):
+        self._bind(clock, event)
+        self.reader = _open(self.trial)
+        return self.reader.meta.camera
+
+    def session_defaults(self) -> dict:
+        return trial_defaults(self.reader)
+
+    def _run(self) -> None:
+        origin = _trial_origin(self.reader)
+        period = float(self.reader.stamps[-1] - origin) + 0.1
+        lap = 0
+        while not self._stop.is_set():
+            for frame in self.reader.iter_frames():
+                host_t = float(self.clock.replay_to_host(frame.stamp + lap * period, origin))
+                if not self._sleep_until(host_t):
+                    return
+                self._push(DepthFrame(int(frame.frame_id) + lap * 10_000_000, host_t,
+                                      np.asarray(frame.depth_m, np.float32), self.clock.now()))
+            if not self.loop:
+                break
+            lap += 1
+        self._event("end", f"end of the recorded frames of {self.trial}")
+        self.finished.set()
+
+
+class RecordedRobot(ThreadedSource):
+    """Stream a trial's joint samples at their stamps, in 10 ms batches."""
+
+    kind, name = "robot", "recorded"
+    batch_s = 0.01
+
+    def __init__(self, trial: str, loop: bool = False):
+        super().__init__()
+        self.trial = Path(trial)
+        self.loop = loop
+        self.reader = None
+
+    def open(self, clock: SessionClock, event) -> None:
+        self._bind(clock, event)
+        self.reader = _open(self.trial)
+
+    def session_defaults(self) -> dict:
+        return trial_defaults(self.reader)
+
+    def _run(self) -> None:
+        origin = _trial_origin(self.reader)
+        t = np.asarray(self.reader.joint_stamps, float)
+        q = np.asarray(self.reader.joints, float)
+        period = float(self.reader.stamps[-1] - origin) + 0.1
+        lap = 0
+        while not self._stop.is_set():
+            host = np.asarray(self.clock.replay_to_host(t + lap * period, origin))
+            i = 0
+            while i < len(host) and not self._stop.is_set():
+                now = self.clock.now()
+                j = int(np.searchsorted(host, now, side="right"))
+                if j > i:
+                    self._push(JointSamples(host[i:j].copy(), q[i:j].copy()))
+                    i = j
+                else:
+                    self._stop.wait(min(self.batch_s, max(host[i] - now, 0.0)))
+            if not self.loop:
+                break
+            lap += 1
+        self.finished.set()
+
+
+class SimulatedCamera(RecordedCamera):
+    """A simulated trial (``app.sim``) played as a live camera; see the module docstring."""
+
+    name = "simulated"
+
+    def __init__(self, scenario: str = "static_clear", seconds: float | None = None, seed: int = 0,
+                 mesh: str | None = None, trial_dir: str | None = None, loop: bool = False):
+        self._sim = (scenario, seconds, seed, mesh, trial_dir)
+        super().__init__(trial="", loop=loop)
+
+    def open(self, clock: SessionClock, event):
+        self.trial = simulated_trial(*self._sim)
+        return super().open(clock, event)
+
+
+class SimulatedRobot(RecordedRobot):
+    """The joints of the same simulated trial as :class:`SimulatedCamera` (same parameters)."""
+
+    name = "simulated"
+
+    def __init__(self, scenario: str = "static_clear", seconds: float | None = None, seed: int = 0,
+                 mesh: str | None = None, trial_dir: str | None = None, loop: bool = False):
+        self._sim = (scenario, seconds, seed, mesh, trial_dir)
+        super().__init__(trial="", loop=loop)
+
+    def open(self, clock: SessionClock, event) -> None:
+        self.trial = simulated_trial(*self._sim)
+        super().open(clock, event)
