@@ -74,8 +74,8 @@ class FilterConfig:
     resample_threshold: float = 0.5
     resampling: str = rs.DEFAULT_SCHEME
     first_dt: float = 1.0 / 90.0
-    init_sigma_p: float = 0.005
-    init_sigma_r: float = 0.05
+    init_sigma_p: float = 0.01
+    init_sigma_r: float = 0.1
     motion: MotionParams = field(default_factory=MotionParams)
     likelihood: LikelihoodParams = field(default_factory=LikelihoodParams)
     status: StatusThresholds = field(default_factory=StatusThresholds)

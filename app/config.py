@@ -1,0 +1,253 @@
+"""Tracker configuration: a YAML file validated into :class:`TrackerConfig`.
+
+Usage::
+
+    from app.config import load_config
+    config = load_config("configs/default.yaml")   # or load_config(None) for the defaults
+
+``configs/default.yaml`` documents every key, its unit and where its value comes from. The YAML
+has six sections; each key maps to one attribute:
+
+- ``filter.*``     -> ``config.particles``, ``sampling``, ``resample_threshold``, ``resampling``,
+                      ``first_dt``, ``seed``
+- ``init.sigma_p`` / ``init.sigma_r`` -> ``config.init_sigma_p`` / ``init_sigma_r``
+- ``motion.*``     -> ``config.motion`` (:class:`app.filter.motion.MotionParams`)
+- ``likelihood.*`` -> ``config.likelihood`` (:class:`app.filter.likelihood_ref.LikelihoodParams`)
+- ``status.*``     -> ``config.status`` (:class:`app.filter.status.StatusThresholds`)
+- ``render.*``     -> ``config.resolution`` (width, height), ``near``, ``far``,
+                      ``mesh_triangles``, ``cull_back_faces``
+
+Keys left out take their defaults. Validation happens here, once (STYLE.md §11): types, ranges,
+allowed names and unknown keys (with a "did you mean" suggestion) raise
+:class:`app.errors.ConfigError` naming the dotted key, the allowed range or values, and the fix.
+Units: metres, seconds, radians.
+"""
+from __future__ import annotations
+
+import difflib
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from app.errors import ConfigError
+from app.filter.likelihood_ref import OCCLUSION_MODELS
+from app.filter.particle_filter import SAMPLING_MODES, FilterConfig
+from app.filter.resampling import SCHEMES
+
+DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
+
+
+@dataclass
+class TrackerConfig(FilterConfig):
+    """Everything the depth tracker needs: the filter's settings plus the renderer's.
+
+    resolution : (width, height) px of the filter's images ((A)/(B): 80x60)
+    near, far : m, clip planes of the batched renderer
+    mesh_triangles : triangle budget of the decimated tracking mesh
+    cull_back_faces : cull back faces when the mesh is consistently wound outwards
+    seed : seed of the filter's np.random.Generator (a replay with one seed is reproducible)
+    """
+
+    resolution: tuple[int, int] = (80, 60)
+    near: float = 0.05
+    far: float = 4.0
+    mesh_triangles: int = 1000
+    cull_back_faces: bool = True
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class _Key:
+    """One YAML key: its attribute path in TrackerConfig, its kind and its allowed range/values."""
+
+    path: tuple[str, ...]
+    kind: str  # 'int' | 'float' | 'bool' | 'choice' | 'resolution'
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    choices: tuple[str, ...] = ()
+
+
+def _f(path, lo=None, hi=None, lo_open=False):
+    return _Key(tuple(path.split(".")), "float", lo, hi, lo_open)
+
+
+def _i(path, lo=None, hi=None):
+    return _Key(tuple(path.split(".")), "int", lo, hi)
+
+
+KEYS: dict[str, _Key] = {
+    "filter.particles": _i("particles", 1, 100_000),
+    "filter.sampling": _Key(("sampling",), "choice", choices=SAMPLING_MODES),
+    "filter.resample_threshold": _f("resample_threshold", 0.0, 1.0),
+    "filter.resampling": _Key(("resampling",), "choice", choices=tuple(sorted(SCHEMES))),
+    "filter.first_dt": _f("first_dt", 0.0, 1.0, lo_open=True),
+    "filter.seed": _i("seed", 0, 2**63 - 1),
+    "init.sigma_p": _f("init_sigma_p", 0.0, 0.5),
+    "init.sigma_r": _f("init_sigma_r", 0.0, math.pi),
+    "motion.sigma_a": _f("motion.sigma_a", 0.0, 1000.0),
+    "motion.sigma_alpha": _f("motion.sigma_alpha", 0.0, 10_000.0),
+    "motion.lambda_v": _f("motion.lambda_v", 0.0, 1.0),
+    "likelihood.z_max": _f("likelihood.z_max", 0.0, 20.0, lo_open=True),
+    "likelihood.lam": _f("likelihood.lam", 0.0, 100.0, lo_open=True),
+    "likelihood.w_u": _f("likelihood.w_u", 0.0, 1.0),
+    "likelihood.w_e": _f("likelihood.w_e", 0.0, 1.0),
+    "likelihood.w_n": _f("likelihood.w_n", 0.0, 1.0),
+    "likelihood.k": _f("likelihood.k", 0.0, 1.0),
+    "likelihood.sigma_base": _f("likelihood.sigma_base", 0.0, 0.1, lo_open=True),
+    "likelihood.occlusion": _Key(("likelihood", "occlusion"), "choice", choices=OCCLUSION_MODELS),
+    "likelihood.classification": _Key(("likelihood", "classification"), "bool"),
+    "likelihood.l0_weight": _f("likelihood.l0_weight", 0.0, 1000.0),
+    "likelihood.pixel_count_reg": _f("likelihood.pixel_count_reg", 0.0, 1e6),
+    "status.lost_no_pose_s": _f("status.lost_no_pose_s", 0.0, 60.0),
+    "status.lost_position_spread": _f("status.lost_position_spread", 0.0, 1.0, lo_open=True),
+    "status.lost_rotation_spread": _f("status.lost_rotation_spread", 0.0, math.pi, lo_open=True),
+    "status.lost_inlier_fraction": _f("status.lost_inlier_fraction", 0.0, 1.0),
+    "status.uncertain_position_spread": _f("status.uncertain_position_spread", 0.0, 1.0, lo_open=True),
+    "status.uncertain_rotation_spread": _f("status.uncertain_rotation_spread", 0.0, math.pi, lo_open=True),
+    "status.uncertain_inlier_fraction": _f("status.uncertain_inlier_fraction", 0.0, 1.0),
+    "status.min_covered_pixels": _i("status.min_covered_pixels", 0, 10_000_000),
+    "status.min_ess_ratio": _f("status.min_ess_ratio", 0.0, 1.0),
+    "render.resolution": _Key(("resolution",), "resolution", 8, 4096),
+    "render.near": _f("near", 0.0, 10.0, lo_open=True),
+    "render.far": _f("far", 0.0, 100.0, lo_open=True),
+    "render.mesh_triangles": _i("mesh_triangles", 4, 10_000_000),
+    "render.cull_back_faces": _Key(("cull_back_faces",), "bool"),
+}
+SECTIONS = tuple(dict.fromkeys(k.split(".")[0] for k in KEYS))
+
+
+def load_config(path: str | Path | None = None) -> TrackerConfig:
+    """TrackerConfig from a YAML file, or the defaults when ``path`` is None.
+
+    Raises ConfigError for a missing or unparsable file and for any invalid key (module docstring).
+    """
+    if path is None:
+        return TrackerConfig()
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError("(file)", f"no such configuration file; pass an existing YAML file, "
+                          f"e.g. {DEFAULT_CONFIG_PATH}", source=str(path))
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError("(file)", f"not valid YAML: {exc}", source=str(path)) from None
+    return config_from_dict(data or {}, source=str(path))
+
+
+def config_from_dict(data: Any, source: str | None = None) -> TrackerConfig:
+    """Validate a parsed YAML mapping ({section: {key: value}}) into a TrackerConfig."""
+    if not isinstance(data, dict):
+        raise ConfigError("(top level)", f"expected a mapping of sections ({', '.join(SECTIONS)}), "
+                          f"got {type(data).__name__}", source)
+    config = TrackerConfig()
+    for section, values in data.items():
+        if section not in SECTIONS:
+            raise ConfigError(str(section), f"unknown section{_suggest(str(section), SECTIONS)}; "
+                              f"valid sections: {', '.join(SECTIONS)}", source)
+        if values is None:
+            continue
+        if not isinstance(values, dict):
+            raise ConfigError(section, f"expected a mapping of keys, got {type(values).__name__} {values!r}", source)
+        for name, value in values.items():
+            key = f"{section}.{name}"
+            if key not in KEYS:
+                raise ConfigError(key, f"unknown key{_suggest_key(key)}; valid keys of '{section}': "
+                                  f"{', '.join(k.split('.', 1)[1] for k in KEYS if k.startswith(section + '.'))}",
+                                  source)
+            config = _set(config, KEYS[key].path, _check(key, KEYS[key], value, source))
+    _check_consistency(config, source)
+    return config
+
+
+def config_to_dict(config: TrackerConfig) -> dict:
+    """The YAML mapping of a TrackerConfig ({section: {key: value}}), e.g. for a run's summary."""
+    out: dict[str, dict] = {}
+    for key, spec in KEYS.items():
+        section, name = key.split(".", 1)
+        value = config
+        for attr in spec.path:
+            value = getattr(value, attr)
+        out.setdefault(section, {})[name] = list(value) if spec.kind == "resolution" else value
+    return out
+
+
+def _set(obj, path: tuple[str, ...], value):
+    if len(path) == 1:
+        return replace(obj, **{path[0]: value})
+    return replace(obj, **{path[0]: _set(getattr(obj, path[0]), path[1:], value)})
+
+
+def _range_text(spec: _Key) -> str:
+    lo = "(" if spec.lo_open else "["
+    return f"{lo}{spec.lo:g}, {spec.hi:g}]"
+
+
+def _check(key: str, spec: _Key, value, source):
+    if spec.kind == "bool":
+        if not isinstance(value, bool):
+            raise ConfigError(key, f"expected true or false, got {value!r}", source)
+        return value
+    if spec.kind == "choice":
+        if not isinstance(value, str) or value not in spec.choices:
+            hint = _suggest(str(value), spec.choices)
+            raise ConfigError(key, f"{value!r} is not one of: {', '.join(spec.choices)}{hint}", source)
+        return value
+    if spec.kind == "resolution":
+        ok = (isinstance(value, (list, tuple)) and len(value) == 2
+              and all(isinstance(v, int) and not isinstance(v, bool) and spec.lo <= v <= spec.hi for v in value))
+        if not ok:
+            raise ConfigError(key, f"expected [width, height], two integers in [{spec.lo:g}, {spec.hi:g}] "
+                              f"(e.g. [80, 60]), got {value!r}", source)
+        return (int(value[0]), int(value[1]))
+    if spec.kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(key, f"expected an integer in [{spec.lo:g}, {spec.hi:g}], got {value!r}", source)
+    elif isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(key, f"expected a finite number in {_range_text(spec)}, got {value!r}", source)
+    too_low = value <= spec.lo if spec.lo_open else value < spec.lo
+    if too_low or value > spec.hi:
+        raise ConfigError(key, f"{value!r} is outside the allowed range {_range_text(spec)}", source)
+    return int(value) if spec.kind == "int" else float(value)
+
+
+def _check_consistency(c: TrackerConfig, source) -> None:
+    lk = c.likelihood
+    if lk.w_u + lk.w_e + lk.w_n <= 0:
+        raise ConfigError("likelihood.w_n", "the mixture weights w_u + w_e + w_n must be positive "
+                          "(DESIGN.md: e.g. 0.05, 0.15, 0.8)", source)
+    if c.far <= c.near:
+        raise ConfigError("render.far", f"far ({c.far:g} m) must exceed near ({c.near:g} m)", source)
+    st = c.status
+    pairs = [("position_spread", st.uncertain_position_spread, st.lost_position_spread),
+             ("rotation_spread", st.uncertain_rotation_spread, st.lost_rotation_spread)]
+    for name, uncertain, lost in pairs:
+        if uncertain > lost:
+            raise ConfigError(f"status.uncertain_{name}", f"{uncertain:g} exceeds status.lost_{name} "
+                              f"({lost:g}): the uncertain threshold must not exceed the lost one", source)
+    if st.lost_inlier_fraction > st.uncertain_inlier_fraction:
+        raise ConfigError("status.lost_inlier_fraction", f"{st.lost_inlier_fraction:g} exceeds "
+                          f"status.uncertain_inlier_fraction ({st.uncertain_inlier_fraction:g})", source)
+
+
+def _suggest(word: str, options) -> str:
+    close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def _suggest_key(key: str) -> str:
+    """'did you mean' for a dotted key: the same name in another section, else the closest key."""
+    name = key.split(".", 1)[1]
+    same_name = [k for k in KEYS if k.split(".", 1)[1] == name]
+    if same_name:
+        return f" (did you mean {same_name[0]!r}?)"
+    by_name = difflib.get_close_matches(name, [k.split(".", 1)[1] for k in KEYS], n=1, cutoff=0.6)
+    if by_name:
+        section = key.split(".", 1)[0]
+        matches = [k for k in KEYS if k.split(".", 1)[1] == by_name[0]]
+        best = next((k for k in matches if k.startswith(section + ".")), matches[0])
+        return f" (did you mean {best!r}?)"
+    return _suggest(key, KEYS)
