@@ -19,7 +19,7 @@ def test_a_tight_well_supported_track_is_ok():
 
 
 @pytest.mark.parametrize("change", [
-    {"position_spread": 0.004}, {"rotation_spread": math.radians(3)}, {"inlier_fraction": 0.35},
+    {"position_spread": 0.004}, {"rotation_spread": math.radians(3)}, {"inlier_fraction": 0.6},
     {"covered_pixels": 10, "inlier_fraction": 0.0}, {"n_nan": 3}, {"weighed": False},
     {"weighed": False, "seconds_without_pose": 0.3},
 ])
