@@ -11,8 +11,9 @@ again every ``restart_after_s`` until frames come back.
 
 Recording (``recording: FILE``): a ``.bag`` (ROS1, written by librealsense up to 2.56 and by the
 RealSense Viewer of that era) or ``.db3`` (ROS2, written by librealsense 2.58 and later) file,
-played in real time. Its recorded timestamps go through the session's replay anchor, so a
-recorded robot trial taken on the same clock lines up.
+played in real time: every frame is read (the SDK's non-real-time playback, which drops none) and
+pushed when the host clock reaches its recorded timestamp mapped through the session's replay
+anchor, so a recorded robot trial taken on the same clock lines up.
 
 :func:`write_recording` writes depth images to such a file with the SDK's own software device and
 recorder (the tests use it; also a way to turn a trial into a file the RealSense Viewer opens).
@@ -120,7 +121,9 @@ class RealSenseCamera(ThreadedSource):
             raise ConfigError("camera", f"cannot start the RealSense {what}: {exc}") from exc
         device = profile.get_device()
         if self.recording is not None:
-            device.as_playback().set_real_time(True)
+            # not the SDK's real-time mode: it replays the file's write times and drops frames a
+            # slow reader misses; read every frame and pace by the frames' own stamps instead
+            device.as_playback().set_real_time(False)
         sensor = device.first_depth_sensor()
         if self.depth_units is not None and self.recording is None:
             sensor.set_option(rs.option.depth_units, float(self.depth_units))
@@ -188,6 +191,9 @@ class RealSenseCamera(ThreadedSource):
             if self._replay_origin is None:
                 self._replay_origin = device_t
             stamp = float(self.clock.replay_to_host(device_t, self._replay_origin))
+            if not self._sleep_until(stamp):
+                return
+            arrival = self.clock.now()
         else:
             stamp, jump = self.clock_mapper.map(device_t, arrival)
             if jump is not None:

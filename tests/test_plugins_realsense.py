@@ -1,0 +1,90 @@
+"""The RealSense camera plugin reading recordings that the RealSense SDK itself wrote.
+
+No camera needed: :func:`plugins.realsense.write_recording` feeds depth images through the SDK's
+software device into its recorder (``.db3`` with librealsense >= 2.58, ``.bag`` before), and the
+plugin plays the file back through an ordinary pipeline. ``tests/data/realsense_sw_2.56.bag`` is
+a ROS1 ``.bag`` written the same way by pyrealsense2 2.56.5 (the last version that records
+``.bag``; 64x48, 6 frames, depth unit 0.1 mm, frame 3 dropped), so ``.bag`` playback is tested
+whichever SDK is installed.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pyrealsense2", reason="pyrealsense2 is not installed (pip install pyrealsense2)")
+
+from app.errors import ConfigError
+from app.geometry.camera import PinholeCamera
+from app.interfaces import SessionClock
+from plugins.realsense import RealSenseCamera, recording_suffix, write_recording
+
+BAG_FIXTURE = Path(__file__).parent / "data" / "realsense_sw_2.56.bag"
+CAMERA = PinholeCamera(np.array([[60.0, 0, 31.5], [0, 61.0, 23.5], [0, 0, 1]]), 64, 48)
+
+
+def fixture_frames() -> np.ndarray:
+    """The depth units stored in the .bag fixture: 5000 + 10 u + 20 v + 100 k."""
+    v, u = np.mgrid[0:48, 0:64]
+    return np.stack([5000 + 10 * u + 20 * v + 100 * k for k in range(6)]).astype(np.uint16)
+
+
+def play(path: Path, timeout: float = 10.0):
+    frames, events = [], []
+    cam = RealSenseCamera(recording=str(path))
+    clock = SessionClock(lead_in_s=0.0)
+    model = cam.open(clock, lambda s, k, m: events.append(k))
+    cam.start(frames.append)
+    assert cam.finished.wait(timeout), "playback did not end"
+    cam.stop()
+    return cam, model, frames, events, clock
+
+
+def check_playback(path, units, stamps, frame_numbers, depth_scale):
+    cam, model, frames, events, clock = play(path)
+    np.testing.assert_allclose(model.K, CAMERA.K, atol=1e-4)
+    assert (model.width, model.height) == (64, 48)
+    assert cam.depth_scale == pytest.approx(depth_scale, rel=1e-6)
+    assert [f.frame_id for f in frames] == list(frame_numbers)
+    for f, expected in zip(frames, units):
+        assert f.depth_m.dtype == np.float32 and f.depth_m.shape == (48, 64)
+        np.testing.assert_allclose(f.depth_m, expected * depth_scale, rtol=1e-6)
+    # recorded timestamps keep their spacing on the host clock (replayed through the session anchor)
+    host = np.array([f.stamp for f in frames])
+    np.testing.assert_allclose(np.diff(host), np.diff(stamps), atol=1e-6)
+    # played in real time: arrivals follow the stamps
+    arrivals = np.array([f.arrival for f in frames])
+    assert arrivals[-1] - arrivals[0] > 0.5 * (stamps[-1] - stamps[0])
+    assert "end" in events
+
+
+def test_reads_back_a_recording_written_by_the_installed_sdk(tmp_path):
+    rng = np.random.default_rng(3)
+    n = 8
+    units = rng.integers(0, 20000, size=(n, 48, 64)).astype(np.uint16)
+    stamps = 100.0 + np.arange(n) / 30.0
+    numbers = np.array([10, 11, 12, 13, 15, 16, 17, 18])
+    path = write_recording(tmp_path / f"sw{recording_suffix()}", units, stamps, CAMERA, depth_scale=0.00025,
+                           fps=30, frame_numbers=numbers)
+    check_playback(path, units, stamps, numbers, 0.00025)
+
+
+def test_reads_a_bag_written_by_librealsense_2_56():
+    assert BAG_FIXTURE.is_file()
+    check_playback(BAG_FIXTURE, fixture_frames(), 12.0 + np.arange(6) / 30.0, [0, 1, 2, 4, 5, 6], 1e-4)
+
+
+def test_bad_parameters_name_their_key(tmp_path):
+    with pytest.raises(ConfigError, match="camera.params.recording"):
+        RealSenseCamera(recording=str(tmp_path / "x.mp4"))
+    with pytest.raises(ConfigError, match="camera.params.fps"):
+        RealSenseCamera(fps=31)
+    with pytest.raises(ConfigError, match="camera.params.depth_units"):
+        RealSenseCamera(depth_units=1.0)
+    cam = RealSenseCamera(recording=str(tmp_path / "missing.bag"))
+    with pytest.raises(ConfigError, match="file not found"):
+        cam.open(SessionClock(), lambda *a: None)

@@ -1,0 +1,147 @@
+"""The UR robot plugin against an RTDE server on the loopback: the real ur_rtde client streams.
+
+The server (plugins/rtde_server.py) runs in a child process and speaks the RTDE subset ur_rtde's
+RTDEReceiveInterface uses (protocol version, URControl version, output setup, start, pause, data
+packages at the recipe's rate). Checked: the controller rate (500 Hz for an e-Series version),
+stamps mapped onto the host clock, a disconnect and reconnect in the middle, NaN joints passed on
+for the session to reject, a controller clock jump detected, and the plugin connecting only to
+the named address and only to the RTDE port.
+"""
+from __future__ import annotations
+
+import socket
+import time
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rtde_receive", reason="ur_rtde is not installed (pip install ur-rtde)")
+
+from app.errors import ConfigError
+from app.interfaces import SessionClock
+from plugins.rtde_server import RTDEServerProcess, demo_joints
+from plugins.ur import URRobot
+
+OTHER_UR_PORTS = (29999, 30001, 30002, 30003, 30020)  # dashboard, primary/secondary/real-time, URCap
+
+
+def _listeners(host):
+    socks = []
+    for port in OTHER_UR_PORTS:
+        s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind((host, port))
+        s.listen(1)
+        s.setblocking(False)
+        socks.append(s)
+    return socks
+
+
+def _accepted(socks):
+    n = 0
+    for s in socks:
+        try:
+            s.accept()[0].close()
+            n += 1
+        except BlockingIOError:
+            pass
+    return n
+
+
+def _wait(cond, timeout):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+@pytest.fixture
+def server():
+    srv = RTDEServerProcess().start()
+    yield srv
+    srv.stop()
+
+
+def test_streams_at_controller_rate_reconnects_and_reports_faults(server):
+    others = _listeners(server.host)
+    batches, events = [], []
+    robot = URRobot(server.host, reconnect_s=0.1)
+    clock = SessionClock()
+    robot.open(clock, lambda src, kind, msg: events.append((time.monotonic(), kind, msg)))
+    robot.start(batches.append)
+    try:
+        assert _wait(lambda: sum(len(b.stamps) for b in batches) > 200, 15.0), "no RTDE stream"
+        n0 = sum(len(b.stamps) for b in batches)
+        t_rate0 = time.monotonic()
+        time.sleep(1.0)
+        n1 = sum(len(b.stamps) for b in batches)
+        rate = (n1 - n0) / (time.monotonic() - t_rate0)
+        stamps = np.concatenate([b.stamps for b in batches])
+        q = np.concatenate([b.q for b in batches])
+        # host-clock stamps: increasing, just behind now, joints as the server sent them
+        assert np.all(np.diff(stamps) > 0)
+        assert -0.05 < time.monotonic() - stamps[-1] < 0.1
+        np.testing.assert_allclose(q[-1], demo_joints(0.0), atol=0.25)
+        assert rate > 300, f"{rate:.0f} samples/s; the e-Series controller streams 500 Hz"
+        # sample spacing at the controller's period (2 ms) in the median
+        assert abs(np.median(np.diff(stamps[-200:])) - 0.002) < 0.0005
+
+        # disconnect in the middle: the plugin notices and reconnects on its own
+        t_drop = time.monotonic()
+        server.drop_clients(0.4)
+        assert _wait(lambda: any(k == "disconnected" for _, k, _ in events), 3.0)
+        assert _wait(lambda: sum(k == "connected" for _, k, _ in events) >= 2, 10.0), events
+        n2 = sum(len(b.stamps) for b in batches)
+        assert _wait(lambda: sum(len(b.stamps) for b in batches) > n2 + 200, 5.0)
+        stamps = np.concatenate([b.stamps for b in batches])
+        gap = np.diff(stamps).max()
+        assert 0.3 < gap < 5.0 and np.all(np.diff(stamps) > 0)
+        assert time.monotonic() - t_drop < 10.0
+
+        # NaN joints are passed on (the session drops and logs them)
+        server.set_nan(True)
+        assert _wait(lambda: np.isnan(batches[-1].q).all(), 3.0)
+        server.set_nan(False)
+        assert _wait(lambda: np.isfinite(batches[-1].q).all(), 3.0)
+
+        # a controller clock jump is detected and the host stamps stay continuous
+        server.jump_clock(5.0)
+        assert _wait(lambda: any(k == "clock_jump" for _, k, _ in events), 3.0), events
+        n3 = sum(len(b.stamps) for b in batches)
+        assert _wait(lambda: sum(len(b.stamps) for b in batches) > n3 + 50, 3.0)
+        stamps = np.concatenate([b.stamps for b in batches])
+        assert np.all(np.diff(stamps) > 0) and -0.05 < time.monotonic() - stamps[-1] < 0.1
+    finally:
+        robot.stop()
+    assert _accepted(others) == 0, "the plugin opened a port other than RTDE's"
+    for s in others:
+        s.close()
+
+
+def test_host_is_required_and_checked():
+    with pytest.raises(TypeError):
+        URRobot()  # noqa: the session's registry reports the missing key by name
+    with pytest.raises(ConfigError, match="robot.params.host"):
+        URRobot("not a host!")
+
+
+def test_registry_names_missing_host():
+    from app import plugins_registry as registry
+
+    with pytest.raises(ConfigError, match=r"robot\.params\.host.*missing"):
+        registry.create("robot", "ur", {}, "robot")
+
+
+def test_unreachable_robot_does_not_block_the_caller():
+    """A robot that never answers: connect attempts run in the worker process, the caller stays free."""
+    events = []
+    robot = URRobot("127.3.2.1", reconnect_s=0.1)  # nothing listens there
+    robot.open(SessionClock(), lambda s, k, m: events.append(k))
+    t = time.monotonic()
+    robot.start(lambda b: None)
+    time.sleep(0.5)
+    robot.stop()
+    assert time.monotonic() - t < 5.0
+    assert "connect_failed" in events
