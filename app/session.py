@@ -16,8 +16,10 @@ A session file (YAML, ``format: osteonav-session/1``; examples in ``configs/sess
     out: recordings/today-tracking            # estimate.txt, status.csv, events.csv, summary.json
     loop: {stall_timeout_s: 0.5, duration_s: null}
 
-Relative paths (and plugin parameters named ``trial``, ``recording``, ``mesh``, ``path``,
-``trial_dir``, ``config``, ``dir``) are relative to the session file. A recorded or simulated source
+Inputs given as relative paths (calibration files, ``bone.mesh``, and plugin parameters named
+``trial``, ``recording``, ``mesh``, ``config``) are relative to the session file; outputs (``out``,
+``record``, an output plugin's ``path``/``dir``, a simulated trial's ``trial_dir``) are relative
+to the current directory. A recorded or simulated source
 knows its trial's calibration, robot, mesh and initial pose; keys the file leaves out are taken
 from there. Every error names the key (dotted) and the allowed values.
 
@@ -63,7 +65,7 @@ log = logging.getLogger(__name__)
 
 FORMAT = "osteonav-session/1"
 TOP_KEYS = ("format", "camera", "robot", "tracker", "calibration", "bone", "outputs", "record", "out", "loop")
-PATH_PARAMS = ("trial", "recording", "mesh", "path", "trial_dir", "config", "dir")
+INPUT_PATH_PARAMS = ("trial", "recording", "mesh", "config")
 STATUS_RANK = {"ok": 0, "uncertain": 1, "lost": 2}
 
 
@@ -171,7 +173,7 @@ def _plugin(kind: str, value: Any, base: Path, src: str, default: str | None = N
     _allowed(f"{key}.plugin", name, registry.available(kind))
     params = dict(_mapping(f"{key}.params", block.get("params"), src))
     for k, v in params.items():
-        if k in PATH_PARAMS and isinstance(v, str):
+        if k in INPUT_PATH_PARAMS and isinstance(v, str):
             params[k] = str(_resolve(base, v))
     return PluginSpec(kind, name, params, key)
 
@@ -255,7 +257,7 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
         path=path, camera=camera, robot=robot, tracker=tracker, outputs=outputs, robot_model=robot_model,
         hand_eye=_matrix4("calibration.hand_eye", calib.get("hand_eye"), base, src), intrinsics=intrinsics,
         mesh=mesh, initial_pose=_matrix4("bone.initial_pose", bone.get("initial_pose"), base, src),
-        record=_resolve(base, raw.get("record")), out=_resolve(base, raw.get("out")), loop=loop,
+        record=_resolve(Path.cwd(), raw.get("record")), out=_resolve(Path.cwd(), raw.get("out")), loop=loop,
     )
 
 

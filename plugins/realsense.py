@@ -268,3 +268,21 @@ def recording_suffix() -> str:
     _rs()
     version = tuple(int(v) for v in dist_version("pyrealsense2").split(".")[:2])
     return ".bag" if version < (2, 58) else ".db3"
+
+
+def write_trial_recording(trial: str | Path, path_stem: str | Path) -> Path:
+    """A trial's depth frames as a RealSense recording ``path_stem`` + :func:`recording_suffix`.
+
+    Stamps, frame numbers, intrinsics and depth unit come from the trial; joints are not stored
+    (play them with ``robot: recorded`` from the same trial).
+    """
+    from app.trial.reader import open_trial
+
+    reader = open_trial(trial)
+    scale_m = reader.meta.depth_scale * 1e-3
+    frames, ids = [], []
+    for f in reader.iter_frames():
+        frames.append(np.round(f.depth_m / scale_m).astype(np.uint16))
+        ids.append(f.frame_id)
+    return write_recording(Path(str(path_stem) + recording_suffix()), np.stack(frames), np.asarray(reader.stamps),
+                           reader.meta.camera, scale_m, frame_numbers=np.asarray(ids))
