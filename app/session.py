@@ -42,6 +42,7 @@ Ctrl-C (or SIGTERM) ends the loop; sources stop, sinks flush and close, the summ
 """
 from __future__ import annotations
 
+import collections
 import csv
 import json
 import logging
@@ -440,6 +441,8 @@ class Bus:
 # ------------------------------------------------------------------------------------------------
 @dataclass
 class SessionResult:
+    """The summary (also ``out/summary.json``), the last 100,000 estimates (without images), the events."""
+
     summary: dict
     estimates: list[Estimate]
     events: list[SessionEvent]
@@ -514,7 +517,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
     started: list = []
     statuses: Counter = Counter()
     latencies: list[float] = []
-    estimates: list[Estimate] = []
+    estimates: collections.deque = collections.deque(maxlen=100_000)
     t_start = time.monotonic()
     restore_sigterm = _sigterm_as_interrupt()
     try:
@@ -651,7 +654,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
         if out is not None:
             (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
         events.close()
-    return SessionResult(summary, estimates, list(events.events))
+    return SessionResult(summary, list(estimates), list(events.events))
 
 
 def _light(est: Estimate) -> Estimate:

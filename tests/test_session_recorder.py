@@ -59,12 +59,14 @@ tmp = Path(sys.argv[2])
 raw = {"camera": {"plugin": "scripted", "params": {"seconds": 60.0, "faults": False}},
        "robot": {"plugin": "scripted", "params": {"faults": False}, "model": "ur5e"},
        "tracker": False, "calibration": {"hand_eye": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]},
-       "bone": {"mesh": str(tmp / "bone.ply")}, "record": str(tmp / "trial")}
+       "bone": {"mesh": str(tmp / "bone.ply")}, "record": str(tmp / "trial"), "out": str(tmp / "out")}
 run_session(parse_session(raw, tmp))
 """
 
 
-def test_killed_session_leaves_a_readable_trial(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT, signal.SIGTERM], ids=["kill", "ctrl-c", "term"])
+def test_stopped_or_killed_session_leaves_a_readable_trial(tmp_path, sig):
+    """SIGKILL: every frame listed is readable. Ctrl-C / SIGTERM: a clean stop with the summary written."""
     from app.trial.reader import open_trial
 
     _box_mesh(tmp_path)
@@ -81,8 +83,13 @@ def test_killed_session_leaves_a_readable_trial(tmp_path):
         else:
             pytest.fail("the session wrote no frames")
     finally:
-        os.kill(proc.pid, signal.SIGKILL)
-        proc.wait(10)
+        os.kill(proc.pid, sig)
+        rc = proc.wait(20)
+    if sig != signal.SIGKILL:
+        assert rc == 0, proc.stderr.read().decode()
+        summary = (tmp_path / "out" / "summary.json").read_text()
+        assert '"Recorder"' in summary
+        assert "interrupted" in (tmp_path / "out" / "events.csv").read_text()
     reader = open_trial(tmp_path / "trial")
     n_rows = len(reader.stamps)
     frames = list(reader.iter_frames())
