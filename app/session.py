@@ -623,6 +623,9 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
                 progress(est)
     except KeyboardInterrupt:
         events.emit("session", "stopped", "interrupted (Ctrl-C): stopping cleanly")
+    except Exception as exc:
+        events.emit("session", "error", f"{type(exc).__name__}: {exc}")
+        raise
     finally:
         restore_sigterm()
         for source in reversed(started):
