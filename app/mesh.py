@@ -77,6 +77,8 @@ def prepare_mesh(mesh: trimesh.Trimesh, max_triangles: int = 1000, center: bool 
         out.apply_translation(-offset)
     out = decimate(out, max_triangles)
     out.metadata["centering_offset"] = offset.tolist()
+    log.info("prepared mesh: %d -> %d triangles, centring offset %s m", len(mesh.faces), len(out.faces),
+             np.round(offset, 6).tolist())
     return out
 
 
