@@ -1,6 +1,6 @@
 """Generate osteonav's default iliac-crest-like meshes, reproducibly (no randomness).
 
-    python meshes/make_default_mesh.py
+    python meshes/make_default_mesh.py [--out DIR]
 
 writes ``meshes/iliac_crest.ply`` (about 5,000 triangles) and ``meshes/iliac_crest_tracking.ply``
 (decimated to 1,000 for tracking). The shape: an S-curved ridge about 12 cm long whose cross-section
@@ -50,12 +50,18 @@ def crest_surface() -> trimesh.Trimesh:
 
 
 def main() -> None:
+    import argparse
+
     from app.mesh import outward_wound, prepare_mesh
 
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=HERE, help="output folder (default: meshes/)")
+    out = parser.parse_args().out
+    out.mkdir(parents=True, exist_ok=True)
     mesh = crest_surface()
-    mesh.export(HERE / "iliac_crest.ply")
+    mesh.export(out / "iliac_crest.ply")
     tracking = prepare_mesh(mesh, max_triangles=1000, center=False)
-    tracking.export(HERE / "iliac_crest_tracking.ply")
+    tracking.export(out / "iliac_crest_tracking.ply")
     print(f"iliac_crest.ply: {len(mesh.faces)} triangles, extents {np.round(mesh.extents, 4)} m, outward {outward_wound(mesh)}")
     print(f"iliac_crest_tracking.ply: {len(tracking.faces)} triangles")
 
