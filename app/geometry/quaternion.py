@@ -109,29 +109,52 @@ def rotate(q: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 def weighted_mean(q: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Weighted mean rotation: the principal eigenvector of sum_j w_j q_j q_j^T (Markley et al. 2007).
+    """Weighted mean rotation: the principal eigenvector of M = sum_j w_j q_j q_j^T (Markley et al. 2007).
+
+    It maximises sum_j w_j (q . q_j)^2, i.e. minimises the weighted chordal (Frobenius) distance
+    of the rotation matrices; q_j q_j^T is the same for q_j and -q_j, so the signs of the inputs
+    do not matter.
 
     Parameters
     ----------
-    q : (N, 4) unit quaternions; the sign of each is irrelevant
-    w : (N,) non-negative weights (any positive sum)
+    q : (N, 4) float64
+        Unit quaternions (w, x, y, z); the sign of each is irrelevant.
+    w : (N,) float64
+        Non-negative weights with a positive sum (need not be normalised).
 
     Returns
     -------
-    (4,) unit quaternion with w >= 0
+    (4,) float64 unit quaternion with w >= 0.
+
+    Raises
+    ------
+    ValueError
+        For shapes other than (N, 4) and (N,), negative or non-finite weights, or a zero sum.
     """
     q = np.asarray(q, dtype=float)
     w = np.asarray(w, dtype=float)
-    M = np.einsum("n,ni,nj->ij", w, q, q)
+    if q.ndim != 2 or q.shape[1] != 4 or w.shape != (q.shape[0],):
+        raise ValueError(f"weighted_mean expects q (N, 4) and w (N,), got q {q.shape} and w {w.shape}; "
+                         f"w must have shape ({q.shape[0] if q.ndim == 2 else 'N'},)")
+    if not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise ValueError("weighted_mean needs finite non-negative weights")
+    total = w.sum()
+    if not total > 0:
+        raise ValueError("weighted_mean needs weights with a positive sum, got all zero")
+    M = np.einsum("n,ni,nj->ij", w / total, q, q)
     _, vectors = np.linalg.eigh(M)
     mean = vectors[:, -1]
     return -mean if mean[0] < 0 else mean
 
 
 def angle_between(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
-    """Rotation angle (radians, [0, pi]) of q1^-1 ⊗ q2, independent of the signs of q1 and q2."""
-    d = np.abs(np.sum(np.asarray(q1, dtype=float) * np.asarray(q2, dtype=float), axis=-1))
-    return 2.0 * np.arccos(np.clip(d, 0.0, 1.0))
+    """Rotation angle (radians, [0, pi]) of q1^-1 ⊗ q2, independent of the signs of q1 and q2.
+
+    Computed as 2 atan2(|vec(q1* ⊗ q2)|, |scal(q1* ⊗ q2)|), accurate for tiny angles too (the
+    arccos of the dot product loses half the digits there). Shapes broadcast: (..., 4) -> (...).
+    """
+    d = multiply(conjugate(q1), q2)
+    return 2.0 * np.arctan2(np.linalg.norm(d[..., 1:], axis=-1), np.abs(d[..., 0]))
 
 
 def to_xyzw(q: np.ndarray) -> np.ndarray:

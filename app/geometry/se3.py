@@ -48,7 +48,9 @@ def inverse(T: np.ndarray) -> np.ndarray:
 
 
 def compose(*Ts: np.ndarray) -> np.ndarray:
-    """T_1 @ T_2 @ ... (left to right)."""
+    """T_1 @ T_2 @ ... (left to right), e.g. ``compose(T_base_flange, T_flange_camera)``."""
+    if not Ts:
+        raise ValueError("compose needs at least one pose")
     out = np.asarray(Ts[0], dtype=float)
     for T in Ts[1:]:
         out = out @ T
