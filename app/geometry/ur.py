@@ -16,9 +16,17 @@ import numpy as np
 _ALPHA_UR = (np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class DHParameters:
-    """Standard DH parameters of a 6-joint arm: a, d (metres), alpha (radians), each (6,)."""
+    """Standard DH parameters of a 6-joint arm (immutable, arrays stored read-only).
+
+    a : (6,) float64, link lengths along x_i, metres
+    d : (6,) float64, link offsets along z_{i-1}, metres
+    alpha : (6,) float64, link twists about x_i, radians
+
+    Equal when all three arrays are identical. Raises ValueError naming the field that is not
+    6 finite numbers.
+    """
 
     a: np.ndarray
     d: np.ndarray
@@ -32,7 +40,16 @@ class DHParameters:
             value.setflags(write=False)
             object.__setattr__(self, name, value)
 
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, DHParameters):
+            return NotImplemented
+        return all(np.array_equal(getattr(self, k), getattr(other, k)) for k in ("a", "d", "alpha"))
+
+    def __hash__(self) -> int:
+        return hash((self.a.tobytes(), self.d.tobytes(), self.alpha.tobytes()))
+
     def to_dict(self) -> dict:
+        """``{'a', 'd', 'alpha'}`` as lists, the ``robot.dh`` block of trial.yaml."""
         return {"a": self.a.tolist(), "d": self.d.tolist(), "alpha": self.alpha.tolist()}
 
 
@@ -96,25 +113,46 @@ def camera_pose(dh: DHParameters, q: np.ndarray, T_flange_camera: np.ndarray) ->
 
 
 def interpolate_joints(stamps_robot: np.ndarray, q_robot: np.ndarray, stamps_query: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Joint angles linearly interpolated at ``stamps_query`` (K,) from samples (M,), (M, 6).
+    """Joint angles linearly interpolated at the query stamps.
 
-    Returns ``(q (K, 6), valid (K,) bool)``; a query outside the samples' span, or bracketed by a
-    sample with NaN, is invalid and its row is NaN (reported, not guessed).
+    Parameters
+    ----------
+    stamps_robot : (M,) float64, seconds, non-decreasing (the joint samples' stamps)
+    q_robot : (M, 6) float64, radians, unwrapped joint angles (NaN marks a missing sample)
+    stamps_query : (K,) float64, seconds (the frames' stamps, same clock)
+
+    Returns
+    -------
+    q : (K, 6) float64, radians; rows of invalid queries are NaN
+    valid : (K,) bool; False for a query outside [stamps_robot[0], stamps_robot[-1]] or whose
+        bracketing samples hold a NaN (reported, not guessed). A query exactly at a sample's
+        stamp uses that sample alone.
+
+    Raises
+    ------
+    ValueError
+        For mismatched shapes or decreasing robot stamps.
     """
     t = np.asarray(stamps_robot, dtype=float)
     q = np.asarray(q_robot, dtype=float)
     tq = np.asarray(stamps_query, dtype=float)
+    if t.ndim != 1 or q.ndim != 2 or q.shape[0] != t.shape[0] or tq.ndim != 1:
+        raise ValueError(f"interpolate_joints expects stamps (M,), q (M, n) and queries (K,), got "
+                         f"{t.shape}, {q.shape} and {tq.shape}")
+    if np.any(np.diff(t) < 0) or not np.all(np.isfinite(t)):
+        raise ValueError("interpolate_joints needs finite, non-decreasing robot stamps")
     out = np.full((len(tq), q.shape[1]), np.nan)
-    inside = (tq >= t[0]) & (tq <= t[-1]) if len(t) else np.zeros(len(tq), dtype=bool)
-    if len(t) >= 1 and inside.any():
-        hi = np.clip(np.searchsorted(t, tq[inside], side="left"), 1, max(len(t) - 1, 1))
-        lo = hi - 1
-        if len(t) == 1:
-            out[inside] = q[0]
-        else:
-            span = t[hi] - t[lo]
-            w = np.where(span > 0, (tq[inside] - t[lo]) / np.where(span > 0, span, 1.0), 0.0)[:, None]
-            out[inside] = (1 - w) * q[lo] + w * q[hi]
+    if len(t) == 0:
+        return out, np.zeros(len(tq), dtype=bool)
+    inside = (tq >= t[0]) & (tq <= t[-1])
+    tin = tq[inside]
+    # hi: first sample at or after the query; lo: last sample at or before it. On an exact hit
+    # span = 0 and that sample is used alone, so a NaN neighbour does not spoil it.
+    hi = np.searchsorted(t, tin, side="left")
+    lo = np.searchsorted(t, tin, side="right") - 1
+    span = t[hi] - t[lo]
+    w = np.where(span > 0, (tin - t[lo]) / np.where(span > 0, span, 1.0), 0.0)[:, None]
+    out[inside] = np.where(span[:, None] == 0, q[lo], (1 - w) * q[lo] + w * q[hi])
     valid = inside & np.all(np.isfinite(out), axis=1)
     out[~valid] = np.nan
     return out, valid
