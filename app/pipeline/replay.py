@@ -40,8 +40,15 @@ class ReplayResult:
 
 
 def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerConfig | None = None,
-           realtime: bool = False, rrd: bool = True, progress=None, max_frames: int | None = None) -> ReplayResult:
-    """Run the tracker over a trial; write the outputs listed in the module docstring to ``out_dir``."""
+           realtime: bool = False, rrd: bool = True, progress=None, max_frames: int | None = None,
+           make_tracker=None) -> ReplayResult:
+    """Run the tracker over a trial; write the outputs listed in the module docstring to ``out_dir``.
+
+    ``make_tracker(mesh, camera) -> tracker`` replaces the particle filter by another tracker with
+    the same interface (``start``, ``process``, ``particle_positions``, ``mean_timings_ms``,
+    ``release``, ``mesh_vertices``/``mesh_faces``/``gl_description``/``T_flange_camera``), e.g. the
+    ICP baseline (app/baselines/icp.py); ``config`` then only names the run in the summary.
+    """
     from app.trial.reader import open_trial
     from app.trial.tum import write_status_csv, write_tum
 
@@ -52,7 +59,10 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
 
         raise TrialFormatError(Path(trial_dir) / "trial.yaml", "replay needs 'initial_pose' to start the filter (none given)")
     mesh = reader.load_mesh()
-    tracker = DepthTracker(config, mesh, reader.meta.camera)
+    if make_tracker is None:
+        tracker = DepthTracker(config, mesh, reader.meta.camera)
+    else:
+        tracker = make_tracker(mesh, reader.meta.camera)
     tracker.start(reader.meta.initial_pose)
     T_base_camera, pose_valid = reader.camera_poses()
     out = Path(out_dir) if out_dir else None
