@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import yaml
 
-pytest.importorskip("app.trial.writer", reason="app.trial (the trial reader/writer) has not landed")
 
 from app.cli import main
 

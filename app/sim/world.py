@@ -128,9 +128,15 @@ class Occluders:
 
 
 def hand_pose_for_fraction(u_edge: float, v_centre: float, fx: float, fy: float, cx: float, cy: float,
-                           depth: float = 0.30) -> np.ndarray:
-    """T_camera_hand with the hand's right edge on image column ``u_edge`` at ``depth`` metres."""
-    x_edge = (u_edge - cx) * depth / fx
+                           depth: float = 0.30, half_thickness: float = 0.015) -> np.ndarray:
+    """T_camera_hand with the hand's silhouette edge on image column ``u_edge``, centred at ``depth`` m.
+
+    The box's right face spans depths ``depth +- half_thickness``; its silhouette is the face's
+    nearer edge when it lies right of the optical axis (x > 0 projects further out when closer)
+    and the farther edge otherwise, so the edge is placed at that depth.
+    """
+    x_near = (u_edge - cx) * (depth - half_thickness) / fx
+    x_edge = x_near if x_near > 0 else (u_edge - cx) * (depth + half_thickness) / fx
     y_c = (v_centre - cy) * depth / fy
     T = np.eye(4)
     T[:3, 3] = (x_edge - 0.10, y_c, depth)
