@@ -1,0 +1,72 @@
+"""``osteonav bench``: every configuration on every trial, one table (see :mod:`app.bench.bench`)."""
+from __future__ import annotations
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "bench", help="compare tracker configurations and the ICP baseline on the same trials",
+        description="Runs every configuration on every trial and prints frames/s, ADD, rotation error, VSD recall, "
+                    "lost and ok fractions, dangerous frames (status ok while ADD > 5 mm) and jitter while the bone "
+                    "is static. Without --trials, the standard scenarios are simulated (cached) for the default mesh "
+                    "and each ../shared/data/pelvis crest mesh.")
+    p.add_argument("--trials", nargs="+", metavar="DIR", help="trial directories with groundtruth.txt (default: simulate)")
+    p.add_argument("--configs", nargs="+", metavar="NAME", help="built-in names (A_cpu A_cadaver thesis_blockwise "
+                   "thesis_joint thesis_complex icp) or YAML files; default: all built-ins")
+    p.add_argument("--json", metavar="OUT", default="recordings/bench/bench.json", help="results JSON (default: %(default)s)")
+    p.add_argument("--plots", metavar="DIR", help="write PNG plots (error over time per trial, rate per configuration)")
+    p.add_argument("--seconds", type=float, help="seconds per trial (simulated: duration; recorded: the first S seconds)")
+    p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1: frames/s are then not shared)")
+    p.add_argument("--quick", action="store_true", help=f"a short run: 2 scenarios of 1.5 s, the default mesh only")
+    p.add_argument("--scenarios", nargs="+", help="simulated scenarios (default: the standard four)")
+    p.add_argument("--meshes", nargs="+", help="meshes to simulate (default: the project's and the pelvis crests)")
+    p.add_argument("--cache", default="recordings/bench", help="where simulated trials are cached (default: %(default)s)")
+    p.add_argument("--out", help="keep each run's estimate.txt / status.csv under OUT/<config>/<mesh>/<scenario>")
+    p.add_argument("--no-vsd", action="store_true", help="skip VSD (saves two renderings per frame)")
+    p.add_argument("--markdown", action="store_true", help="print the table as Markdown")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import logging
+    import platform
+    import time
+
+    from app.bench import bench
+    from app.errors import ConfigError
+
+    if args.jobs < 1:
+        raise ConfigError("--jobs", f"expected an integer >= 1, got {args.jobs}")
+    if args.seconds is not None and args.seconds <= 0:
+        raise ConfigError("--seconds", f"expected a duration > 0 s, got {args.seconds}")
+    configs = bench.resolve_configs(args.configs)
+    seconds = args.seconds or (bench.QUICK_SECONDS if args.quick else None)
+    if args.trials:
+        trials = bench.recorded_trials(args.trials, seconds)
+    else:
+        from app.sim.simulator import DEFAULT_MESH
+
+        scenarios = args.scenarios or (bench.QUICK_SCENARIOS if args.quick else None)
+        meshes = args.meshes or ([DEFAULT_MESH] if args.quick else None)
+        if not args.meshes and not args.quick and not bench.pelvis_crest_meshes():
+            logging.getLogger(__name__).warning("no pelvis crest meshes at %s: the default mesh only", bench.PELVIS_DIR)
+        trials = bench.standard_trials(args.cache, scenarios, seconds, meshes, jobs=args.jobs)
+    print(f"{len(configs)} configurations x {len(trials)} trials "
+          f"({sum(t.max_frames or t.frames for t in trials)} frames each configuration), {args.jobs} process(es)")
+    for c in configs:
+        print(f"  {c.name:<18} {c.describe()}")
+    t0 = time.perf_counter()
+    rows = bench.run_bench(configs, trials, jobs=args.jobs, out_dir=args.out, with_vsd=not args.no_vsd)
+    elapsed = time.perf_counter() - t0
+    gl = next((r["gl"] for r in rows if r["tracker"] == "particle_filter" and r.get("gl")), None)
+    print(f"\n{gl or ''}  ({platform.processor() or platform.machine()}, {elapsed:.0f} s)\n")
+    print(bench.table(rows, markdown=args.markdown))
+    print("\nADD, rot: median / p95 of every frame (mm, deg); VSD rec: e_VSD < 0.3 (tau 20 mm); lost %: ADD > 10 mm; "
+          "danger: status ok with ADD > 5 mm; jit: RMS frame-to-frame change while the bone is static")
+    meta = {"gl": gl, "machine": platform.platform(), "processor": platform.processor(), "jobs": args.jobs,
+            "seconds": seconds, "elapsed_s": elapsed, "configs": {c.name: c.describe() for c in configs}}
+    bench.write_json(rows, args.json, meta)
+    print(f"wrote {args.json}")
+    if args.plots:
+        written = bench.plot(rows, args.plots)
+        print(f"wrote {len(written)} plots to {args.plots}")
+    return 0
