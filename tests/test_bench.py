@@ -1,0 +1,192 @@
+"""``osteonav bench`` (app/bench/bench.py): configuration files, jitter, caching, and a run end to end."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.bench import bench
+from app.errors import ConfigError
+from app.geometry import se3
+
+TRIAL_SECONDS = 1.0
+
+
+# --------------------------------------------------------------------------- configurations
+
+def test_builtin_configurations_load_with_the_publications_settings():
+    configs = {c.name: c for c in bench.resolve_configs(None)}
+    assert list(configs)[:6] == list(bench.BUILTIN_ORDER)
+    expected = {"A_cpu": (200, (80, 60), "joint"), "A_cadaver": (1500, (160, 120), "joint"),
+                "thesis_blockwise": (600, (80, 60), "blockwise"), "thesis_joint": (1250, (80, 60), "joint")}
+    for name, (n, res, sampling) in expected.items():
+        c = configs[name]
+        assert c.kind == "particle_filter"
+        assert (c.tracker.particles, c.tracker.resolution, c.tracker.sampling) == (n, res, sampling)
+    complex_ = configs["thesis_complex"].tracker.likelihood
+    assert complex_.occlusion == "smooth_exponential" and complex_.classification and complex_.l0_weight > 0
+    assert configs["icp"].kind == "icp" and configs["icp"].icp.resolution == (160, 120)
+
+
+def test_particle_filter_configurations_are_plain_tracker_files():
+    from app.config import load_config
+
+    for name in ("A_cpu", "A_cadaver", "thesis_blockwise", "thesis_joint", "thesis_complex"):
+        load_config(bench.BUILTIN_DIR / f"{name}.yaml")   # usable by `osteonav replay --config` as they are
+
+
+def _write(tmp_path, name, text):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize("text, key", [
+    ("tracker: icp\nicp:\n  voxell: 0.002\n", "icp.voxell"),
+    ("tracker: icp\nicp:\n  voxel: -1\n", "icp.voxel"),
+    ("tracker: icp\nicp:\n  iterations: 2.5\n", "icp.iterations"),
+    ("tracker: icp\nicp:\n  resolution: [160]\n", "icp.resolution"),
+    ("tracker: icp\nicp:\n  ok_fitness: 1.5\n", "icp.ok_fitness"),
+    ("tracker: icp\nfilter:\n  particles: 10\n", "filter"),
+    ("tracker: kalman\n", "tracker"),
+    ("tracker: particle_filter\nfilter:\n  particle: 10\n", "filter.particle"),
+])
+def test_bad_configuration_files_name_the_key(tmp_path, text, key):
+    path = _write(tmp_path, "bad.yaml", text)
+    with pytest.raises(ConfigError) as info:
+        bench.load_bench_config(path)
+    assert info.value.key == key
+    assert str(path) in str(info.value)
+
+
+def test_icp_file_with_some_keys_keeps_the_other_defaults(tmp_path):
+    from app.baselines.icp import ICPParams
+
+    config = bench.load_bench_config(_write(tmp_path, "fast_icp.yaml", "tracker: icp\nicp:\n  resolution: [80, 60]\n  iterations: 10\n"))
+    assert config.name == "fast_icp"
+    assert config.icp.resolution == (80, 60) and config.icp.iterations == 10
+    assert config.icp.voxel == ICPParams().voxel
+
+
+def test_unknown_configuration_name_lists_the_builtins():
+    with pytest.raises(ConfigError, match="A_cpu") as info:
+        bench.resolve_configs(["nonexistent"])
+    assert info.value.key == "--configs"
+
+
+# --------------------------------------------------------------------------- jitter
+
+def test_jitter_is_the_rms_frame_to_frame_change_over_static_ground_truth():
+    n = 10
+    stamps = np.arange(n) * 0.1
+    T_gt = np.repeat(np.eye(4)[None], n, axis=0)
+    T_gt[7:, 0, 3] = 0.05                      # the bone moves between frames 6 and 7
+    pairs = bench.static_pairs(T_gt, stamps, settle_s=0.25)
+    assert pairs.tolist() == [False, False, False, True, True, True, True, False, True, True]
+    # the estimate alternates +-1 mm in y and 0.5 deg about z: every static change is 2 mm and 1 deg
+    T_est = np.repeat(np.eye(4)[None], n, axis=0)
+    for k in range(n):
+        sign = 1 if k % 2 else -1
+        T_est[k] = se3.from_rotvec_trans(np.array([0, 0, np.deg2rad(0.5) * sign]), np.array([0, 1e-3 * sign, 0]))
+    j = bench.jitter(T_est, pairs)
+    assert j["pairs"] == 6
+    assert j["translation_mm"] == pytest.approx(2.0)
+    assert j["rotation_deg"] == pytest.approx(1.0)
+
+
+def test_jitter_is_nan_without_static_frames():
+    j = bench.jitter(np.repeat(np.eye(4)[None], 3, axis=0), np.zeros(3, dtype=bool))
+    assert np.isnan(j["translation_mm"]) and j["pairs"] == 0
+
+
+# --------------------------------------------------------------------------- end to end
+
+@pytest.fixture(scope="module")
+def bench_run(tmp_path_factory):
+    """A 1 s simulated static_clear trial (cached where standard_trials looks), then `osteonav bench`."""
+    from app.cli import main
+    from app.sim.simulator import DEFAULT_MESH, simulate
+
+    root = tmp_path_factory.mktemp("bench")
+    cache = root / "cache"
+    trial = cache / DEFAULT_MESH.stem / "static_clear"
+    simulate(trial, DEFAULT_MESH, "static_clear", seconds=TRIAL_SECONDS, seed=0)
+    tiny = _write(root, "tiny.yaml", "filter:\n  particles: 40\nrender:\n  resolution: [40, 30]\n  mesh_triangles: 300\n")
+    tiny_icp = _write(root, "tiny_icp.yaml", "tracker: icp\nicp:\n  resolution: [80, 60]\n  iterations: 10\n  model_samples: 1000\n")
+    out_json, plots, runs = root / "bench.json", root / "plots", root / "runs"
+    rc = main(["bench", "--trials", str(trial), "--configs", str(tiny), str(tiny_icp), "--quick",
+               "--json", str(out_json), "--plots", str(plots), "--out", str(runs)])
+    return {"rc": rc, "trial": trial, "cache": cache, "json": out_json, "plots": plots, "runs": runs}
+
+
+def test_bench_writes_a_row_per_configuration_and_trial(bench_run, capsys):
+    assert bench_run["rc"] == 0
+    data = json.loads(bench_run["json"].read_text())
+    rows = data["rows"]
+    assert [(r["config"], r["trial"]) for r in rows] == [("tiny", "iliac_crest/static_clear"),
+                                                         ("tiny_icp", "iliac_crest/static_clear")]
+    assert {r["tracker"] for r in rows} == {"particle_filter", "icp"}
+    for r in rows:
+        n = r["frames"]
+        assert n > 80 and r["fps"] > 0
+        assert len(r["series"]["add_mm"]) == n and len(r["series"]["status"]) == n
+        for key in ("add_mm", "add_s_mm", "mdd_s_mm", "translation_mm", "rotation_deg", "vsd"):
+            assert r[key]["median"] is not None, key
+        assert r["add_s_mm"]["median"] <= r["add_mm"]["median"] + 1e-9
+        assert 0.0 <= r["vsd_recall"] <= 1.0
+        assert sum(r["status_pct"].values()) == pytest.approx(100.0)
+        assert r["jitter"]["pairs"] > 30 and r["jitter"]["translation_mm"] >= 0  # the bone is static after 0.5 s
+        # dangerous frames are exactly the ok frames with ADD > 5 mm
+        s = r["series"]
+        assert r["dangerous_frames"] == sum(st == "ok" and a > 5.0 for st, a in zip(s["status"], s["add_mm"]))
+    # the ICP baseline starts 5 mm / 3 deg off and locks onto the clear static bone
+    icp = rows[1]
+    assert icp["add_mm"]["median"] < 3.0
+
+
+def test_bench_draws_error_and_rate_plots(bench_run):
+    names = sorted(p.name for p in bench_run["plots"].glob("*.png"))
+    assert names == ["error_iliac_crest__static_clear.png", "rate.png"]
+    for p in bench_run["plots"].glob("*.png"):
+        assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_standard_trials_reuse_the_cached_simulation(bench_run):
+    from app.sim.simulator import DEFAULT_MESH
+
+    stamp = (bench_run["trial"] / "frames.csv").stat().st_mtime_ns
+    specs = bench.standard_trials(bench_run["cache"], ["static_clear"], seconds=TRIAL_SECONDS,
+                                  meshes=[DEFAULT_MESH], progress=False)
+    assert [(s.mesh, s.scenario) for s in specs] == [("iliac_crest", "static_clear")]
+    assert specs[0].frames > 80
+    assert (bench_run["trial"] / "frames.csv").stat().st_mtime_ns == stamp
+
+
+def test_estimate_files_are_tum_files_evo_reads(bench_run):
+    evo_ape = Path(sys.executable).parent / "evo_ape"
+    if not evo_ape.exists() and shutil.which("evo_ape") is None:
+        pytest.skip("evo is not installed (pip install evo)")
+    exe = str(evo_ape) if evo_ape.exists() else shutil.which("evo_ape")
+    for config in ("tiny", "tiny_icp"):
+        estimate = bench_run["runs"] / config / "iliac_crest" / "static_clear" / "estimate.txt"
+        proc = subprocess.run([exe, "tum", str(bench_run["trial"] / "groundtruth.txt"), str(estimate)],
+                              capture_output=True, text=True, timeout=120)
+        assert proc.returncode == 0, proc.stderr + proc.stdout
+        assert "rmse" in proc.stdout
+
+
+def test_recorded_trials_cut_to_seconds_and_need_ground_truth(bench_run, tmp_path):
+    from app.errors import TrialFormatError
+
+    spec = bench.recorded_trials([bench_run["trial"]], seconds=0.3)[0]
+    assert spec.scenario == "static_clear" and spec.max_frames == spec.frames and 20 <= spec.frames <= 28
+    copy = tmp_path / "no_gt"
+    shutil.copytree(bench_run["trial"], copy)
+    (copy / "groundtruth.txt").unlink()
+    with pytest.raises(TrialFormatError, match="ground truth"):
+        bench.recorded_trials([copy])
