@@ -573,8 +573,11 @@ def plot(rows: list[dict], folder: str | Path) -> list[Path]:
         for r in (r for r in rows if r["trial"] == trial):
             s = r["series"]
             ax_add.plot(s["t"], s["add_mm"], label=r["config"], color=colours[r["config"]], lw=1)
+            danger = [(t, a) for t, a, st in zip(s["t"], s["add_mm"], s["status"]) if st == "ok" and a > DANGEROUS_ADD_MM]
+            if danger:
+                ax_add.plot(*zip(*danger), "x", color=colours[r["config"]], ms=5)
             ax_rot.plot(s["t"], s["rot_deg"], color=colours[r["config"]], lw=1)
-        ax_add.axhline(DANGEROUS_ADD_MM, color="grey", ls="--", lw=0.8)
+        ax_add.axhline(DANGEROUS_ADD_MM, color="grey", ls="--", lw=0.8)   # x: status ok above this line
         ax_add.set_yscale("log")
         ax_add.set_ylabel("ADD (mm)")
         ax_rot.set_yscale("log")
