@@ -78,7 +78,7 @@ def radiographic_angles(axis_P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     a = np.asarray(axis_P, float)
     a = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    inclination = np.arctan2(np.abs(a[..., 0]), -a[..., 1])
+    inclination = np.arctan2(np.abs(a[..., 0]), 0.0 - a[..., 1])  # 0.0 - : no -0.0 (atan2 would give pi)
     anteversion = np.arcsin(np.clip(a[..., 2], -1.0, 1.0))
     return inclination, anteversion
 
