@@ -1,0 +1,52 @@
+"""The ``tracker: marker_imu`` session plugin (plugins/marker_imu.py)."""
+import time
+
+import numpy as np
+import pytest
+
+from app import plugins_registry as registry
+from app.errors import ConfigError
+from app.marker import imu as imu_proto
+
+
+def _create(**params):
+    return registry.create("tracker", "marker_imu", params, "tracker", mesh=None, camera=None, T_flange_camera=None)
+
+
+def test_registered_and_tracks_with_simulated_imu():
+    assert "marker_imu" in registry.available("tracker")
+    tracker = _create(imu="simulated", seed=1)
+    tracker.start(np.eye(4))
+    T_base_camera = np.eye(4)
+    T_base_camera[:3, 3] = [0.1, 0.0, 0.2]
+    results = [tracker.process(None, 50.0 + k / 10, T_base_camera) for k in range(12)]
+    tracker.release()
+    assert results[-1].status == "ok"
+    assert {r.path for r in results} <= {"roi", "full"} and results[-1].path == "roi"
+    (R,), (p,) = tracker.sim.pose([1.1])
+    np.testing.assert_allclose(results[-1].T_base_bone[:3, 3], p + [0.1, 0.0, 0.2], atol=0.01)
+
+
+def test_udp_imu_feeds_the_filter_over_loopback():
+    tracker = _create(imu="udp", imu_port=0, seed=2)
+    sender = imu_proto.UdpSender(tracker.receiver.address)
+    sim_imu = tracker.sim.imu()
+    try:
+        for k in range(30):
+            sender.send(k, sim_imu["sensor_stamp"][k], sim_imu["q_W_S"][k])
+        end = time.monotonic() + 3.0
+        while tracker.receiver.counts["received"] < 30 and time.monotonic() < end:
+            time.sleep(0.01)
+        result = tracker.process(None, 0.0, None)
+    finally:
+        sender.close()
+        tracker.release()
+    assert tracker.fusion.counts["imu"] == 30
+    assert result.q_C_M is not None
+
+
+def test_bad_parameters_name_the_key():
+    with pytest.raises(ConfigError, match="tracker.params.imu"):
+        _create(imu="serial")
+    with pytest.raises(ConfigError, match="imu_file"):
+        _create(imu="file")
