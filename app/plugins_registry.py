@@ -36,6 +36,7 @@ BUILTIN: dict[str, str] = {
     "robot.static": "plugins.static_robot:StaticRobot",
     "robot.ur": "plugins.ur:URRobot",
     "tracker.particle_filter": "plugins.tracker_pf:ParticleFilterTracker",
+    "tracker.marker_imu": "plugins.marker_imu:MarkerImuTracker",
     "output.rerun": "plugins.rerun_output:RerunOutput",
     "output.recorder": "plugins.recorder:Recorder",
 }

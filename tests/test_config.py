@@ -40,7 +40,7 @@ status: {min_covered_pixels: 50}
 """)
     c = load_config(path)
     assert c.particles == 600 and c.sampling == "blockwise"
-    assert c.motion.lambda_v == 0.95 and c.motion.sigma_a == 5.0
+    assert c.motion.lambda_v == 0.95 and c.motion.sigma_a == 2.0  # a key left out keeps its default
     assert c.likelihood.occlusion == "smooth_exponential" and c.likelihood.classification
     assert c.resolution == (160, 120) and c.status.min_covered_pixels == 50
 
@@ -106,3 +106,9 @@ def test_missing_file_and_bad_yaml_are_config_errors(tmp_path):
         load_config(write(tmp_path, "filter: [unclosed\n"))
     with pytest.raises(ConfigError, match="expected a mapping of sections"):
         load_config(write(tmp_path, "- 1\n- 2\n"))
+
+
+def test_the_shipped_default_yaml_states_exactly_the_built_in_defaults():
+    from app.config import DEFAULT_CONFIG_PATH, config_to_dict, load_config
+
+    assert config_to_dict(load_config(DEFAULT_CONFIG_PATH)) == config_to_dict(load_config(None))

@@ -176,3 +176,40 @@ def test_bad_settings_and_missing_initialisation_are_reported(rng):
         ParticleFilter(replace(FilterConfig(), resampling="residual"), GaussianPoseBackend(), rng)
     with pytest.raises(RuntimeError, match="initialise"):
         ParticleFilter(FilterConfig(), GaussianPoseBackend(), rng).step(np.zeros((H, W), np.float32), 0.0, None)
+
+
+def _occluded(depth, rows, depth_m):
+    out = depth.copy()
+    out[rows] = depth_m
+    return out
+
+
+def test_an_occluder_in_front_is_left_out_of_the_inlier_rules_but_misfits_are_not(rng):
+    """A hand 10 cm in front of half the bone's pixels: the rest still decides (ok); the same pixels
+    measured 1 cm behind the estimate (the bone is not there) count against it (not ok)."""
+    pf, backend, outputs = run_filter("joint", lambda i: T_BASE_BONE, 60, rng)
+    assert outputs[-1].status == TrackingStatus.OK
+    clean = backend.measure(rng)
+    z_bone = backend.T_camera_bone_true[2, 3]
+    hand = pf.step(_occluded(clean, slice(2, 6), z_bone - 0.10), 60 / 90, T_BASE_CAMERA)
+    assert hand.covered_pixels == 40 and hand.inlier_fraction > 0.9 and hand.status == TrackingStatus.OK
+    behind = pf.step(_occluded(clean, slice(2, 6), z_bone + 0.01), 61 / 90, T_BASE_CAMERA)
+    assert behind.covered_pixels == 80 and behind.inlier_fraction < 0.6 and behind.status != TrackingStatus.OK
+    full = pf.step(np.where(clean > 0, np.float32(z_bone - 0.10), clean), 62 / 90, T_BASE_CAMERA)
+    assert full.covered_pixels == 0 and full.status == TrackingStatus.UNCERTAIN
+
+
+def test_a_moving_bone_is_uncertain_until_it_has_settled(rng):
+    """The estimate following a bone moving at 9 cm/s: uncertain while it moves and for settle_s
+    after it stops, ok again afterwards (app/filter/motion_gate.py)."""
+    def T_true_at(i):
+        T = T_BASE_BONE.copy()
+        T[0, 3] += 0.001 * min(max(i - 40, 0), 40)   # 1 mm per frame (90 mm/s) for frames 40-80
+        return T
+
+    _, _, outputs = run_filter("joint", T_true_at, 140, rng)
+    status = [o.status for o in outputs]
+    assert status[38] == TrackingStatus.OK
+    assert all(s != TrackingStatus.OK for s in status[50:80])
+    assert all(s != TrackingStatus.OK for s in status[80:100])   # < 0.3 s after the stop (27 frames)
+    assert status[-1] == TrackingStatus.OK

@@ -23,6 +23,8 @@ OPTIONS = {
     "classification": {"classification": True, "l0_weight": 2.0},
     "pixel_count": {"pixel_count_reg": 50.0},
     "all": {"occlusion": "smooth_exponential", "classification": True, "pixel_count_reg": 50.0},
+    "background_ratio": {"background_ratio": True, "pixel_weight": 0.3},
+    "ratio_classification": {"background_ratio": True, "classification": True},
 }
 
 

@@ -32,9 +32,22 @@ are outliers that only p_u explains. With P_FLOOR = ``LOG_FLOOR`` = 1e-30 and
   object pixel if l_obj >= l_bg: l_i = l_obj; else background: l_i = l_bg - l0_weight.
   An invalid z is background: l_i = safe_log(w_u p_u) - l0_weight.
 - uncovered pixels (z*_i <= 0) contribute 0 (log 1).
+- background ratio (``background_ratio=True``; our addition, not in (A)/(B)): each covered pixel
+  contributes the log-ratio of the bone hypothesis to the background hypothesis "this pixel sees
+  something else at a depth uniform in [0, z_max]", p_0 = 1 / z_max:
+  valid:   l_i ← l_i - log(1 / z_max);   invalid: l_i ← l_i - log(w_u p_u) (= 0 without
+  classification: an invalid pixel says nothing about the pose).
+  The uncovered pixels' 0 then means "explained by the background" as well, so the sum no longer
+  rewards a pose for covering fewer pixels: an occluder in front of the bone costs a covered
+  pixel about log((w_u p_u + w_e p_e) z_max) ≈ -0.3 instead of ≈ -1.1, and only measurements
+  seen *through* the pose (z ≫ z*, log w_u ≈ -3) argue against it. This removes the drift of the
+  cloud away from occluders (measured: BENCHMARKS.md).
 
-Per particle: L = Σ_i l_i, or with the pixel-count regularisation ((B) eq. 4.37, c_reg > 0)
+Per particle: L = α Σ_i l_i, or with the pixel-count regularisation ((B) eq. 4.37, c_reg > 0)
 L = c_reg · Σ_i l_i / max(N_px, 1), N_px the number of covered pixels; c_reg = 0 disables it.
+α = ``pixel_weight`` (default 1) tempers the likelihood: neighbouring pixels of a downsampled
+stereo image are correlated, so the product over pixels is overconfident; α < 1 counts each pixel
+as a fraction of an independent measurement (it keeps the ESS and the spread honest).
 
 Defaults (:class:`LikelihoodParams`): z_max = 2 m (beyond any working distance of a D415 over the
 table; our choice), λ = ln 2 per metre (DESIGN.md), mixture weights w_u = 0.05, w_e = 0.15,
@@ -68,6 +81,8 @@ class LikelihoodParams:
     classification : pixel-object classification with L0 regularisation ((B) 4.34-4.39)
     l0_weight : the L0 penalty (nats) per background-classified pixel
     pixel_count_reg : c_reg of (B) eq. 4.37; 0 = off
+    background_ratio : log-ratio to the uniform background hypothesis per covered pixel
+    pixel_weight : α, the tempering factor of the sum over pixels (1 = the plain product)
     """
 
     z_max: float = 2.0
@@ -81,6 +96,8 @@ class LikelihoodParams:
     classification: bool = False
     l0_weight: float = 1.0
     pixel_count_reg: float = 0.0
+    background_ratio: bool = False
+    pixel_weight: float = 1.0
 
 
 def safe_log(p: np.ndarray) -> np.ndarray:
@@ -167,6 +184,9 @@ def pixel_log_likelihood(z: np.ndarray, z_star: np.ndarray, params: LikelihoodPa
     else:
         l_valid = safe_log(p_u + params.w_e * p_e + params.w_n * p_n)
         l_invalid = math.log(max(p_u, LOG_FLOOR))
+    if params.background_ratio:
+        l_valid = l_valid + math.log(params.z_max)
+        l_invalid = l_invalid - math.log(max(p_u, LOG_FLOOR))
     return np.where(covered, np.where(valid, l_valid, l_invalid), 0.0)
 
 
@@ -192,6 +212,8 @@ def log_likelihood(depth_meas: np.ndarray, depth_rendered: np.ndarray, params: L
     if params.pixel_count_reg > 0:
         n_px = (depth_rendered > 0).reshape(len(l), -1).sum(axis=1)
         total = params.pixel_count_reg * total / np.maximum(n_px, 1)
+    else:
+        total = params.pixel_weight * total
     return total
 
 

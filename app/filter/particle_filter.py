@@ -17,7 +17,8 @@ the first frame; a dropped frame simply doubles ΔT; a non-increasing stamp give
   (:mod:`app.filter.resampling`); the estimate is taken from the weighted particles of the last
   weighing, before that resampling (less noise).
 - estimate: weighted mean pose and spread (:mod:`app.filter.estimate`); the estimate is rendered
-  once more for the inlier fraction; status by :mod:`app.filter.status`.
+  once more for the inlier fraction; its speed comes from :mod:`app.filter.motion_gate`; status
+  by :mod:`app.filter.status`.
 
 A frame without a camera pose (None) or without any valid depth pixel is predicted only; its
 status is at best uncertain. ``FilterOutput.timings`` gives seconds per stage: predict,
@@ -37,6 +38,7 @@ from app.filter import motion
 from app.filter import resampling as rs
 from app.filter import weights as lw_ops
 from app.filter.estimate import PoseEstimate, estimate
+from app.filter.motion_gate import MotionGate
 from app.filter.likelihood_ref import LikelihoodParams
 from app.filter.motion import MotionParams, ParticleState
 from app.filter.status import StatusInputs, StatusThresholds, TrackingStatus, classify
@@ -131,6 +133,8 @@ class ParticleFilter:
         self._first_stamp: float | None = None
         self._last_stamp: float | None = None
         self._last_pose_stamp: float | None = None
+        t = config.status
+        self.motion_gate = MotionGate(t.motion_window_s, t.uncertain_speed, t.uncertain_angular_speed)
 
     # -- initialisation ---------------------------------------------------------------------
     def initialise(self, T_base_bone: np.ndarray, sigma_p: float | None = None,
@@ -146,6 +150,7 @@ class ParticleFilter:
         self._first_stamp = None
         self._last_stamp = None
         self._last_pose_stamp = None
+        self.motion_gate.reset()
 
     # -- stages -----------------------------------------------------------------------------
     def _dt(self, stamp: float) -> float:
@@ -240,10 +245,12 @@ class ParticleFilter:
         inlier_fraction, covered = self._inliers(pose, depth_meas, T_base_camera) if weighed else (float("nan"), 0)
         since = self._last_pose_stamp if self._last_pose_stamp is not None else self._first_stamp
         seconds_without_pose = stamp - since
+        speed, angular_speed, since_motion = self.motion_gate.update(stamp, pose.T_base_bone)
         status = classify(StatusInputs(
             position_spread=pose.position_spread, rotation_spread=pose.rotation_spread,
             ess_ratio=ess / self.state.n, inlier_fraction=inlier_fraction, covered_pixels=covered,
             n_nan=n_nan, n_particles=self.state.n, weighed=weighed, seconds_without_pose=seconds_without_pose,
+            speed=speed, angular_speed=angular_speed, seconds_since_motion=since_motion,
         ), self.config.status)
         _tick(timings, "estimate", t)
         return FilterOutput(
@@ -254,14 +261,21 @@ class ParticleFilter:
         )
 
     def _inliers(self, pose: PoseEstimate, depth: np.ndarray, T_base_camera: np.ndarray) -> tuple[float, int]:
-        """Inlier fraction and count of valid covered pixels of the estimate's rendering."""
+        """Inlier fraction and count of the estimate's valid covered pixels that no occluder hides.
+
+        Pixels measured more than ``status.occluder_margin`` in front of the rendered depth see an
+        occluder and are left out of both (app/filter/status.py).
+        """
         T_camera_bone = se3.inverse(T_base_camera) @ pose.T_base_bone
         rendered = self.backend.render_depth(T_camera_bone[None])[0]
         valid = likelihood_ref.valid_measurement(depth, self.config.likelihood) & (rendered > 0)
-        covered = int(valid.sum())
+        with np.errstate(invalid="ignore"):
+            occluded = valid & (depth < rendered - self.config.status.occluder_margin)
+        considered = valid & ~occluded
+        covered = int(considered.sum())
         if covered == 0:
             return float("nan"), 0
-        inliers = int(likelihood_ref.inlier_mask(depth, rendered, self.config.likelihood).sum())
+        inliers = int((likelihood_ref.inlier_mask(depth, rendered, self.config.likelihood) & considered).sum())
         return inliers / covered, covered
 
 

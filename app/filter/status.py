@@ -26,7 +26,11 @@ UNCERTAIN if
 - fewer than ``min_covered_pixels`` = 30 covered valid pixels (the bone left the view or is
   hidden behind invalid pixels: too little evidence, at 80x60 the crest covers a few hundred), or
 - any NaN log-likelihood, or
-- ESS / N < ``min_ess_ratio`` (default 0: disabled; peaked likelihoods make small ESS normal).
+- ESS / N < ``min_ess_ratio`` (default 0: disabled; peaked likelihoods make small ESS normal), or
+- the bone is moving: the estimate's speed over ``motion_window_s`` = 0.2 s exceeds
+  ``uncertain_speed`` = 30 mm/s or ``uncertain_angular_speed`` = 20 deg/s, or it did so less than
+  ``settle_s`` = 0.3 s ago (:mod:`app.filter.motion_gate`: the estimate lags a moving bone, and
+  along the crest's length the image hardly shows it; measured on or_fast_reposition).
 OK otherwise.
 
 The thresholds of 3 mm / 2° follow the clinical accuracy the navigation needs (a template
@@ -34,6 +38,14 @@ misplaced by more than a few millimetres is not useful); 10 mm matches the repla
 a lost frame (ADD > 10 mm, app/pipeline/replay.py). The inlier fractions come from a synthetic
 run (default crest mesh at 0.42 m, 80x60, 0.5 mm noise): 0.46-0.50 with the estimate 16 mm / 9°
 off, 0.84-1.0 once converged.
+
+Occluders: a pixel measured more than ``occluder_margin`` = 20 mm in front of the estimate's
+rendered depth sees a hand or an instrument over the bone: it neither confirms nor contradicts the
+pose, so it is left out of both the inlier fraction and the covered-pixel count (the caller,
+:meth:`app.filter.particle_filter.ParticleFilter._inliers`, applies the margin). A hand over 80 %
+of the bone therefore leaves the status to the remaining 20 % (ok if they fit and are enough),
+and a full occlusion leaves too few pixels: uncertain, never ok. Misfits of a wrong pose (soft
+tissue, the table or the bone itself a few millimetres off the rendered surface) stay in.
 
 Caveat: with a peaked likelihood (hundreds of pixels, ESS / N near 1/N) the weighted spread of a
 degenerate particle set is near zero even when the estimate is off; the inlier rules are what
@@ -55,6 +67,11 @@ UNCERTAIN_ROTATION_SPREAD_RAD = math.radians(2.0)
 UNCERTAIN_INLIER_FRACTION = 0.7
 MIN_COVERED_PIXELS = 30
 MIN_ESS_RATIO = 0.0
+OCCLUDER_MARGIN_M = 0.02
+UNCERTAIN_SPEED_M_S = 0.03
+UNCERTAIN_ANGULAR_SPEED_RAD_S = math.radians(20.0)
+MOTION_WINDOW_S = 0.2
+SETTLE_S = 0.3
 
 
 class TrackingStatus(enum.StrEnum):
@@ -78,6 +95,11 @@ class StatusThresholds:
     uncertain_inlier_fraction: float = UNCERTAIN_INLIER_FRACTION
     min_covered_pixels: int = MIN_COVERED_PIXELS
     min_ess_ratio: float = MIN_ESS_RATIO
+    occluder_margin: float = OCCLUDER_MARGIN_M
+    uncertain_speed: float = UNCERTAIN_SPEED_M_S
+    uncertain_angular_speed: float = UNCERTAIN_ANGULAR_SPEED_RAD_S
+    motion_window_s: float = MOTION_WINDOW_S
+    settle_s: float = SETTLE_S
 
 
 @dataclass
@@ -90,6 +112,8 @@ class StatusInputs:
     n_nan : NaN log-likelihoods this frame; n_particles : N
     weighed : the frame had a camera pose and depth and was weighed
     seconds_without_pose : since the last frame that had a camera pose (0 when this one has)
+    speed (m/s), angular_speed (rad/s), seconds_since_motion (s): the estimate's motion
+    (:mod:`app.filter.motion_gate`)
     """
 
     position_spread: float
@@ -101,6 +125,9 @@ class StatusInputs:
     n_particles: int
     weighed: bool
     seconds_without_pose: float
+    speed: float = 0.0
+    angular_speed: float = 0.0
+    seconds_since_motion: float = math.inf
 
 
 def lost_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
@@ -136,6 +163,10 @@ def uncertain_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
         reasons.append(f"{s.n_nan} NaN log-likelihoods")
     if s.ess_ratio < t.min_ess_ratio:
         reasons.append(f"ESS ratio {s.ess_ratio:.3f}")
+    if s.speed > t.uncertain_speed or s.angular_speed > t.uncertain_angular_speed:
+        reasons.append(f"bone moving ({1e3 * s.speed:.0f} mm/s, {math.degrees(s.angular_speed):.0f} deg/s)")
+    elif s.seconds_since_motion < t.settle_s:
+        reasons.append(f"bone settling ({s.seconds_since_motion:.2f} s after moving)")
     return reasons
 
 

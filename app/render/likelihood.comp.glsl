@@ -4,7 +4,7 @@
 // One work group per particle; each invocation sums a strided subset of the tile's pixels, then a
 // shared-memory tree reduction; invocation 0 writes one float. Only N floats are read back.
 // Injected: LOCAL_SIZE (power of two), TILE_W, TILE_H, GRID_X, SMOOTH_OCCLUSION (0/1),
-// CLASSIFICATION (0/1), LOG_FLOOR (the probability floor inside the log, as in the reference).
+// CLASSIFICATION (0/1), BACKGROUND_RATIO (0/1), LOG_FLOOR (the probability floor inside the log, as in the reference).
 layout(local_size_x = LOCAL_SIZE) in;
 
 layout(binding = 0) uniform sampler2D rendered;   // tiled linear depth, GL row order, 0 = not covered
@@ -23,6 +23,7 @@ uniform float k_noise;      // 1/m, sigma(z) = k z^2 + sigma_base
 uniform float sigma_base;   // m
 uniform float l0_weight;    // L0 penalty per background-classified pixel ((B) eq. 4.38-4.39)
 uniform float c_reg;        // pixel-count regularisation ((B) eq. 4.37); 0 = off
+uniform float pixel_weight; // alpha, tempering of the sum over pixels (1 = plain product)
 
 shared float partial_sum[LOCAL_SIZE];
 shared float partial_count[LOCAL_SIZE];
@@ -57,7 +58,7 @@ float occlusion_density(float z, float z_star, float sigma) {
 #endif
 }
 
-float pixel_log_likelihood(float z, float z_star) {
+float beam_log_likelihood(float z, float z_star) {
     float p_u = w_u / z_max;
     bool valid = z > 0.0 && z <= z_max && !isinf(z) && !isnan(z);
 #if CLASSIFICATION
@@ -74,6 +75,17 @@ float pixel_log_likelihood(float z, float z_star) {
     float p_n = INV_SQRT_2PI / sigma * exp(-0.5 * r * r);
     return safe_log(p_u + w_e * occlusion_density(z, z_star, sigma) + w_n * p_n);
 #endif
+}
+
+// The per-pixel term; with BACKGROUND_RATIO the log-ratio to the uniform background hypothesis
+// p_0 = 1 / z_max for valid pixels (invalid pixels: ratio to w_u p_u), as in the reference.
+float pixel_log_likelihood(float z, float z_star) {
+    float l = beam_log_likelihood(z, z_star);
+#if BACKGROUND_RATIO
+    bool valid = z > 0.0 && z <= z_max && !isinf(z) && !isnan(z);
+    l -= valid ? log(1.0 / z_max) : safe_log(w_u / z_max);
+#endif
+    return l;
 }
 
 void main() {
@@ -108,6 +120,7 @@ void main() {
     if (lid == 0u) {
         float total = partial_sum[0];
         if (c_reg > 0.0) total = c_reg * total / max(partial_count[0], 1.0);
+        else total = pixel_weight * total;
         log_likelihood[particle] = total;
     }
 }

@@ -68,6 +68,7 @@ class GLLikelihoodBackend:
             "GRID_X": self.renderer.grid[0],
             "SMOOTH_OCCLUSION": int(params.occlusion == "smooth_exponential"),
             "CLASSIFICATION": int(bool(params.classification)),
+            "BACKGROUND_RATIO": int(bool(params.background_ratio)),
             "LOG_FLOOR": f"{LOG_FLOOR:.9e}",
         }
         self.shader = shaders.compute_shader(ctx, "likelihood.comp.glsl", defines)
@@ -83,6 +84,7 @@ class GLLikelihoodBackend:
         values = {
             "z_max": p.z_max, "lam": p.lam, "w_u": p.w_u, "w_e": p.w_e, "w_n": p.w_n,
             "k_noise": p.k, "sigma_base": p.sigma_base, "l0_weight": p.l0_weight, "c_reg": p.pixel_count_reg,
+            "pixel_weight": p.pixel_weight,
         }
         for name, value in values.items():
             if name in self.shader:
