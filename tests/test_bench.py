@@ -14,7 +14,7 @@ from app.bench import bench
 from app.errors import ConfigError
 from app.geometry import se3
 
-TRIAL_SECONDS = 1.0
+TRIAL_SECONDS = 0.8
 
 
 # --------------------------------------------------------------------------- configurations
@@ -108,7 +108,7 @@ def test_jitter_is_nan_without_static_frames():
 
 @pytest.fixture(scope="module")
 def bench_run(tmp_path_factory):
-    """A 1 s simulated static_clear trial (cached where standard_trials looks), then `osteonav bench`."""
+    """A 0.8 s simulated static_clear trial (cached where standard_trials looks), then `osteonav bench`."""
     from app.cli import main
     from app.sim.simulator import DEFAULT_MESH, simulate
 
@@ -133,14 +133,14 @@ def test_bench_writes_a_row_per_configuration_and_trial(bench_run, capsys):
     assert {r["tracker"] for r in rows} == {"particle_filter", "icp"}
     for r in rows:
         n = r["frames"]
-        assert n > 80 and r["fps"] > 0
+        assert n > 60 and r["fps"] > 0
         assert len(r["series"]["add_mm"]) == n and len(r["series"]["status"]) == n
         for key in ("add_mm", "add_s_mm", "mdd_s_mm", "translation_mm", "rotation_deg", "vsd"):
             assert r[key]["median"] is not None, key
         assert r["add_s_mm"]["median"] <= r["add_mm"]["median"] + 1e-9
         assert 0.0 <= r["vsd_recall"] <= 1.0
         assert sum(r["status_pct"].values()) == pytest.approx(100.0)
-        assert r["jitter"]["pairs"] > 30 and r["jitter"]["translation_mm"] >= 0  # the bone is static after 0.5 s
+        assert r["jitter"]["pairs"] > 15 and r["jitter"]["translation_mm"] >= 0  # the bone is static after 0.5 s
         # dangerous frames are exactly the ok frames with ADD > 5 mm
         s = r["series"]
         assert r["dangerous_frames"] == sum(st == "ok" and a > 5.0 for st, a in zip(s["status"], s["add_mm"]))
@@ -163,7 +163,7 @@ def test_standard_trials_reuse_the_cached_simulation(bench_run):
     specs = bench.standard_trials(bench_run["cache"], ["static_clear"], seconds=TRIAL_SECONDS,
                                   meshes=[DEFAULT_MESH], progress=False)
     assert [(s.mesh, s.scenario) for s in specs] == [("iliac_crest", "static_clear")]
-    assert specs[0].frames > 80
+    assert specs[0].frames > 60
     assert (bench_run["trial"] / "frames.csv").stat().st_mtime_ns == stamp
 
 
