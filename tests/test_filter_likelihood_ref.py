@@ -138,3 +138,21 @@ def test_an_unknown_occlusion_model_is_rejected():
 def test_mismatched_shapes_are_rejected():
     with pytest.raises(ValueError, match="rendered depth must be"):
         lr.log_likelihood(np.zeros((4, 5), np.float32), np.zeros((2, 5, 4), np.float32), P)
+
+
+def test_background_ratio_makes_occluders_and_invalid_pixels_neutral_and_see_through_negative():
+    """Closed forms of the ratio mode: hit log(w_n p_n z_max + ...) > 0, an occluder 10 cm in front 0,
+    an invalid pixel 0, a measurement 5 cm behind z* (the pose is not there) log(w_u) < 0."""
+    import math
+
+    params = replace(lr.LikelihoodParams(), background_ratio=True)
+    z_star = np.float64(0.4)
+    sigma = params.k * z_star**2 + params.sigma_base
+    z = np.array([0.4, 0.3, 0.0, 0.45])
+    l = lr.pixel_log_likelihood(z, np.full(4, z_star), params)
+    p_e_hit = params.lam / (1 - math.exp(-params.lam * z_star)) * 0.0   # z = z* is not in front
+    hit = math.log((params.w_u / params.z_max + p_e_hit + params.w_n / (sigma * math.sqrt(2 * math.pi))) * params.z_max)
+    assert l[0] == pytest.approx(hit) and l[0] > 5
+    assert l[1] == 0.0 and l[2] == 0.0
+    assert l[3] == pytest.approx(math.log(params.w_u))
+    assert lr.pixel_log_likelihood(np.array([0.39]), np.array([0.4]), params)[0] < 0   # 1 cm in front: a misfit, not an occluder

@@ -38,10 +38,11 @@ are outliers that only p_u explains. With P_FLOOR = ``LOG_FLOOR`` = 1e-30 and
   valid:   l_i ← l_i - log(1 / z_max);   invalid: l_i ← l_i - log(w_u p_u) (= 0 without
   classification: an invalid pixel says nothing about the pose).
   The uncovered pixels' 0 then means "explained by the background" as well, so the sum no longer
-  rewards a pose for covering fewer pixels: an occluder in front of the bone costs a covered
-  pixel about log((w_u p_u + w_e p_e) z_max) ≈ -0.3 instead of ≈ -1.1, and only measurements
-  seen *through* the pose (z ≫ z*, log w_u ≈ -3) argue against it. This removes the drift of the
-  cloud away from occluders (measured: BENCHMARKS.md).
+  rewards a pose for covering fewer pixels. A pixel measured more than ``occluder_margin``
+  (20 mm) in front of z* sees an occluder (a hand, an instrument) and says nothing about the
+  bone behind it: l_i = 0. Only measurements seen *through* the pose (z ≫ z*, log w_u ≈ -3)
+  argue against it, hits (≈ +7) for it. This removes the drift of the cloud away from occluders
+  and keeps it in place under a full occlusion (measured: BENCHMARKS.md).
 
 Per particle: L = α Σ_i l_i, or with the pixel-count regularisation ((B) eq. 4.37, c_reg > 0)
 L = c_reg · Σ_i l_i / max(N_px, 1), N_px the number of covered pixels; c_reg = 0 disables it.
@@ -83,6 +84,8 @@ class LikelihoodParams:
     pixel_count_reg : c_reg of (B) eq. 4.37; 0 = off
     background_ratio : log-ratio to the uniform background hypothesis per covered pixel
     pixel_weight : α, the tempering factor of the sum over pixels (1 = the plain product)
+    occluder_margin : m, with background_ratio a pixel this far in front of z* is neutral (0);
+        the tracking status leaves such pixels out of its inlier rules as well
     """
 
     z_max: float = 2.0
@@ -98,6 +101,7 @@ class LikelihoodParams:
     pixel_count_reg: float = 0.0
     background_ratio: bool = False
     pixel_weight: float = 1.0
+    occluder_margin: float = 0.02
 
 
 def safe_log(p: np.ndarray) -> np.ndarray:
@@ -185,7 +189,7 @@ def pixel_log_likelihood(z: np.ndarray, z_star: np.ndarray, params: LikelihoodPa
         l_valid = safe_log(p_u + params.w_e * p_e + params.w_n * p_n)
         l_invalid = math.log(max(p_u, LOG_FLOOR))
     if params.background_ratio:
-        l_valid = l_valid + math.log(params.z_max)
+        l_valid = np.where(zz < zs - params.occluder_margin, 0.0, l_valid + math.log(params.z_max))
         l_invalid = l_invalid - math.log(max(p_u, LOG_FLOOR))
     return np.where(covered, np.where(valid, l_valid, l_invalid), 0.0)
 

@@ -21,7 +21,13 @@ the first frame; a dropped frame simply doubles ΔT; a non-increasing stamp give
   by :mod:`app.filter.status`.
 
 A frame without a camera pose (None) or without any valid depth pixel is predicted only; its
-status is at best uncertain. ``FilterOutput.timings`` gives seconds per stage: predict,
+status is at best uncertain. A frame in which occluders hide the bone (the last estimate, rendered
+against the new image, has fewer than ``status.min_covered_pixels`` valid pixels that are not
+more than ``likelihood.occluder_margin`` in front of it: a hand over the bone) is neither
+predicted nor weighed: the particles are held where they were, because the only evidence left
+would be the soft tissue and the table around the hidden bone, which pull the cloud away, and
+the motion noise would spread it for nothing; the status is uncertain. Weighing resumes as soon
+as the bone reappears. ``FilterOutput.timings`` gives seconds per stage: predict,
 likelihood (render + likelihood in the backend), weight, resample, estimate.
 """
 from __future__ import annotations
@@ -133,6 +139,7 @@ class ParticleFilter:
         self._first_stamp: float | None = None
         self._last_stamp: float | None = None
         self._last_pose_stamp: float | None = None
+        self._last_estimate: PoseEstimate | None = None
         t = config.status
         self.motion_gate = MotionGate(t.motion_window_s, t.uncertain_speed, t.uncertain_angular_speed)
 
@@ -151,6 +158,7 @@ class ParticleFilter:
         self._last_stamp = None
         self._last_pose_stamp = None
         self.motion_gate.reset()
+        self._last_estimate = None
 
     # -- stages -----------------------------------------------------------------------------
     def _dt(self, stamp: float) -> float:
@@ -221,9 +229,13 @@ class ParticleFilter:
             self._last_pose_stamp = stamp
         has_depth = depth_meas is not None and bool(np.any(likelihood_ref.valid_measurement(depth_meas, self.config.likelihood)))
         weighed = T_base_camera is not None and has_depth
+        hidden = weighed and self._bone_hidden(depth_meas, T_base_camera)
+        weighed = weighed and not hidden
         ll_max, n_nan, resampled = float("nan"), 0, False
         ess = float(self.state.n)
-        if not weighed:
+        if hidden:
+            ess = lw_ops.ess(self.state.lw)      # hold the particles where they are (module docstring)
+        elif not weighed:
             self._predict("joint", dt, timings)
             ess = lw_ops.ess(self.state.lw)
         else:
@@ -242,6 +254,7 @@ class ParticleFilter:
         t = time.perf_counter()
         if not weighed:
             pose = estimate(self.state.p, self.state.q, self.state.lw)
+        self._last_estimate = pose
         inlier_fraction, covered = self._inliers(pose, depth_meas, T_base_camera) if weighed else (float("nan"), 0)
         since = self._last_pose_stamp if self._last_pose_stamp is not None else self._first_stamp
         seconds_without_pose = stamp - since
@@ -260,17 +273,25 @@ class ParticleFilter:
             weighed=weighed, timings=timings,
         )
 
+    def _bone_hidden(self, depth: np.ndarray, T_base_camera: np.ndarray) -> bool:
+        """Whether occluders hide the last estimate: fewer than ``min_covered_pixels`` of its
+        rendered pixels have a valid measurement that is not more than ``occluder_margin`` in front."""
+        if self._last_estimate is None:
+            return False
+        _, visible = self._inliers(self._last_estimate, depth, T_base_camera)
+        return visible < self.config.status.min_covered_pixels
+
     def _inliers(self, pose: PoseEstimate, depth: np.ndarray, T_base_camera: np.ndarray) -> tuple[float, int]:
         """Inlier fraction and count of the estimate's valid covered pixels that no occluder hides.
 
-        Pixels measured more than ``status.occluder_margin`` in front of the rendered depth see an
+        Pixels measured more than ``likelihood.occluder_margin`` in front of the rendered depth see an
         occluder and are left out of both (app/filter/status.py).
         """
         T_camera_bone = se3.inverse(T_base_camera) @ pose.T_base_bone
         rendered = self.backend.render_depth(T_camera_bone[None])[0]
         valid = likelihood_ref.valid_measurement(depth, self.config.likelihood) & (rendered > 0)
         with np.errstate(invalid="ignore"):
-            occluded = valid & (depth < rendered - self.config.status.occluder_margin)
+            occluded = valid & (depth < rendered - self.config.likelihood.occluder_margin)
         considered = valid & ~occluded
         covered = int(considered.sum())
         if covered == 0:

@@ -39,7 +39,7 @@ a lost frame (ADD > 10 mm, app/pipeline/replay.py). The inlier fractions come fr
 run (default crest mesh at 0.42 m, 80x60, 0.5 mm noise): 0.46-0.50 with the estimate 16 mm / 9°
 off, 0.84-1.0 once converged.
 
-Occluders: a pixel measured more than ``occluder_margin`` = 20 mm in front of the estimate's
+Occluders: a pixel measured more than ``likelihood.occluder_margin`` = 20 mm in front of the estimate's
 rendered depth sees a hand or an instrument over the bone: it neither confirms nor contradicts the
 pose, so it is left out of both the inlier fraction and the covered-pixel count (the caller,
 :meth:`app.filter.particle_filter.ParticleFilter._inliers`, applies the margin). A hand over 80 %
@@ -67,7 +67,6 @@ UNCERTAIN_ROTATION_SPREAD_RAD = math.radians(2.0)
 UNCERTAIN_INLIER_FRACTION = 0.7
 MIN_COVERED_PIXELS = 30
 MIN_ESS_RATIO = 0.0
-OCCLUDER_MARGIN_M = 0.02
 UNCERTAIN_SPEED_M_S = 0.03
 UNCERTAIN_ANGULAR_SPEED_RAD_S = math.radians(20.0)
 MOTION_WINDOW_S = 0.2
@@ -95,7 +94,6 @@ class StatusThresholds:
     uncertain_inlier_fraction: float = UNCERTAIN_INLIER_FRACTION
     min_covered_pixels: int = MIN_COVERED_PIXELS
     min_ess_ratio: float = MIN_ESS_RATIO
-    occluder_margin: float = OCCLUDER_MARGIN_M
     uncertain_speed: float = UNCERTAIN_SPEED_M_S
     uncertain_angular_speed: float = UNCERTAIN_ANGULAR_SPEED_RAD_S
     motion_window_s: float = MOTION_WINDOW_S
@@ -150,7 +148,7 @@ def uncertain_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
     """The UNCERTAIN rules that fire (empty when none)."""
     reasons = []
     if not s.weighed:
-        reasons.append("prediction only (no camera pose or no valid depth)")
+        reasons.append("not weighed (no camera pose, no valid depth, or the bone hidden by an occluder)")
     if s.position_spread > t.uncertain_position_spread:
         reasons.append(f"position spread {1e3 * s.position_spread:.1f} mm")
     if s.rotation_spread > t.uncertain_rotation_spread:

@@ -24,6 +24,7 @@ uniform float sigma_base;   // m
 uniform float l0_weight;    // L0 penalty per background-classified pixel ((B) eq. 4.38-4.39)
 uniform float c_reg;        // pixel-count regularisation ((B) eq. 4.37); 0 = off
 uniform float pixel_weight; // alpha, tempering of the sum over pixels (1 = plain product)
+uniform float occluder_margin; // m, with BACKGROUND_RATIO a pixel this far in front of z* is neutral
 
 shared float partial_sum[LOCAL_SIZE];
 shared float partial_count[LOCAL_SIZE];
@@ -78,11 +79,13 @@ float beam_log_likelihood(float z, float z_star) {
 }
 
 // The per-pixel term; with BACKGROUND_RATIO the log-ratio to the uniform background hypothesis
-// p_0 = 1 / z_max for valid pixels (invalid pixels: ratio to w_u p_u), as in the reference.
+// p_0 = 1 / z_max for valid pixels (invalid pixels: ratio to w_u p_u), and 0 for a pixel that
+// sees an occluder more than occluder_margin in front of z*, as in the reference.
 float pixel_log_likelihood(float z, float z_star) {
     float l = beam_log_likelihood(z, z_star);
 #if BACKGROUND_RATIO
     bool valid = z > 0.0 && z <= z_max && !isinf(z) && !isnan(z);
+    if (valid && z < z_star - occluder_margin) return 0.0;
     l -= valid ? log(1.0 / z_max) : safe_log(w_u / z_max);
 #endif
     return l;

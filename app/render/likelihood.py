@@ -84,7 +84,7 @@ class GLLikelihoodBackend:
         values = {
             "z_max": p.z_max, "lam": p.lam, "w_u": p.w_u, "w_e": p.w_e, "w_n": p.w_n,
             "k_noise": p.k, "sigma_base": p.sigma_base, "l0_weight": p.l0_weight, "c_reg": p.pixel_count_reg,
-            "pixel_weight": p.pixel_weight,
+            "pixel_weight": p.pixel_weight, "occluder_margin": p.occluder_margin,
         }
         for name, value in values.items():
             if name in self.shader:
