@@ -128,7 +128,8 @@ class BatchedDepthRenderer:
         self.poses.bind_to_storage_buffer(0)
         self.fbo.use()
         self.fbo.viewport = (0, 0, *self.texture_size)
-        self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        # only the tile rows the n poses use are cleared (and read back): one pose costs one row
+        self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0, viewport=self._rows_region(n))
         self.ctx.enable_only(self.flags)
         self.ctx.front_face = "ccw"
         self.ctx.cull_face = "back"
@@ -140,11 +141,20 @@ class BatchedDepthRenderer:
     def read_depth(self, n: int | None = None) -> np.ndarray:
         """Read back the first ``n`` tiles as (n, h, w) float32 depth images (image row order)."""
         n = self.n_rendered if n is None else n
-        cols, rows = self.grid
-        data = np.frombuffer(self.depth_texture.read(), dtype=np.float32)
+        if n > self.n_rendered:
+            raise ValueError(f"{n} tiles asked but only {self.n_rendered} rendered")
+        cols = self.grid[0]
+        region = self._rows_region(n)
+        rows = region[3] // self.tile_h
+        data = np.frombuffer(self.fbo.read(viewport=region, components=1, dtype="f4"), dtype=np.float32)
         big = data.reshape(rows * self.tile_h, cols * self.tile_w)
         tiles = big.reshape(rows, self.tile_h, cols, self.tile_w).transpose(0, 2, 1, 3).reshape(-1, self.tile_h, self.tile_w)
         return gl_rows_to_image(tiles[:n])
+
+    def _rows_region(self, n: int) -> tuple[int, int, int, int]:
+        """(x, y, w, h) GL region of the tile rows holding tiles 0..n-1 (tile row r spans y = r h ..)."""
+        rows = max(1, -(-n // self.grid[0]))
+        return (0, 0, self.texture_size[0], rows * self.tile_h)
 
     def release(self) -> None:
         unbind_framebuffer(self.ctx)
