@@ -12,8 +12,19 @@ depth camera's frames; this tracker takes each frame's stamp as its tick and rea
 The output pose is ``T_base_bone = T_base_camera T_C_M T_marker_bone`` (the camera's pose from the
 robot; identity when the session has none). Status: ``ok`` with a marker detection within
 ``ok_s``, ``uncertain`` while only the IMU carries the orientation (up to ``lost_s``), else ``lost``.
-The diagnostics carry the detection path ('roi' | 'full' | 'none') and, when the fusion has an
-APP registration, the inclination and anteversion.
+The diagnostics carry the detection path ('roi' | 'full' | 'none').
+
+**Angles**: the anterior pelvic plane is registered with the IMU (publication C) while the box sits
+on the registration device, from 0.5 s to ``registration_s`` after the first tick (the IMU's
+R_W_S X averaged; ``registration_s: 0`` turns it off), and carried into the camera frame by the
+fusion's alignment (:meth:`app.marker.fusion.MarkerImuFusion.plane_in_camera`); from then on the
+result carries ``inclination`` and ``anteversion`` (radians; None before) of the acetabular axis
+``axis_M`` (in the marker frame; default the simulator's plan).
+
+**Rerun** (``rerun``): 'auto' (default) logs to the active rerun recording if the process has one
+(``rr.get_data_recording()``), a path logs to that ``.rrd`` file, 'off' not at all; see
+:mod:`app.marker.rerun_log` (image, search region, corners, orientations, angles, path). Logging
+never fails the session.
 """
 from __future__ import annotations
 
@@ -23,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from app.errors import ConfigError
+from app.geometry import quaternion
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +46,8 @@ class MarkerImuResult:
     path: str
     q_C_M: np.ndarray | None
     diagnostics: dict = field(default_factory=dict)
+    inclination: float | None = None     # radians, once the pelvic plane is registered
+    anteversion: float | None = None
 
 
 class MarkerImuTracker:
@@ -43,7 +57,8 @@ class MarkerImuTracker:
                  imu: str = "simulated", imu_host: str = "127.0.0.1", imu_port: int = 5005, imu_file: str | None = None,
                  dictionary: str = "DICT_4X4_50", marker_id: int = 7, marker_length_m: float = 0.04,
                  q_S_M: list | None = None, T_marker_bone: list | None = None, seed: int = 0,
-                 ok_s: float = 0.5, lost_s: float = 2.0):
+                 ok_s: float = 0.5, lost_s: float = 2.0, registration_s: float | None = None,
+                 axis_M: list | None = None, rerun="auto", rerun_image_every: int = 1):
         from app.geometry import quaternion as quat
         from app.marker.aruco import MarkerDetector
         from app.marker.fusion import MarkerImuFusion
@@ -81,6 +96,16 @@ class MarkerImuTracker:
         self._imu_index = 0
         self._last_found = -np.inf
         self._T_start = np.eye(4)
+        self.registration_s = self.sim.sc.registration_s if registration_s is None else float(registration_s)
+        self.axis_M = self.sim.axis_M if axis_M is None else np.asarray(axis_M, float)
+        if self.axis_M.shape != (3,) or np.linalg.norm(self.axis_M) < 1e-9:
+            raise ConfigError("tracker.params.axis_M", f"expected a nonzero 3-vector, got {axis_M!r}")
+        self._reg_samples: list[np.ndarray] = []
+        self.R_W_P: np.ndarray | None = None
+        self._frame = 0
+        from app.marker.rerun_log import open_log
+
+        self.rerun = open_log(rerun, rerun_image_every)
 
     def start(self, T_base_bone: np.ndarray) -> None:
         self._T_start = np.asarray(T_base_bone, float)
@@ -108,19 +133,52 @@ class MarkerImuTracker:
             self._t0 = stamp
         t = min(stamp - self._t0, self.sim.sc.seconds - 1.0)
         self._feed_imu(t)
-        det, est = self.fusion.on_image(self.sim.image(t, self.rng), t)
+        self._register(t)
+        gray = self.sim.image(t, self.rng)
+        det, est = self.fusion.on_image(gray, t)
         if det.found:
             self._last_found = t
         age = t - self._last_found
         status = "ok" if age <= self.ok_s else ("uncertain" if age <= self.lost_s else "lost")
+        inclination = anteversion = None
+        R_C_P = None if (self.R_W_P is None or est.q_C_M is None) else self.fusion.plane_in_camera(self.R_W_P)
+        if R_C_P is not None:
+            from app.marker.pelvic_plane import fragment_angles
+
+            inc, ant = fragment_angles(R_C_P, quaternion.to_matrix(est.q_C_M), self.axis_M)
+            inclination, anteversion = float(inc), float(ant)
+        if self.rerun is not None:
+            self.rerun.log_step(stamp, gray, det.path, det.roi, det.corners, est.q_C_M, det.q_C_M,
+                                self.fusion.imu_marker_orientation(), inclination, anteversion, self._frame)
+        self._frame += 1
         T_C_M = est.T_C_M
         if T_C_M is None:
             return MarkerImuResult(self._T_start, "lost", det.path, None, {"roi": det.roi})
         T_base_C = np.eye(4) if T_base_camera is None else np.asarray(T_base_camera, float)
         return MarkerImuResult(T_base_C @ T_C_M @ self.T_marker_bone, status, det.path, est.q_C_M,
-                               {"roi": det.roi, "corners": det.corners, "counts": dict(self.fusion.counts)})
+                               {"roi": det.roi, "corners": det.corners, "counts": dict(self.fusion.counts),
+                                "inclination": inclination, "anteversion": anteversion},
+                               inclination, anteversion)
+
+    def _register(self, t: float) -> None:
+        """Collect the IMU's marker orientation on the registration device; register the APP after."""
+        if self.R_W_P is not None or self.registration_s <= 0:
+            return
+        if t < self.registration_s:
+            R = self.fusion.imu_marker_orientation()
+            if t >= min(0.5, 0.25 * self.registration_s) and R is not None:
+                self._reg_samples.append(R)
+        elif self._reg_samples:
+            from app.marker.pelvic_plane import register_pelvic_plane
+
+            self.R_W_P = register_pelvic_plane(np.asarray(self._reg_samples))
+            log.info("pelvic plane registered with the IMU from %d samples", len(self._reg_samples))
 
     def release(self) -> None:
+        if self.rerun is not None:
+            self.rerun.close()
+            self.rerun = None
         if self.receiver is not None:
             self.receiver.stop()
             self.receiver = None
+

@@ -50,3 +50,37 @@ def test_bad_parameters_name_the_key():
         _create(imu="serial")
     with pytest.raises(ConfigError, match="imu_file"):
         _create(imu="file")
+
+
+def test_rerun_log_file_and_angles_after_imu_registration(tmp_path):
+    """The tracker logs its image, region, orientations and angles to an .rrd file; after the IMU's
+    pelvic-plane registration the results carry inclination and anteversion near the truth."""
+    rrd = tmp_path / "marker.rrd"
+    tracker = _create(imu="simulated", seed=3, rerun=str(rrd))
+    tracker.start(np.eye(4))
+    results = [tracker.process(None, k / 10, None) for k in range(45)]   # registration ends at 2 s
+    tracker.release()
+    assert rrd.exists() and rrd.stat().st_size > 1000
+    assert results[5].inclination is None                               # still registering
+    last = results[-1]
+    assert last.inclination is not None and last.anteversion is not None
+    assert last.diagnostics["anteversion"] == last.anteversion
+    (inc_true,), (ant_true,) = tracker.sim.angles([4.4])
+    assert abs(np.rad2deg(last.inclination - inc_true)) < 3.0
+    assert abs(np.rad2deg(last.anteversion - ant_true)) < 3.0
+    data = rrd.read_bytes()
+    for entity in (b"plots/marker/inclination_deg", b"plots/marker/anteversion_deg", b"marker/image/roi",
+                   b"marker/image/corners", b"marker/orientation/fused"):
+        assert entity in data, entity
+
+
+def test_rerun_auto_without_a_recording_does_not_log():
+    import rerun as rr
+
+    if rr.get_data_recording() is not None:
+        pytest.skip("a rerun recording is active in this process")
+    tracker = _create(imu="simulated", seed=4)
+    assert tracker.rerun is None
+    tracker.start(np.eye(4))
+    assert tracker.process(None, 0.0, None).path in ("roi", "full", "none")
+    tracker.release()

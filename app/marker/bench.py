@@ -8,8 +8,11 @@ Procedure (:func:`run`), all on :mod:`app.marker.simulator` sequences of one see
    image, the IMU slerped to the image stamps, X = R_S_M by Park & Martin
    (:mod:`app.marker.handeye_rotation`); its angle error against the truth is reported.
 2. **Registration**: during the first ``registration_s`` of the ``pao`` sequence the box sits on
-   the registration device; each method averages its own orientations there (after 0.5 s) into
-   the APP: camera frame for marker-only and fused, the IMU's world for IMU-only.
+   the registration device; the APP is the average of orientations there (after 0.5 s): the
+   marker's (camera frame) for marker-only; the IMU's (R_W_S X, its world) for IMU-only and for
+   fused, as publication C records it. The fused tracker carries that plane into the camera frame
+   with its IMU-to-camera alignment (:meth:`app.marker.fusion.MarkerImuFusion.plane_in_camera`),
+   so its angles are of its fused R_C_M against ``R_C_P(t) = R_W_C(t)^T R_W_P``.
 3. **Tracking** of the fragment; the acetabular axis in the marker frame is the plan's (exact in
    the simulation), so the errors are those of tracking, calibration and registration.
    - marker-only: every image searched whole, IPPE's lower-reprojection solution;
@@ -96,6 +99,8 @@ def run(seconds: float = 60.0, seed: int = 0, camera_fps: float = 10.0, imu_rate
     fusion = MarkerImuFusion(MarkerDetector(sim.K, None, sc.dictionary, sc.marker_id, sc.marker_length_m), q_S_M,
                              OrientationKalman())
     out = {m: {"stamps": [], "R": [], "compute_s": 0.0} for m in METHODS}
+    reg_imu: list[np.ndarray] = []   # R_W_M of the IMU on the registration device (the fused tracker's APP)
+    R_W_P = None
     R_S_M_est = X
     k_img = 0
     render_s = 0.0
@@ -122,10 +127,15 @@ def run(seconds: float = 60.0, seed: int = 0, camera_fps: float = 10.0, imu_rate
         out["imu"]["R"].append(R_W_M)
         t0 = time.perf_counter()
         est = fusion.on_imu(t_imu, imu["q_W_S"][i])
+        if 0.5 <= t_imu < sc.registration_s:
+            reg_imu.append(fusion.imu_marker_orientation())
+        elif R_W_P is None and t_imu >= sc.registration_s and reg_imu:
+            R_W_P = app_plane.register_pelvic_plane(np.asarray(reg_imu))
+        R_C_P = None if R_W_P is None else fusion.plane_in_camera(R_W_P)
         out["fused"]["compute_s"] += time.perf_counter() - t0
-        if est.q_C_M is not None:
+        if est.q_C_M is not None and R_C_P is not None:
             out["fused"]["stamps"].append(t_imu)
-            out["fused"]["R"].append(quat.to_matrix(est.q_C_M))
+            out["fused"]["R"].append(R_C_P.T @ quat.to_matrix(est.q_C_M))   # R_P_M: the plane is per sample
         if progress and i % int(10 * imu_rate_hz) == 0 and i:
             progress(f"t = {t_imu:.0f} s")
     t_from = sim.fragment_start
@@ -135,8 +145,11 @@ def run(seconds: float = 60.0, seed: int = 0, camera_fps: float = 10.0, imu_rate
     for m in METHODS:
         st = np.asarray(out[m]["stamps"])
         R = np.asarray(out[m]["R"])
-        reg = (st >= 0.5) & (st < sc.registration_s)
-        R_ref_P = app_plane.register_pelvic_plane(R[reg])
+        if m == "fused":
+            R_ref_P = np.eye(3)   # its orientations are R_P_M already
+        else:
+            reg = (st >= 0.5) & (st < sc.registration_s)
+            R_ref_P = app_plane.register_pelvic_plane(R[reg])
         own = _errors(sim, st, R, R_ref_P, t_from)
         at, Rh = _held(st, imu["stamp"], R)
         held = _errors(sim, at, Rh, R_ref_P, t_from)

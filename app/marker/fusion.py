@@ -15,6 +15,17 @@ latest IMU sample at or before its stamp (a lag of at most one IMU period). With
 knows nothing of translation), and the whole image is searched.
 
 Before the first detection there is no camera-frame orientation: the outputs are None.
+
+**The pelvic plane with the IMU** (publication C): the APP is registered in the IMU's world W,
+``R_W_P = R_W_S X R_M_P`` while the box sits on the registration device
+(:func:`app.marker.pelvic_plane.register_pelvic_plane` on :meth:`MarkerImuFusion.imu_marker_orientation`),
+not from the marker's pose there (one static pose: its pose-dependent IPPE bias, 1.5-2°, would
+enter every angle). The tracker carries the plane into the camera frame with the alignment
+``R_W_C`` it keeps from its own corrections: at each image, ``R_W_M^imu (R_C_M^fused)^T`` is one
+sample of R_W_C, and the estimate is their chordal mean over all images so far (the rotation
+nearest to their sum: the marker's pose-dependent bias averages out over the fragment's poses; the
+IMU's slow yaw drift enters as its mean). The angles then use ``R_C_P = R_W_C^T R_W_P`` and the
+fused ``R_C_M`` (:meth:`MarkerImuFusion.plane_in_camera`).
 """
 from __future__ import annotations
 
@@ -64,6 +75,8 @@ class MarkerImuFusion:
         self._q_W_S_prev: np.ndarray | None = None
         self._t_imu_prev: float | None = None
         self._last_detection_stamp = -np.inf
+        self._align_sum = np.zeros((3, 3))
+        self._align_n = 0
         self.counts = {"imu": 0, "images": 0, "roi": 0, "full": 0, "none": 0, "gated": 0}
 
     def on_imu(self, stamp: float, q_W_S: np.ndarray) -> FusedEstimate:
@@ -93,7 +106,29 @@ class MarkerImuFusion:
             self.t_C_M = det.T_C_M[:3, 3].copy()
             if not self.kalman.update(det.q_C_M):
                 self.counts["gated"] += 1
+            if self._q_W_S_prev is not None and self.kalman.q is not None:
+                self._align_sum += self.imu_marker_orientation() @ quat.to_matrix(self.kalman.q).T
+                self._align_n += 1
         return det, FusedEstimate(stamp, None if self.kalman.q is None else self.kalman.q.copy(), self.t_C_M, "marker")
+
+
+    def imu_marker_orientation(self) -> np.ndarray | None:
+        """R_W_M = R_W_S X (3, 3) of the latest IMU sample (the IMU's world W), or None before one."""
+        if self._q_W_S_prev is None:
+            return None
+        return quat.to_matrix(self._q_W_S_prev) @ quat.to_matrix(self.q_S_M)
+
+    def camera_in_imu_world(self) -> np.ndarray | None:
+        """R_W_C (3, 3): the chordal mean of the per-image alignments (module docstring), or None."""
+        if self._align_n == 0:
+            return None
+        U, _, Vt = np.linalg.svd(self._align_sum)
+        return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+    def plane_in_camera(self, R_W_P: np.ndarray) -> np.ndarray | None:
+        """R_C_P = R_W_C^T R_W_P (3, 3): an APP registered in the IMU's world, in the camera frame."""
+        R_W_C = self.camera_in_imu_world()
+        return None if R_W_C is None else R_W_C.T @ np.asarray(R_W_P, float)
 
 
 def slerp_at(stamps: np.ndarray, q: np.ndarray, t: np.ndarray) -> np.ndarray:
