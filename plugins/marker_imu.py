@@ -105,9 +105,17 @@ class MarkerImuTracker:
         self._frame = 0
         from app.marker.rerun_log import open_log
 
-        self.rerun = open_log(rerun, rerun_image_every)
+        # 'auto' is resolved in start(): the session opens its outputs (the rerun output makes its
+        # recording the process's default) after creating the tracker and before starting it
+        self._rerun_target, self._rerun_every = rerun, rerun_image_every
+        self._rerun_auto = rerun is True or (isinstance(rerun, str) and rerun.lower() == "auto")
+        self.rerun = None if self._rerun_auto else open_log(rerun, rerun_image_every)
 
     def start(self, T_base_bone: np.ndarray) -> None:
+        if self._rerun_auto and self.rerun is None:
+            from app.marker.rerun_log import open_log
+
+            self.rerun = open_log(self._rerun_target, self._rerun_every)
         self._T_start = np.asarray(T_base_bone, float)
 
     def _feed_imu(self, t: float) -> None:

@@ -28,7 +28,12 @@ class RerunOutput:
     def open(self, context: dict) -> None:
         from app.viz.rerun_log import RerunLog
 
+        import rerun as rr
+
         self.log = RerunLog.spawn() if (self.spawn or not self.path) else RerunLog.to_file(self.path)
+        # the session's recording is the process's default: plugins that log extra entities
+        # (the marker tracker's image and angles) find it with rr.get_data_recording()
+        rr.set_global_data_recording(self.log.rec)
         self.T_flange_camera = context.get("T_flange_camera")
         mesh = context.get("mesh")
         if mesh is not None:

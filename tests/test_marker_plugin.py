@@ -84,3 +84,26 @@ def test_rerun_auto_without_a_recording_does_not_log():
     tracker.start(np.eye(4))
     assert tracker.process(None, 0.0, None).path in ("roi", "full", "none")
     tracker.release()
+
+
+def test_in_a_session_the_tracker_logs_into_the_rerun_outputs_recording(tmp_path):
+    """The session opens its outputs before starting the tracker: with rerun 'auto' the marker
+    tracker's entities land in the rerun output's .rrd file."""
+    import rerun as rr
+
+    from plugins.rerun_output import RerunOutput
+
+    rrd = tmp_path / "session.rrd"
+    output = RerunOutput(path=str(rrd))
+    tracker = _create(imu="simulated", seed=5)            # created before the outputs, as in app/session.py
+    output.open({"mesh": None, "camera": None, "T_flange_camera": None})
+    try:
+        tracker.start(np.eye(4))
+        assert tracker.rerun is not None
+        for k in range(25):
+            tracker.process(None, k / 10, None)
+        tracker.release()
+    finally:
+        output.close()
+        rr.set_global_data_recording(None)
+    assert b"marker/orientation/fused" in rrd.read_bytes()
