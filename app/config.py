@@ -125,6 +125,7 @@ KEYS: dict[str, _Key] = {
     "status.uncertain_inlier_fraction": _f("status.uncertain_inlier_fraction", 0.0, 1.0),
     "status.min_covered_pixels": _i("status.min_covered_pixels", 0, 10_000_000),
     "status.min_ess_ratio": _f("status.min_ess_ratio", 0.0, 1.0),
+    "status.min_ok_fraction": _f("status.min_ok_fraction", 0.0, 1.0),
     "status.uncertain_speed": _f("status.uncertain_speed", 0.0, 100.0, lo_open=True),
     "status.uncertain_angular_speed": _f("status.uncertain_angular_speed", 0.0, 1000.0, lo_open=True),
     "status.motion_window_s": _f("status.motion_window_s", 0.0, 10.0, lo_open=True),

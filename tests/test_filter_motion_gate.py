@@ -28,11 +28,12 @@ def test_constant_motion_gives_its_speed_and_a_static_pose_gives_zero():
     assert since == pytest.approx(0.525, abs=0.0051)
 
 
-def test_never_moving_means_infinitely_long_since_motion_and_reset_forgets():
+def test_a_static_estimate_counts_from_the_start_and_reset_forgets():
     gate = MotionGate(0.2, 0.03, 0.3)
-    for k in range(10):
+    assert gate.update(0.0, pose(0.0, 0.0))[2] == 0.0          # the start is motion (converging)
+    for k in range(1, 10):
         *_, since = gate.update(k / 90, pose(0.0, 0.0))
-    assert since == math.inf
+    assert since == pytest.approx(9 / 90)
     gate.update(0.2, pose(0.0, 0.1))
     assert gate.update(0.21, pose(0.0, 0.1))[2] < 0.1
     gate.reset()

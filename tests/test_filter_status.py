@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import pytest
 
-from app.filter.status import StatusInputs, StatusThresholds, TrackingStatus, classify, lost_reasons
+from app.filter.status import StatusInputs, StatusThresholds, TrackingStatus, classify, lost_reasons, uncertain_reasons
 
 GOOD = StatusInputs(position_spread=0.001, rotation_spread=math.radians(0.5), ess_ratio=0.3,
                     inlier_fraction=0.9, covered_pixels=400, n_nan=0, n_particles=200, weighed=True,
@@ -45,3 +45,12 @@ def test_thresholds_are_configurable():
     assert classify(replace(GOOD, position_spread=0.004), loose) == TrackingStatus.OK
     strict = StatusThresholds(min_ess_ratio=0.5)
     assert classify(GOOD, strict) == TrackingStatus.UNCERTAIN
+
+
+def test_too_few_visible_pixels_for_the_image_is_not_ok_even_when_they_all_fit():
+    """48 fitting pixels of an 80x60 image (1 %) are too little evidence; 400 (8 %) are enough."""
+    few = replace(GOOD, covered_pixels=48, inlier_fraction=1.0, image_pixels=80 * 60)
+    assert classify(few) == TrackingStatus.UNCERTAIN
+    assert any("too little evidence" in r for r in uncertain_reasons(few, StatusThresholds()))
+    assert classify(replace(few, covered_pixels=400)) == TrackingStatus.OK
+    assert classify(replace(few, image_pixels=0)) == TrackingStatus.OK      # rule off without an image size

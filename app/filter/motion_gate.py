@@ -12,8 +12,9 @@ as a few mm/s and deg/s, short enough to react within a few frames):
 
     v = |p_t - p_{t-W}| / W,    ω = angle(R_{t-W}ᵀ R_t) / W
 
-``seconds_since_motion`` is the time since the last frame whose speeds exceeded the thresholds
-(infinite when never): the status stays uncertain for ``settle_s`` after the bone stops.
+``seconds_since_motion`` is the time since the last frame whose speeds exceeded the thresholds,
+or since the start (the filter converging from its coarse initial pose is motion too): the
+status stays uncertain for ``settle_s`` after the bone stops, and after the start.
 """
 from __future__ import annotations
 
@@ -46,7 +47,13 @@ class MotionGate:
         self._last_motion = None
 
     def update(self, stamp: float, T_base_bone: np.ndarray) -> tuple[float, float, float]:
-        """Add an estimate; return (speed m/s, angular speed rad/s, seconds since motion)."""
+        """Add an estimate; return (speed m/s, angular speed rad/s, seconds since motion).
+
+        The first estimate after a (re)start counts as motion: the cloud is still converging from
+        the coarse initial pose, so the status cannot be ok before ``settle_s`` has passed.
+        """
+        if not self._history:
+            self._last_motion = stamp
         self._history.append((stamp, np.asarray(T_base_bone, dtype=float).copy()))
         while len(self._history) > 2 and stamp - self._history[1][0] >= self.window_s:
             self._history.popleft()

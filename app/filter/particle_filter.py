@@ -262,6 +262,7 @@ class ParticleFilter:
         status = classify(StatusInputs(
             position_spread=pose.position_spread, rotation_spread=pose.rotation_spread,
             ess_ratio=ess / self.state.n, inlier_fraction=inlier_fraction, covered_pixels=covered,
+            image_pixels=int(np.size(depth_meas)) if depth_meas is not None else 0,
             n_nan=n_nan, n_particles=self.state.n, weighed=weighed, seconds_without_pose=seconds_without_pose,
             speed=speed, angular_speed=angular_speed, seconds_since_motion=since_motion,
         ), self.config.status)

@@ -23,6 +23,10 @@ UNCERTAIN if
 - the frame had no camera pose or no valid depth (prediction only), or
 - position spread > ``uncertain_position_spread`` = 3 mm, or rotation spread > ``uncertain_rotation_spread`` = 2°, or
 - fewer than ``uncertain_inlier_fraction`` = 70 % inliers, or
+- fewer than ``min_ok_fraction`` = 2 % of the image's pixels (96 at 80x60) fit or misfit the
+  estimate: too little of the bone is visible to tell a right pose from a wrong one (measured on
+  or_fast_reposition: with the crest half out of view, 48 pixels at 80x60, a pose 17 mm off still
+  had 83 % inliers), or
 - fewer than ``min_covered_pixels`` = 30 covered valid pixels (the bone left the view or is
   hidden behind invalid pixels: too little evidence, at 80x60 the crest covers a few hundred), or
 - any NaN log-likelihood, or
@@ -67,6 +71,7 @@ UNCERTAIN_ROTATION_SPREAD_RAD = math.radians(2.0)
 UNCERTAIN_INLIER_FRACTION = 0.7
 MIN_COVERED_PIXELS = 30
 MIN_ESS_RATIO = 0.0
+MIN_OK_FRACTION = 0.02
 UNCERTAIN_SPEED_M_S = 0.03
 UNCERTAIN_ANGULAR_SPEED_RAD_S = math.radians(20.0)
 MOTION_WINDOW_S = 0.2
@@ -93,6 +98,7 @@ class StatusThresholds:
     uncertain_rotation_spread: float = UNCERTAIN_ROTATION_SPREAD_RAD
     uncertain_inlier_fraction: float = UNCERTAIN_INLIER_FRACTION
     min_covered_pixels: int = MIN_COVERED_PIXELS
+    min_ok_fraction: float = MIN_OK_FRACTION
     min_ess_ratio: float = MIN_ESS_RATIO
     uncertain_speed: float = UNCERTAIN_SPEED_M_S
     uncertain_angular_speed: float = UNCERTAIN_ANGULAR_SPEED_RAD_S
@@ -106,7 +112,8 @@ class StatusInputs:
 
     position_spread : m; rotation_spread : rad; ess_ratio : ESS / N in (0, 1]
     inlier_fraction : inliers / covered valid pixels of the estimate (NaN when none)
-    covered_pixels : the estimate's covered pixels with a valid measurement
+    covered_pixels : the estimate's covered pixels with a valid measurement (occluders left out)
+    image_pixels : pixels of the filter's image (w h), for ``min_ok_fraction``; 0 = rule off
     n_nan : NaN log-likelihoods this frame; n_particles : N
     weighed : the frame had a camera pose and depth and was weighed
     seconds_without_pose : since the last frame that had a camera pose (0 when this one has)
@@ -126,6 +133,7 @@ class StatusInputs:
     speed: float = 0.0
     angular_speed: float = 0.0
     seconds_since_motion: float = math.inf
+    image_pixels: int = 0
 
 
 def lost_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
@@ -157,6 +165,8 @@ def uncertain_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
         reasons.append(f"inlier fraction {s.inlier_fraction:.2f}")
     if s.weighed and s.covered_pixels < t.min_covered_pixels:
         reasons.append(f"{s.covered_pixels} covered valid pixels")
+    elif s.weighed and s.covered_pixels < t.min_ok_fraction * s.image_pixels:
+        reasons.append(f"only {s.covered_pixels} visible pixels of the bone (too little evidence)")
     if s.n_nan > 0:
         reasons.append(f"{s.n_nan} NaN log-likelihoods")
     if s.ess_ratio < t.min_ess_ratio:
