@@ -34,6 +34,12 @@ def ray_mesh_first_hit(origins: np.ndarray, directions: np.ndarray, vertices: np
     d = np.atleast_2d(np.asarray(directions, dtype=float))
     o = np.broadcast_to(np.asarray(origins, dtype=float), d.shape)
     tri = np.asarray(vertices, dtype=float)[np.asarray(faces)]
+    face_ids = np.arange(len(tri))
+    if np.ndim(origins) == 1 and len(d):
+        face_ids = _faces_in_ray_cone(np.asarray(origins, dtype=float), d, tri)
+        tri = tri[face_ids]
+    if len(tri) == 0:
+        return np.full(len(d), np.inf), np.full(len(d), -1, dtype=np.int64)
     v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     t_out = np.full(len(d), np.inf)
     f_out = np.full(len(d), -1, dtype=np.int64)
@@ -53,8 +59,35 @@ def ray_mesh_first_hit(origins: np.ndarray, directions: np.ndarray, vertices: np
         best = np.argmin(t, axis=1)
         tb = t[np.arange(len(best)), best]
         t_out[s:s + chunk] = tb
-        f_out[s:s + chunk] = np.where(np.isfinite(tb), best, -1)
+        f_out[s:s + chunk] = np.where(np.isfinite(tb), face_ids[best], -1)
     return t_out, f_out
+
+
+def _faces_in_ray_cone(origin: np.ndarray, d: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """Indices of the triangles that rays from one ``origin`` can hit (a conservative pre-filter).
+
+    Vertices are projected centrally onto the plane z = 1 of a frame whose z is the rays' mean
+    direction; a triangle entirely in front of the origin whose projected box misses the rays'
+    box cannot be hit. Triangles reaching behind the origin are always kept.
+    """
+    dn = d / np.linalg.norm(d, axis=1, keepdims=True)
+    z = dn.mean(axis=0)
+    if np.linalg.norm(z) < 0.5 or np.min(dn @ (z / np.linalg.norm(z))) < 0.2:
+        return np.arange(len(tri))   # rays spread too widely for one central projection
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])          # rows: the cone frame's axes
+    rays = dn @ R.T
+    ray_xy = rays[:, :2] / rays[:, 2:]
+    lo, hi = ray_xy.min(axis=0) - 1e-6, ray_xy.max(axis=0) + 1e-6
+    v = (tri - origin) @ R.T                       # (F, 3, 3)
+    front = np.all(v[..., 2] > 1e-9, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = v[..., :2] / v[..., 2:]
+    tlo, thi = xy.min(axis=1), xy.max(axis=1)
+    overlap = np.all((thi >= lo) & (tlo <= hi), axis=1)
+    return np.nonzero(~front | overlap)[0]
 
 
 def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
