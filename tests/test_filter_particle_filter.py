@@ -213,3 +213,20 @@ def test_a_moving_bone_is_uncertain_until_it_has_settled(rng):
     assert all(s != TrackingStatus.OK for s in status[50:80])
     assert all(s != TrackingStatus.OK for s in status[80:100])   # < 0.3 s after the stop (27 frames)
     assert status[-1] == TrackingStatus.OK
+
+
+def test_a_300_ms_dropout_is_predicted_frame_by_frame_not_in_one_huge_step(rng):
+    """Sub-steps of one nominal frame: after a 0.3 s gap the cloud has spread by about a
+    centimetre (velocity decay per frame bounds it), not by dt^2/2 sigma_a = 9 cm of a single step."""
+    from app.filter.particle_filter import substeps
+
+    assert substeps(1 / 90, 1 / 90) == 1 and substeps(2 / 90, 1 / 90) == 2 and substeps(0.3, 1 / 90) == 27
+    assert substeps(10.0, 1 / 90) == 90 and substeps(0.0, 1 / 90) == 1
+    config = FilterConfig(particles=2000, init_sigma_p=0.0, init_sigma_r=0.0,
+                          motion=MotionParams(sigma_a=2.0, sigma_alpha=20.0, lambda_v=0.9))
+    pf = ParticleFilter(config, GaussianPoseBackend(), rng)
+    pf.initialise(T_BASE_BONE)
+    pf.step(None, 0.0, None)
+    pf.step(None, 0.3, None)
+    std = pf.state.p.std(axis=0)
+    assert np.all(std < 0.02) and np.all(std > 0.001)
