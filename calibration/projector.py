@@ -309,3 +309,64 @@ def write_projector_yaml(path: "str | Path", result: ProjectorCalibration) -> No
     text = ("# osteonav projector calibration (osteonav calibrate projector); the `projector:` block is\n"
             "# read by configs/projector.yaml's loader (app/projector/config.py)\n")
     Path(path).write_text(text + yaml.safe_dump(result.to_dict(), sort_keys=False, default_flow_style=None))
+
+
+# --- command -------------------------------------------------------------------------------------
+
+def run_command(args) -> int:
+    """``osteonav calibrate projector`` (see app/commands/calibrate.py for the arguments)."""
+    import yaml
+
+    from app.errors import ConfigError
+    from calibration.intrinsics import read_camera_yaml
+
+    if args.simulate:
+        if args.simulate < MIN_VIEWS:
+            raise ConfigError("--simulate", f"at least {MIN_VIEWS} board poses needed, got {args.simulate}")
+        sim = ProjectorSimulation(pixel_noise=2.0 if args.noise else 0.0, blur_sigma=0.7 if args.noise else 0.0)
+        rng = np.random.default_rng(args.seed)
+        views = simulate_views(sim, args.simulate, rng)
+        write_captures(args.captures, [v[1] for v in views], sim.projector_size, sim.board, sim.K_camera,
+                       sim.camera_size, truth=sim.truth())
+        print(f"wrote {args.simulate} simulated board poses x {pattern_count(*sim.projector_size)} Gray-code "
+              f"images to {args.captures}")
+    meta, views = read_captures(args.captures)
+    camera_path = args.camera or args.captures / "camera.yaml"
+    if not camera_path.is_file():
+        raise ConfigError("--camera", f"no camera intrinsics: {camera_path} does not exist; run "
+                          f"`osteonav calibrate intrinsics` first or pass --camera FILE")
+    camera = read_camera_yaml(camera_path)
+    board = args.board or meta.get("board", DEFAULT_BOARD_SPEC)
+    try:
+        board = parse_board_spec(board).to_string()
+    except ValueError as exc:
+        raise ConfigError("--board", str(exc)) from None
+    size = (int(meta["projector"]["width"]), int(meta["projector"]["height"]))
+    try:
+        result = calibrate_projector(views, size, camera.K, camera.dist, board, fix_distortion=args.fix_distortion)
+    except ValueError as exc:
+        raise ConfigError("--captures", f"{args.captures}: {exc}") from None
+    out = args.out or args.captures / "projector.yaml"
+    write_projector_yaml(out, result)
+    print(f"{len(result.per_view)} board poses used, {len(result.skipped)} skipped")
+    for s in result.skipped:
+        print(f"  skipped {s['view']}: {s['reason']}")
+    for v in result.per_view:
+        print(f"  {v['view']}: {v['corners']} corners, {v['rms_projector_px']:.3f} px RMS in the projector")
+    K = result.K
+    print(f"projector {size[0]}x{size[1]}: fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f}  "
+          f"dist {[round(float(v), 5) for v in result.dist]}")
+    print(f"RMS reprojection: projector {result.rms_projector_px:.3f} px, stereo {result.rms_stereo_px:.3f} px")
+    print("T_camera_projector:")
+    print(np.array2string(result.T_camera_projector, precision=5, suppress_small=True))
+    truth_path = args.captures / "truth.yaml"
+    if truth_path.is_file():
+        truth = (yaml.safe_load(truth_path.read_text()) or {}).get("projector", {})
+        Kt, Tt = np.asarray(truth["K"]), np.asarray(truth["T_camera_projector"])
+        dt = 1000 * np.linalg.norm(result.T_camera_projector[:3, 3] - Tt[:3, 3])
+        dr = np.rad2deg(float(se3.rotation_angle(result.T_camera_projector, Tt)))
+        print(f"vs truth: fx {100 * (K[0, 0] / Kt[0, 0] - 1):+.3f} %, fy {100 * (K[1, 1] / Kt[1, 1] - 1):+.3f} %, "
+              f"cx {K[0, 2] - Kt[0, 2]:+.2f} px, cy {K[1, 2] - Kt[1, 2]:+.2f} px, "
+              f"translation {dt:.3f} mm, rotation {dr:.4f} deg")
+    print(f"wrote {out}")
+    return 0

@@ -7,6 +7,7 @@ Subcommands::
     osteonav calibrate hand-eye  --captures DIR [--camera camera.yaml] [--method auto] [--out FILE]
                                  [--rrd FILE]
     osteonav calibrate capture   --config session.yaml --out DIR [--count 15]
+    osteonav calibrate projector --captures DIR [--camera camera.yaml] [--out FILE] [--simulate N]
 
 Try it without hardware::
 
@@ -75,6 +76,26 @@ def register(subparsers) -> None:
     s.add_argument("--corrupt", default="",
                    help="captures to spoil, e.g. '3:blank,7:missing' (blank, noise, missing, garbage)")
     s.set_defaults(func=run_simulate)
+
+    s = sub.add_parser("projector", help="K_p and T_camera_projector from Gray-code captures of the board",
+                       description="Gray-code structured light on a ChArUco board (calibration/projector.py). "
+                                   "Try: osteonav calibrate projector --simulate 5 --captures /tmp/projcal")
+    s.add_argument("--captures", required=True, type=Path, help="projector capture folder (pose_*/pattern_*.png)")
+    s.add_argument("--camera", type=Path, help="camera intrinsics YAML (default CAPTURES/camera.yaml)")
+    s.add_argument("--board", help="board SPEC (default: projector_capture.yaml's)")
+    s.add_argument("--out", type=Path, help="projector YAML to write (default CAPTURES/projector.yaml)")
+    s.add_argument("--fix-distortion", action="store_true", help="estimate no projector lens distortion")
+    s.add_argument("--simulate", type=int, default=0, metavar="N",
+                   help="first write N simulated board poses into CAPTURES (no hardware needed)")
+    s.add_argument("--noise", action="store_true", help="with --simulate: image noise and blur")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=run_projector)
+
+
+def run_projector(args) -> int:
+    from calibration.projector import run_command
+
+    return run_command(args)
 
 
 def _board_arg(text: str):
