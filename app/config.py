@@ -51,15 +51,17 @@ class TrackerConfig(FilterConfig):
     cull_back_faces : cull back faces when the mesh is consistently wound outwards
     seed : seed of the filter's np.random.Generator (a replay with one seed is reproducible)
 
-    The product's defaults differ from the publications' in three measured places (BENCHMARKS.md,
+    The product's defaults differ from the publications' in four measured places (BENCHMARKS.md,
     "Choosing the defaults"): the background-ratio likelihood with tempering α = 0.2 (the plain
     beam model drifts away from a hand over the bone: 25 % of the frames lost vs 1 %), and
     slower motion noise σ_a = 2 m/s², σ_α = 20 rad/s² (less jitter at 200 particles, and it kept
-    up with the 25 cm/s repositioning where (A)'s 5 / 50 lost the bone). ``configs/bench`` has the
+    up with the 25 cm/s repositioning where (A)'s 5 / 50 lost the bone), and 160x120 px images
+    (ADD median 0.81 vs 1.12 mm, rotation 1.33 vs 1.80 deg on the demo trial, for about 25 % more
+    time per frame on llvmpipe, where rendering the triangles dominates). ``configs/bench`` has the
     publications' own settings.
     """
 
-    resolution: tuple[int, int] = (80, 60)
+    resolution: tuple[int, int] = (160, 120)
     near: float = 0.05
     far: float = 4.0
     mesh_triangles: int = 1000
