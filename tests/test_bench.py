@@ -21,7 +21,7 @@ TRIAL_SECONDS = 0.8
 
 def test_builtin_configurations_load_with_the_publications_settings():
     configs = {c.name: c for c in bench.resolve_configs(None)}
-    assert list(configs)[:6] == list(bench.BUILTIN_ORDER)
+    assert list(configs)[:7] == list(bench.BUILTIN_ORDER)
     expected = {"A_cpu": (200, (80, 60), "joint"), "A_cadaver": (1500, (160, 120), "joint"),
                 "thesis_blockwise": (600, (80, 60), "blockwise"), "thesis_joint": (1250, (80, 60), "joint")}
     for name, (n, res, sampling) in expected.items():

@@ -56,7 +56,7 @@ log = logging.getLogger(__name__)
 
 REPO = Path(__file__).resolve().parents[2]
 BUILTIN_DIR = REPO / "configs" / "bench"
-BUILTIN_ORDER = ("A_cpu", "A_cadaver", "thesis_blockwise", "thesis_joint", "thesis_complex", "icp")
+BUILTIN_ORDER = ("osteonav_default", "A_cpu", "A_cadaver", "thesis_blockwise", "thesis_joint", "thesis_complex", "icp")
 PELVIS_DIR = REPO.parent / "shared" / "data" / "pelvis"
 DEFAULT_CACHE = Path("recordings") / "bench"
 QUICK_SCENARIOS = ("static_clear", "bone_moves")
