@@ -91,7 +91,7 @@ def _faces_in_ray_cone(origin: np.ndarray, d: np.ndarray, tri: np.ndarray) -> np
 
 
 def closest_points_on_mesh(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
-                           k: int = 24) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                           k: int = 64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Nearest surface point of a mesh for each query point.
 
     Candidates are the ``k`` triangles whose centroids are nearest; exact for points near the
