@@ -11,7 +11,8 @@ image a camera at the projector would see of the plan drawn on the bone:
    tangent plane (side vector = surface normal x segment direction), plus a small disc at every
    polyline vertex so corners close. A ribbon fragment is lit only where the bone depth exists and
    the ribbon is not behind the bone surface by more than ``depth_tolerance``: outline parts on the
-   far side of the crest, hidden by the bone, and anything off the bone stay black.
+   far side of the crest, hidden by the bone, and anything off the bone stay black; so do parts
+   where the surface is seen at grazing incidence (beyond ``max_incidence_deg``).
 
 Because the ribbons lie on the bone, the drawn line is ``line_width`` wide *on the bone* whatever
 the distance and incidence (a grazing surface gets a thin line in the image, as it should).
@@ -36,13 +37,17 @@ DEPTH_TOLERANCE_M = 0.0015
 """A ribbon fragment up to this far behind the bone surface still counts as on it (the ribbon is
 flat, the bone curved, and depth is interpolated differently on the two): well below the crest's
 thickness, so the far side of the crest stays hidden."""
+MAX_INCIDENCE_DEG = 75.0
+"""Surface parts seen more obliquely than this (angle between the surface normal and the ray back
+to the projector) get no line: there a millimetre of light smears over several millimetres of bone."""
 NEAR_M, FAR_M = 0.05, 3.0
 DISC_SEGMENTS = 8
 DEFAULT_COLOR = (0, 255, 0)
 
 
-def ribbon_triangles(plan: Plan, vertices: np.ndarray, faces: np.ndarray, width: float = LINE_WIDTH_M) -> np.ndarray:
-    """Triangles of the plan's ribbons and corner discs, bone frame.
+def ribbon_triangles(plan: Plan, vertices: np.ndarray, faces: np.ndarray, width: float = LINE_WIDTH_M
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles of the plan's ribbons and corner discs, and the surface normal at each corner, bone frame.
 
     Parameters
     ----------
@@ -52,13 +57,14 @@ def ribbon_triangles(plan: Plan, vertices: np.ndarray, faces: np.ndarray, width:
 
     Returns
     -------
-    (T, 3, 3) float32 triangle corners, bone frame, metres
+    triangles : (T, 3, 3) float32 triangle corners, bone frame, metres
+    normals : (T, 3, 3) float32 unit surface normals at those corners, bone frame
     """
     import trimesh
 
     normals_f = trimesh.Trimesh(vertices, faces, process=False).face_normals
     half = 0.5 * float(width)
-    tris = []
+    tris, norms = [], []
     for line in plan.polylines:
         _, _, face = closest_points_on_mesh(line, vertices, faces)
         n = normals_f[face]
@@ -73,6 +79,8 @@ def ribbon_triangles(plan: Plan, vertices: np.ndarray, faces: np.ndarray, width:
         a0, a1, b0, b1 = a - side, a + side, b - side, b + side
         tris.append(np.stack([a0, b0, b1], axis=1))
         tris.append(np.stack([a0, b1, a1], axis=1))
+        norms.append(np.stack([na, nb, nb], axis=1))
+        norms.append(np.stack([na, nb, na], axis=1))
         # discs at the vertices, in each vertex's tangent plane
         e1 = np.cross(n, np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
         e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
@@ -81,7 +89,8 @@ def ribbon_triangles(plan: Plan, vertices: np.ndarray, faces: np.ndarray, width:
         ring = half * (np.cos(ang)[None, :, None] * e1[:, None] + np.sin(ang)[None, :, None] * e2[:, None])
         centre = np.repeat(line[:, None], DISC_SEGMENTS, axis=1)
         tris.append(np.stack([centre, line[:, None] + ring[:, :-1], line[:, None] + ring[:, 1:]], axis=2).reshape(-1, 3, 3))
-    return np.concatenate(tris).astype(np.float32)
+        norms.append(np.repeat(n[:, None, None, :], DISC_SEGMENTS, axis=1).repeat(3, axis=2).reshape(-1, 3, 3))
+    return np.concatenate(tris).astype(np.float32), np.concatenate(norms).astype(np.float32)
 
 
 class ProjectorRenderer:
@@ -96,11 +105,12 @@ class ProjectorRenderer:
     line_width : metres on the bone
     color : (r, g, b) 0..255 of the outline
     depth_tolerance : metres, see DEPTH_TOLERANCE_M
+    max_incidence_deg : see MAX_INCIDENCE_DEG
     """
 
     def __init__(self, ctx: moderngl.Context, projector: ProjectorModel, vertices: np.ndarray, faces: np.ndarray,
                  plan: Plan, line_width: float = LINE_WIDTH_M, color=DEFAULT_COLOR,
-                 depth_tolerance: float = DEPTH_TOLERANCE_M):
+                 depth_tolerance: float = DEPTH_TOLERANCE_M, max_incidence_deg: float = MAX_INCIDENCE_DEG):
         if not line_width > 0:
             raise ValueError(f"line_width must be > 0 metres, got {line_width}")
         self.ctx = ctx
@@ -111,7 +121,8 @@ class ProjectorRenderer:
         projection = mat4_to_glsl(projector.camera.opengl_projection(NEAR_M, FAR_M))
         self.depth_prog = shaders.program(ctx, "projector_depth.vert.glsl", "projector_depth.frag.glsl")
         self.line_prog = shaders.program(ctx, "projector_line.vert.glsl", "projector_line.frag.glsl",
-                                         defines={"DEPTH_TOLERANCE": f"{float(depth_tolerance):.6f}"})
+                                         defines={"DEPTH_TOLERANCE": f"{float(depth_tolerance):.6f}",
+                                                  "MIN_FACING": f"{float(np.cos(np.deg2rad(max_incidence_deg))):.6f}"})
         self.depth_prog["projection"].write(projection)
         self.line_prog["projection"].write(projection)
         self.line_prog["color"].value = tuple(float(c) / 255.0 for c in color)
@@ -122,9 +133,10 @@ class ProjectorRenderer:
         self._bone_vbo = ctx.buffer(np.ascontiguousarray(v).tobytes())
         self._bone_ibo = ctx.buffer(np.ascontiguousarray(f).tobytes())
         self._bone_vao = ctx.vertex_array(self.depth_prog, [(self._bone_vbo, "3f", "in_position")], self._bone_ibo)
-        ribbons = ribbon_triangles(plan, np.asarray(vertices, dtype=float), np.asarray(faces), self.line_width)
-        self._line_vbo = ctx.buffer(np.ascontiguousarray(ribbons).tobytes())
-        self._line_vao = ctx.vertex_array(self.line_prog, [(self._line_vbo, "3f", "in_position")])
+        ribbons, normals = ribbon_triangles(plan, np.asarray(vertices, dtype=float), np.asarray(faces), self.line_width)
+        interleaved = np.concatenate([ribbons.reshape(-1, 3), normals.reshape(-1, 3)], axis=1)
+        self._line_vbo = ctx.buffer(np.ascontiguousarray(interleaved, dtype=np.float32).tobytes())
+        self._line_vao = ctx.vertex_array(self.line_prog, [(self._line_vbo, "3f 3f", "in_position", "in_normal")])
 
         self.depth_texture = ctx.texture(size, 1, dtype="f4")
         self.depth_texture.filter = (moderngl.NEAREST, moderngl.NEAREST)
