@@ -215,3 +215,22 @@ def test_default_config_builds_the_plan_and_bad_keys_are_named(bone, tmp_path):
         parse_projector_config({"colour": [1, 2, 3]})
     with pytest.raises(ConfigError, match="projector.plan.shape"):
         build_plan(parse_projector_config({"plan": {"shape": "star"}}), *bone)
+
+
+def test_sink_scores_only_shown_frames_and_writes_pngs(ctx, bone, tmp_path):
+    from app.projector.sink import ProjectorSink
+
+    V, F = bone
+    sink = ProjectorSink.from_config(None, V, F, png_dir=tmp_path / "png", ctx=ctx)
+    try:
+        T_true = bone_pose()
+        T_est = T_true @ se3.from_rotvec_trans(np.zeros(3), np.array([0.001, 0.0, 0.0]))
+        a = sink.step(0, T_BASE_CAMERA, T_est, "ok", T_base_bone_true=T_true)
+        b = sink.step(1, T_BASE_CAMERA, T_est, "lost", T_base_bone_true=T_true)
+    finally:
+        sink.release()
+    assert a.shown and a.error is not None and 0.5 < a.error.mean_mm < 1.6
+    assert not b.shown and b.error is None and b.reason == "TRACKING LOST"
+    s = sink.summary()
+    assert s["frames"] == 2 and s["template_shown"] == 1 and s["scored_frames"] == 1
+    assert len(list((tmp_path / "png").glob("projector_*.png"))) == 2
