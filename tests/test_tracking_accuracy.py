@@ -50,6 +50,17 @@ def test_replay_writes_tum_status_and_summary_that_agree(clear_result):
     assert (base / "out" / "status.csv").read_text().count("\n") == len(result.stamps) + 1
 
 
+def test_replay_scores_the_projected_template_on_the_bone(clear_result):
+    """The projector renders the plan at the tracked pose every 3rd frame; where it is shown (status
+    ok), its outline traced back onto the bone at the true pose lands within a few mm of the plan."""
+    base, result = clear_result
+    projector = json.loads((base / "out" / "summary.json").read_text())["projector"]
+    assert projector["frames"] == -(-len(result.stamps) // 3)
+    assert projector["template_shown"] <= sum(s == "ok" for s in result.statuses[::3])
+    assert projector["template_shown"] > 0 and projector["scored_frames"] > 0
+    assert projector["template_error_mean_mm"] < 2.5
+
+
 def test_a_hand_over_the_whole_bone_is_never_ok_and_the_track_recovers(tmp_path):
     scenario = replace(get_scenario("or_full_occlusion"), full_occlusion=(0.8, 0.6), instrument=False)
     simulate(tmp_path / "trial", scenario_name=scenario, seconds=2.5, seed=5)

@@ -9,6 +9,9 @@ def register(subparsers) -> None:
     p.add_argument("--config", help="tracker YAML (default: configs/default.yaml's values)")
     p.add_argument("--realtime", action="store_true", help="pace frames at their recorded stamps")
     p.add_argument("--no-rrd", action="store_true", help="do not write log.rrd")
+    p.add_argument("--projector", help="projector and plan YAML (default: configs/projector.yaml)")
+    p.add_argument("--no-projector", action="store_true", help="do not render the projector's template")
+    p.add_argument("--projector-images", action="store_true", help="also write the projector images to OUT/projector/")
     p.set_defaults(func=run)
 
 
@@ -26,7 +29,9 @@ def run(args) -> int:
         bar.total = total
         bar.update(done - bar.n)
 
-    result = replay(args.trial, args.out, config, realtime=args.realtime, rrd=not args.no_rrd, progress=progress)
+    result = replay(args.trial, args.out, config, realtime=args.realtime, rrd=not args.no_rrd, progress=progress,
+                    projector=not args.no_projector, projector_config=args.projector,
+                    projector_images=args.projector_images)
     bar.close()
     print_summary(result.summary)
     print(f"outputs in {args.out} (estimate.txt, status.csv, summary.json{', log.rrd' if not args.no_rrd else ''})")

@@ -8,7 +8,16 @@ trial's hand-eye); the depth image is reduced to the filter's resolution; the pa
 - ``status.csv``: ``stamp,status`` per processed frame (RECORDING_FORMAT.md);
 - ``summary.json``: frames, processing rate and, with ground truth, ADD / translation / rotation
   errors (median, p95, max), the lost fraction and the dangerous frames (status ok, error > 5 mm);
-- ``log.rrd``: camera and depth, the mesh at the estimate and the ground truth, particles, plots.
+- ``log.rrd``: camera and depth, the mesh at the estimate and the ground truth, particles, plots,
+  and the projector: its frustum and the image it would show (the template when the status is
+  ok, the warning pattern otherwise; app/projector/view.py);
+- ``projector/NNNNNN.png``: the projector images, with ``projector_images=True``.
+
+The projector (``projector=True``, configuration ``configs/projector.yaml`` or
+``projector_config``) is rendered every ``projector_every``-th frame at the tracked pose; with
+ground truth, the summary's ``projector`` block gives the template error: how far the lit outline,
+traced back onto the bone at its true pose, lands from the plan (mean / p95 / max mm over the
+frames where the template was shown; app/projector/accuracy.py).
 """
 from __future__ import annotations
 
@@ -41,7 +50,8 @@ class ReplayResult:
 
 def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerConfig | None = None,
            realtime: bool = False, rrd: bool = True, progress=None, max_frames: int | None = None,
-           make_tracker=None) -> ReplayResult:
+           make_tracker=None, projector: bool = True, projector_config: str | Path | None = None,
+           projector_every: int = 3, projector_images: bool = False) -> ReplayResult:
     """Run the tracker over a trial; write the outputs listed in the module docstring to ``out_dir``.
 
     ``make_tracker(mesh, camera) -> tracker`` replaces the particle filter by another tracker with
@@ -76,6 +86,14 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
             sink.log_static_scene(reader.meta.camera, tracker.mesh_vertices, tracker.mesh_faces,
                                   with_groundtruth=reader.groundtruth is not None)
     points = np.asarray(mesh.vertices)
+    projector_sink = None
+    if projector and out is not None:
+        from app.projector.sink import ProjectorSink
+
+        projector_sink = ProjectorSink.from_config(projector_config, np.asarray(mesh.vertices), np.asarray(mesh.faces),
+                                                   rec=sink.rec if sink is not None else None,
+                                                   png_dir=out / "projector" if projector_images else None,
+                                                   error_every=2)
     stamps, estimates, statuses, add_mm, trans_mm, rot_deg = [], [], [], [], [], []
     t_start = time.perf_counter()
     wall0, stamp0 = time.perf_counter(), None
@@ -102,11 +120,18 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
             _log_frame(sink, frame, T_base_camera[i] if pose_valid[i] else None, result, tracker,
                        reader.groundtruth[i] if reader.groundtruth is not None else None,
                        add_mm[-1] if add_mm else None, rot_deg[-1] if rot_deg else None)
+        if projector_sink is not None and i % max(1, projector_every) == 0:
+            projector_sink.step(frame.frame_id, T_base_camera[i] if pose_valid[i] else None, result.T_base_bone,
+                                result.status, age_s=0.0,
+                                T_base_bone_true=reader.groundtruth[i] if reader.groundtruth is not None else None)
         if progress:
             progress(i + 1, n_total)
     elapsed = time.perf_counter() - t_start
     T_est = np.array(estimates)
     summary = _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_deg, elapsed)
+    if projector_sink is not None:
+        summary["projector"] = projector_sink.summary()
+        projector_sink.release()
     if out is not None:
         write_tum(out / "estimate.txt", np.array(stamps), T_est)
         write_status_csv(out / "status.csv", np.array(stamps), statuses)

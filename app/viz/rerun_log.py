@@ -33,6 +33,7 @@ FLANGE = "world/robot/flange"
 FLANGE_PATH = "world/robot/flange_path"
 CAMERA = "world/camera"
 CAMERA_IMAGE = "world/camera/image"
+PROJECTOR_IMAGE = "world/camera/projector/image"   # logged by app/projector/rerun_log.py
 DEPTH = "world/camera/image/depth"
 BONE_ESTIMATE = "world/bone/estimate"
 BONE_GROUNDTRUTH = "world/bone/groundtruth"
@@ -53,8 +54,9 @@ def blueprint():
             rrb.Spatial3DView(name="Scene (robot base frame)", origin=WORLD),
             rrb.Vertical(
                 rrb.Spatial2DView(name="Depth camera", origin=CAMERA_IMAGE),
+                rrb.Spatial2DView(name="Projector", origin=PROJECTOR_IMAGE),
                 rrb.TimeSeriesView(name="Tracking", origin=PLOTS),
-                row_shares=[3, 2],
+                row_shares=[2, 2, 2],
             ),
             column_shares=[3, 2],
         ),
