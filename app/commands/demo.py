@@ -47,6 +47,8 @@ def run(args) -> int:
     print(f"\nosteonav demo: scenario '{scenario}' ({trial})")
     print_summary(result.summary)
     rrd = out / "log.rrd"
+    print("\nthe projector's view (the planned outline when the status is ok, a red warning frame otherwise)"
+          " is the 'Projector' panel of the recording")
     print(f"\nrerun recording: {rrd}\n  open it with:  {Path(__file__).resolve().parents[2] / '.venv/bin/rerun'} {rrd}"
           "\n  (or `rerun` with rerun-sdk installed; the viewer needs a display)")
     return 0
