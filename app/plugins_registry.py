@@ -39,6 +39,7 @@ BUILTIN: dict[str, str] = {
     "tracker.marker_imu": "plugins.marker_imu:MarkerImuTracker",
     "output.rerun": "plugins.rerun_output:RerunOutput",
     "output.recorder": "plugins.recorder:Recorder",
+    "output.projector": "plugins.projector_output:ProjectorOutput",
 }
 
 _runtime: dict[str, Callable[..., Any]] = {}
