@@ -55,8 +55,6 @@ def register(subparsers) -> None:
     s.add_argument("--method", default="auto",
                    choices=["auto", "tsai", "park", "horaud", "andreff", "daniilidis"],
                    help="method whose result is written (auto: lowest reprojection error)")
-    s.add_argument("--backend", choices=["opencv", "numpy"],
-                   help="solver implementation (default: OpenCV when it exposes calibrateHandEye)")
     s.add_argument("--out", type=Path, help="hand-eye YAML to write (default CAPTURES/hand_eye.yaml)")
     s.add_argument("--rrd", type=Path, help="also log captures, frusta and board to this rerun file")
     s.set_defaults(func=run_hand_eye)
@@ -149,7 +147,7 @@ def run_hand_eye(args) -> int:
     obs, skipped, robot = handeye.observations_from_folder(
         args.captures, camera.K, camera.dist, board=board, robot=robot, keep_images=args.rrd is not None)
     try:
-        result = handeye.calibrate_hand_eye(obs, camera.K, camera.dist, args.method, args.backend)
+        result = handeye.calibrate_hand_eye(obs, camera.K, camera.dist, args.method)
     except ValueError as exc:
         raise ConfigError("--captures", f"{args.captures}: {exc}") from None
     result.skipped = skipped
@@ -157,7 +155,7 @@ def run_hand_eye(args) -> int:
     out = args.out or args.captures / "hand_eye.yaml"
     handeye.write_hand_eye_yaml(out, data)
 
-    print(f"{len(obs)} captures used, {len(skipped)} skipped (solver backend: {result.backend})")
+    print(f"{len(obs)} captures used, {len(skipped)} skipped")
     for s in skipped:
         print(f"  skipped capture {s['capture']}: {s['reason']}")
     print(f"{'method':<11} {'rot deg':>8} {'trans mm':>9} {'reproj px':>10} {'vs chosen mm':>13}")
