@@ -5,7 +5,8 @@ Modules (OpenCV and ``app.geometry`` only; no GL):
   detection (``BoardDetector``) and the board pose in the camera (``board_pose``).
 - ``calibration.intrinsics``: K and distortion from board images; the camera YAML.
 - ``calibration.captures``: the capture-folder format, reader/writer, live collection protocol.
-- ``calibration.solvers``: AX = XB and AX = ZB solvers by name (OpenCV or numpy ports).
+- ``calibration.solvers``: AX = XB and AX = ZB solvers by name (OpenCV's calibrateHandEye /
+  calibrateRobotWorldHandEye).
 - ``calibration.handeye``: the pipeline from a capture folder to T_flange_camera, residuals,
   conditioning warnings and the hand-eye YAML.
 - ``calibration.simulator``: rendered ChArUco views from a simulated UR5e with a known hand-eye.

@@ -25,8 +25,7 @@ Hand-eye YAML (``write_hand_eye_yaml``)::
     hand_eye: 4x4        # T_flange_camera: camera optical frame in the flange (tool0) frame, m;
                          # the same key and meaning as trial.yaml's hand_eye
     T_base_board: 4x4    # the board frame in the robot base frame (from the chosen method)
-    method: park         # the method whose result is above
-    backend: opencv      # or numpy (calibration.solvers)
+    method: park         # the method whose result is above (OpenCV's solver, calibration.solvers)
     robot: {model: ur5e}
     camera: {...}        # the intrinsics used (camera.yaml's block)
     residuals: {rotation_deg_rms, translation_mm_rms, reprojection_px_rms}
@@ -98,7 +97,6 @@ class HandEyeResult:
     observations: list[Observation]
     skipped: list[dict] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
-    backend: str = "numpy"
 
 
 def _rms(x: np.ndarray) -> float:
@@ -194,7 +192,7 @@ def evaluate(method: str, T_flange_camera: np.ndarray, obs: list[Observation], K
 
 
 def calibrate_hand_eye(obs: list[Observation], K: np.ndarray, dist: np.ndarray | None = None,
-                       method: str = "auto", backend_name: str | None = None) -> HandEyeResult:
+                       method: str = "auto") -> HandEyeResult:
     """Solve T_flange_camera with every method, choose one, and solve AX = ZB too.
 
     Parameters
@@ -216,7 +214,7 @@ def calibrate_hand_eye(obs: list[Observation], K: np.ndarray, dist: np.ndarray |
     results = {}
     for m in solvers.HAND_EYE_METHODS:
         try:
-            X = solvers.solve_hand_eye(Tbf, Tcb, m, backend_name)
+            X = solvers.solve_hand_eye(Tbf, Tcb, m)
         except (ValueError, np.linalg.LinAlgError) as exc:
             log.warning("method %s failed: %s", m, exc)
             continue
@@ -236,7 +234,7 @@ def calibrate_hand_eye(obs: list[Observation], K: np.ndarray, dist: np.ndarray |
     best_rw = None
     for m in solvers.ROBOT_WORLD_METHODS:
         try:
-            X, T_base_board = solvers.solve_robot_world(Tbf, Tcb, m, backend_name)
+            X, T_base_board = solvers.solve_robot_world(Tbf, Tcb, m)
         except (ValueError, np.linalg.LinAlgError) as exc:
             log.warning("robot-world method %s failed: %s", m, exc)
             continue
@@ -246,7 +244,7 @@ def calibrate_hand_eye(obs: list[Observation], K: np.ndarray, dist: np.ndarray |
     if best_rw is not None:
         m, (X, T_base_board), r = best_rw
         rw = {"method": m, "hand_eye": X, "T_base_board": T_base_board, **r.summary()}
-    return HandEyeResult(chosen, results, rw, obs, [], warnings, backend_name or solvers.backend())
+    return HandEyeResult(chosen, results, rw, obs, [], warnings)
 
 
 def observations_from_folder(root: "str | Path", K: np.ndarray, dist: np.ndarray | None,
@@ -329,7 +327,6 @@ def result_to_dict(result: HandEyeResult, robot: dict | None = None, camera: dic
         "hand_eye": _mat(c.T_flange_camera),
         "T_base_board": _mat(c.T_base_board),
         "method": c.method,
-        "backend": result.backend,
     }
     if robot:
         data["robot"] = robot

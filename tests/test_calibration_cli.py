@@ -57,6 +57,24 @@ def test_hand_eye_command_writes_trial_compatible_yaml_and_rrd(captures, tmp_pat
     assert rrd.read_bytes()[:4] == b"RRF2"
 
 
+def test_hand_eye_yaml_is_read_by_the_session_and_names_no_backend(captures, tmp_path):
+    from app.session import parse_session
+
+    out = tmp_path / "hand_eye.yaml"
+    assert main(["calibrate", "hand-eye", "--captures", str(captures), "--out", str(out)]) == 0
+    data = yaml.safe_load(out.read_text())
+    assert "backend" not in data  # the solvers are OpenCV's, there is no backend to name
+    raw = {"camera": {"plugin": "simulated"}, "robot": {"plugin": "simulated"},
+           "calibration": {"hand_eye": out.name}}
+    config = parse_session(raw, tmp_path)
+    np.testing.assert_allclose(config.hand_eye, np.asarray(data["hand_eye"]))
+
+
+def test_hand_eye_has_no_backend_option(captures, tmp_path):
+    with pytest.raises(SystemExit):
+        main(["calibrate", "hand-eye", "--captures", str(captures), "--backend", "numpy"])
+
+
 def test_hand_eye_rrd_holds_a_frustum_per_capture(captures, tmp_path):
     rerun = Path(shutil.which("rerun") or Path(__import__("sys").executable).parent / "rerun")
     if not rerun.exists():
