@@ -114,16 +114,23 @@ class RealSenseCamera(ThreadedSource):
 
     def _start_pipeline(self, rs) -> None:
         pipeline = rs.pipeline()
+        config = self._config(rs)
         try:
-            profile = pipeline.start(self._config(rs))
+            if self.recording is not None:
+                # not the SDK's real-time mode: it replays the file's write times and drops frames a
+                # slow reader misses; read every frame and pace by the frames' own stamps instead.
+                # Set before start on the device the config resolves to (start reuses it): set
+                # after start, playback has already run in real time and dropped frames meanwhile
+                config.resolve(pipeline).get_device().as_playback().set_real_time(False)
+            profile = pipeline.start(config)
         except RuntimeError as exc:
             what = f"recording {self.recording}" if self.recording else f"device {self.serial or '(any)'}"
             raise ConfigError("camera", f"cannot start the RealSense {what}: {exc}") from exc
         device = profile.get_device()
-        if self.recording is not None:
-            # not the SDK's real-time mode: it replays the file's write times and drops frames a
-            # slow reader misses; read every frame and pace by the frames' own stamps instead
-            device.as_playback().set_real_time(False)
+        if self.recording is not None and device.as_playback().is_real_time():
+            pipeline.stop()
+            raise ConfigError("camera", f"the RealSense SDK plays {self.recording} in real time (frames would be "
+                              "dropped); this pyrealsense2 version is not supported for recordings")
         sensor = device.first_depth_sensor()
         if self.depth_units is not None and self.recording is None:
             sensor.set_option(rs.option.depth_units, float(self.depth_units))
