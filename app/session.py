@@ -519,7 +519,8 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
     latencies: list[float] = []
     estimates: collections.deque = collections.deque(maxlen=100_000)
     t_start = time.monotonic()
-    restore_sigterm = _sigterm_as_interrupt()
+    interrupted: list[str] = []
+    restore_signals = _stop_on_signals(stop, interrupted)
     try:
         camera_model = camera.open(clock, events.emit)
         robot.open(clock, events.emit)
@@ -621,13 +622,15 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
                 sink.on_estimate(est)
             if progress:
                 progress(est)
+        if interrupted:
+            events.emit("session", "stopped", f"interrupted ({interrupted[0]}): stopping cleanly")
     except KeyboardInterrupt:
-        events.emit("session", "stopped", "interrupted (Ctrl-C): stopping cleanly")
+        events.emit("session", "stopped", "interrupted (a second signal or Ctrl-C while starting): stopping now")
     except Exception as exc:
         events.emit("session", "error", f"{type(exc).__name__}: {exc}")
         raise
     finally:
-        restore_sigterm()
+        restore_signals()
         for source in reversed(started):
             source.stop()
         sink_reports = {}
@@ -667,13 +670,28 @@ def _light(est: Estimate) -> Estimate:
                     est.reasons, diag)
 
 
-def _sigterm_as_interrupt():
-    """Make SIGTERM end the loop like Ctrl-C (main thread only); returns a function that restores it."""
+def _stop_on_signals(stop: threading.Event, interrupted: list[str]):
+    """Make Ctrl-C (SIGINT) and SIGTERM set ``stop`` (main thread only); returns a function that restores the
+    previous handlers.
+
+    The handler only sets a flag, which the loop reads at least every 50 ms: an exception raised at an
+    arbitrary point of the main thread (Python's default for SIGINT) can land inside a lock's acquire or a
+    sink's write and hang or corrupt the shutdown. A second signal while stopping raises
+    KeyboardInterrupt, for a user who wants out now.
+    """
     if threading.current_thread() is not threading.main_thread():
         return lambda: None
 
     def handler(signum, frame):
-        raise KeyboardInterrupt
+        if stop.is_set():
+            raise KeyboardInterrupt
+        interrupted.append("Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name)
+        stop.set()
 
-    previous = signal.signal(signal.SIGTERM, handler)
-    return lambda: signal.signal(signal.SIGTERM, previous)
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+    def restore():
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+    return restore

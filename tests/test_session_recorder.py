@@ -45,7 +45,8 @@ def test_recording_holds_every_good_frame_despite_faults(tmp_path, fake_plugins)
 
 
 RUNNER = """
-import importlib.util, sys
+import faulthandler, importlib.util, sys
+faulthandler.enable()   # SIGABRT from the test on a hang prints every thread's stack
 from pathlib import Path
 spec = importlib.util.spec_from_file_location("faults", sys.argv[1])
 m = importlib.util.module_from_spec(spec); sys.modules["faults"] = m; spec.loader.exec_module(m)
@@ -83,7 +84,12 @@ def test_stopped_or_killed_session_leaves_a_readable_trial(tmp_path, sig):
     finally:
         if proc.poll() is None:
             os.kill(proc.pid, sig)
-        rc = proc.wait(20)
+        try:
+            rc = proc.wait(30)
+        except subprocess.TimeoutExpired:
+            os.kill(proc.pid, signal.SIGABRT)
+            proc.wait(10)
+            pytest.fail(f"the session did not stop within 30 s of {sig.name}:\n{proc.stderr.read().decode()}")
     if sig != signal.SIGKILL:
         assert rc == 0, proc.stderr.read().decode()
         summary = (tmp_path / "out" / "summary.json").read_text()
