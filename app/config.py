@@ -10,7 +10,9 @@ has six sections; each key maps to one attribute:
 
 - ``filter.*``     -> ``config.particles``, ``sampling``, ``resample_threshold``, ``resampling``,
                       ``first_dt``, ``seed``
-- ``init.sigma_p`` / ``init.sigma_r`` -> ``config.init_sigma_p`` / ``init_sigma_r``
+- ``init.sigma_p`` / ``init.sigma_r`` -> ``config.init_sigma_p`` / ``init_sigma_r``; ``init.method``
+  ('pose' | 'point'), ``point_sigma``, ``restarts``, ``budget_s`` -> ``config.init_method`` ... (the
+  one-point initialiser, :mod:`app.filter.smc_init`)
 - ``motion.*``     -> ``config.motion`` (:class:`app.filter.motion.MotionParams`)
 - ``likelihood.*`` -> ``config.likelihood`` (:class:`app.filter.likelihood_ref.LikelihoodParams`)
 - ``status.*``     -> ``config.status`` (:class:`app.filter.status.StatusThresholds`)
@@ -38,6 +40,8 @@ from app.filter.motion import MotionParams
 from app.filter.particle_filter import SAMPLING_MODES, FilterConfig
 from app.filter.resampling import SCHEMES
 
+INIT_METHODS = ("pose", "point")
+
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
 
 
@@ -50,6 +54,11 @@ class TrackerConfig(FilterConfig):
     mesh_triangles : triangle budget of the decimated tracking mesh
     cull_back_faces : cull back faces when the mesh is consistently wound outwards
     seed : seed of the filter's np.random.Generator (a replay with one seed is reproducible)
+    init_method : 'pose' (particles around the coarse initial pose) or 'point' (the one-point SMC
+        initialiser of DESIGN.md on the first frame, from a point on the bone, app/filter/smc_init.py)
+    init_point_sigma : m, σ_t, how far the pointed point may lie off the bone's surface
+    init_restarts, init_budget_s : independent runs of the initialiser (the most likely kept), and
+        their total time budget
 
     The product's defaults differ from the publications' in four measured places (BENCHMARKS.md,
     "Choosing the defaults"): the background-ratio likelihood with tempering α = 0.2 (the plain
@@ -67,6 +76,10 @@ class TrackerConfig(FilterConfig):
     mesh_triangles: int = 1000
     cull_back_faces: bool = True
     seed: int = 0
+    init_method: str = "pose"
+    init_point_sigma: float = 0.005
+    init_restarts: int = 3
+    init_budget_s: float = 30.0
     motion: MotionParams = field(default_factory=lambda: MotionParams(sigma_a=2.0, sigma_alpha=20.0))
     likelihood: LikelihoodParams = field(default_factory=lambda: LikelihoodParams(background_ratio=True,
                                                                                   pixel_weight=0.2))
@@ -101,6 +114,10 @@ KEYS: dict[str, _Key] = {
     "filter.seed": _i("seed", 0, 2**63 - 1),
     "init.sigma_p": _f("init_sigma_p", 0.0, 0.5),
     "init.sigma_r": _f("init_sigma_r", 0.0, math.pi),
+    "init.method": _Key(("init_method",), "choice", choices=INIT_METHODS),
+    "init.point_sigma": _f("init_point_sigma", 0.0, 0.1, lo_open=True),
+    "init.restarts": _i("init_restarts", 1, 100),
+    "init.budget_s": _f("init_budget_s", 0.0, 3600.0, lo_open=True),
     "motion.sigma_a": _f("motion.sigma_a", 0.0, 1000.0),
     "motion.sigma_alpha": _f("motion.sigma_alpha", 0.0, 10_000.0),
     "motion.lambda_v": _f("motion.lambda_v", 0.0, 1.0),

@@ -2,7 +2,8 @@
 
 For each frame: the joints interpolated at the frame's stamp give ``T_base_camera`` (FK and the
 trial's hand-eye); the depth image is reduced to the filter's resolution; the particle filter
-(started at the trial's ``initial_pose``) steps; the estimate goes to the sinks. Writes, in ``out``:
+(started at the trial's ``initial_pose``, or with ``init.method: point`` by the one-point initialiser
+from its ``point_prior`` on the first frame; the summary's ``init`` block gives that run) steps; the estimate goes to the sinks. Writes, in ``out``:
 
 - ``estimate.txt``: TUM, the bone in the robot base frame, one row per processed frame;
 - ``status.csv``: ``stamp,status`` per processed frame (RECORDING_FORMAT.md);
@@ -64,16 +65,17 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
 
     config = config or load_config(None)
     reader = open_trial(trial_dir)
-    if reader.meta.initial_pose is None:
-        from app.errors import TrialFormatError
-
-        raise TrialFormatError(Path(trial_dir) / "trial.yaml", "replay needs 'initial_pose' to start the filter (none given)")
+    from_point = make_tracker is None and config.init_method == "point"
+    _check_start(reader, Path(trial_dir), from_point)
     mesh = reader.load_mesh()
     if make_tracker is None:
         tracker = DepthTracker(config, mesh, reader.meta.camera)
     else:
         tracker = make_tracker(mesh, reader.meta.camera)
-    tracker.start(reader.meta.initial_pose)
+    if from_point:
+        tracker.start_from_point(reader.meta.point_prior)
+    else:
+        tracker.start(reader.meta.initial_pose)
     T_base_camera, pose_valid = reader.camera_poses()
     out = Path(out_dir) if out_dir else None
     sink = None
@@ -161,6 +163,31 @@ def _log_frame(sink, frame, T_base_camera, result, tracker, T_gt, add_mm, rot_de
         sink.log_scalar("error/rotation_deg", rot_deg)
 
 
+def _check_start(reader, trial_dir: Path, from_point: bool) -> None:
+    """The trial holds what the chosen start needs (init.method: 'pose' -> initial_pose, 'point' -> point_prior)."""
+    from app.errors import TrialFormatError
+
+    if from_point and reader.meta.point_prior is None:
+        raise TrialFormatError(trial_dir / "trial.yaml", "init.method 'point' needs 'point_prior' (a point on the bone, "
+                               "base frame); none given: add it, or use init.method 'pose' with initial_pose")
+    if not from_point and reader.meta.initial_pose is None:
+        raise TrialFormatError(trial_dir / "trial.yaml", "replay needs 'initial_pose' to start the filter (none given); "
+                               "or start from 'point_prior' with init.method 'point' in the --config file")
+
+
+def _init_summary(init, reader, points: np.ndarray) -> dict:
+    """The one-point initialiser's run: time, tempering steps, spread, and its error when ground truth exists."""
+    out = {"method": "point", "seconds": init.seconds, "tempering_steps": len(init.phis) - 1,
+           "reached_target": bool(init.reached_target),
+           "position_spread_mm": 1e3 * init.estimate.position_spread,
+           "rotation_spread_deg": float(np.degrees(init.estimate.rotation_spread))}
+    if reader.groundtruth is not None:
+        T_gt = reader.groundtruth[0]
+        out.update(add_mm=1e3 * metrics.add(init.estimate.T_base_bone, T_gt, points),
+                   rotation_deg=float(np.degrees(metrics.rotation_error(init.estimate.T_base_bone, T_gt))))
+    return out
+
+
 def _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_deg, elapsed) -> dict:
     n = len(stamps)
     summary = {
@@ -175,6 +202,9 @@ def _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_de
         "status_fraction": {s: statuses.count(s) / n if n else 0.0 for s in ("ok", "uncertain", "lost")},
         "timings_ms": tracker.mean_timings_ms(),
     }
+    init = getattr(tracker, "init_result", None)
+    if init is not None:
+        summary["init"] = _init_summary(init, reader, np.asarray(reader.load_mesh().vertices))
     if add_mm:
         add = np.array(add_mm)
         ok = np.array([s == "ok" for s in statuses])

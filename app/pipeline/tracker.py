@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 from collections import defaultdict
+from dataclasses import replace
 
 import numpy as np
 import trimesh
@@ -15,6 +16,7 @@ import trimesh
 from app.config import TrackerConfig
 from app.depth_image import downsample_nearest
 from app.filter.particle_filter import FilterOutput, ParticleFilter
+from app.filter.status import TrackingStatus
 from app.geometry.camera import PinholeCamera
 
 log = logging.getLogger(__name__)
@@ -54,22 +56,68 @@ class DepthTracker:
         self.filter = ParticleFilter(config, self.backend, np.random.default_rng(config.seed))
         self._timings: dict[str, float] = defaultdict(float)
         self._frames = 0
+        self._pending_point: np.ndarray | None = None
+        self._started_from_point = False
+        self.init_result = None
 
     def start(self, T_base_bone: np.ndarray) -> None:
         """Spread the particles around a coarse initial pose (the surgeon's alignment)."""
         self.filter.initialise(T_base_bone)
 
+    def start_from_point(self, point_base: np.ndarray) -> None:
+        """Start from one point on the bone (base frame, m): the one-point SMC initialiser runs on the
+        first frame that has a camera pose and valid depth (app/filter/smc_init.py); frames before it
+        are reported lost.
+
+        Experimental: the sampler can settle on the crest turned end for end, which the status rules
+        do not catch, so a tracker started this way reports uncertain at best, never ok (no template
+        is projected). For evaluating the initialiser in replays, not for the operating room.
+        """
+        point = np.asarray(point_base, dtype=float).reshape(3)
+        if not np.all(np.isfinite(point)):
+            raise ValueError(f"the point on the bone must be 3 finite numbers, got {point_base!r}")
+        self._pending_point = point
+        self._started_from_point = True
+
+    def _initialise_from_point(self, depth_small: np.ndarray, T_base_camera: np.ndarray) -> None:
+        from app.filter.smc_init import OnePointInitialiser, SMCInitConfig, seed_state
+
+        c = self.config
+        smc = SMCInitConfig(particles=min(SMCInitConfig.particles, c.particles), sigma_t=c.init_point_sigma,
+                            restarts=c.init_restarts, budget_s=c.init_budget_s)
+        initialiser = OnePointInitialiser(self.backend, self.camera, self.mesh_vertices, self.mesh_faces, smc,
+                                          self.filter.rng)
+        self.init_result = initialiser.run(depth_small, T_base_camera, self._pending_point)
+        self.filter.set_state(seed_state(self.init_result, c.particles, self.filter.rng))
+        self._pending_point = None
+
     def process(self, depth_m: np.ndarray, stamp: float, T_base_camera: np.ndarray | None) -> FilterOutput:
         """One frame: full-resolution depth (H, W) metres, its stamp (s) and camera pose (None = unknown)."""
         width, height = self.config.resolution
         depth_small = downsample_nearest(depth_m, width, height)
+        if self._pending_point is not None:
+            if T_base_camera is None or not np.any(np.isfinite(depth_small) & (depth_small > 0)):
+                return self._not_started(stamp)
+            self._initialise_from_point(depth_small, T_base_camera)
         result = self.filter.step(depth_small, stamp, T_base_camera)
+        if self._started_from_point and result.status == TrackingStatus.OK:
+            result = replace(result, status=TrackingStatus.UNCERTAIN)   # start_from_point: never ok
         for stage, seconds in result.timings.items():
             self._timings[stage] += seconds
         for stage, seconds in self.backend.timings.items():
             self._timings[f"gl_{stage}"] += seconds
         self._frames += 1
         return result
+
+    def _not_started(self, stamp: float) -> FilterOutput:
+        """A lost result while the one-point initialiser waits for a frame it can use (the pose: the
+        pointed point, identity rotation; a lost status blanks every output that would use it)."""
+        T_base_bone = np.eye(4)
+        T_base_bone[:3, 3] = self._pending_point
+        return FilterOutput(T_base_bone=T_base_bone, position_spread=float("inf"),
+                            rotation_spread=float("inf"), ess=0.0, ess_ratio=0.0, log_likelihood_max=float("nan"),
+                            status=TrackingStatus.LOST, inlier_fraction=float("nan"), covered_pixels=0, n_nan=0,
+                            resampled=False, dt=0.0, weighed=False, timings={})
 
     def particle_positions(self) -> np.ndarray:
         """(N, 3) particle positions in the base frame (metres)."""
