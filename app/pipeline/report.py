@@ -8,6 +8,12 @@ def summary_rows(summary: dict) -> list[tuple[str, str]]:
         ("processing rate", f"{summary['processing_rate_hz']:.1f} frames/s  ({summary.get('gl', '?')})"),
         ("particles / resolution", f"{summary['particles']} at {summary['resolution'][0]}x{summary['resolution'][1]}, {summary['sampling']}"),
     ]
+    init = summary.get("init")
+    if init:
+        text = (f"one-point initialiser: {init['seconds']:.1f} s, {init['tempering_steps']} tempering steps"
+                + (f", off by {init['add_mm']:.1f} mm ADD / {init['rotation_deg']:.1f} deg" if "add_mm" in init else "")
+                + " (experimental: never ok)")
+        rows.append(("start", text))
     if "add_mm" in summary:
         a, t, r = summary["add_mm"], summary["translation_mm"], summary["rotation_deg"]
         rows += [
