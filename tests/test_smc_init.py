@@ -133,3 +133,23 @@ def test_point_start_without_a_point_names_the_key(tmp_path):
     dump_meta(replace(meta, point_prior=None), tmp_path / "trial" / "trial.yaml")
     with pytest.raises(TrialFormatError, match="point_prior"):
         replay(tmp_path / "trial", tmp_path / "out", replace(load_config(None), init_method="point"), rrd=False)
+
+
+def test_mesh_symmetries_are_the_half_turns_that_map_the_mesh_onto_itself():
+    """A box is its own image under the half turn about each of its axes; a cone only under the
+    half turn about its own axis (its principal axes: the axis and two perpendicular ones)."""
+    from app.filter.smc_init import mesh_symmetries
+
+    box = trimesh.creation.box((0.08, 0.03, 0.02))
+    found = mesh_symmetries(box.vertices, box.faces)
+    assert len(found) == 3
+    for S in found:
+        q, t = se3.to_quat_trans(S)
+        assert np.degrees(quat.angle_between(q[None], np.array([[1.0, 0, 0, 0]])))[0] == pytest.approx(180, abs=2)
+        assert np.linalg.norm(t) < 0.002                      # about the centre
+    cone = trimesh.creation.cone(radius=0.015, height=0.08, sections=64)
+    cone.apply_translation(-cone.center_mass)
+    found = mesh_symmetries(cone.vertices, cone.faces)
+    assert len(found) == 1
+    axis = quat.log_map(se3.to_quat_trans(found[0])[0][None])[0]
+    assert abs(axis[2]) / np.linalg.norm(axis) > 0.99          # the cone's own axis (z)

@@ -3,7 +3,7 @@
 For each trial (with ground truth and ``point_prior``), the sampler (app/filter/smc_init.py, the
 default settings and the default tracker's backend) runs ``--seeds`` times on the first frame with
 different seeds; a run succeeds when its pose is within 5 mm ADD and 5 degrees of the truth.
-Prints a table (success count, ADD median, time median) and writes JSON (``--json``).
+Prints a table (success count, ADD median, time median) and writes JSON (``--json``). ``--restarts`` and ``--no-symmetry-check`` compare the initialiser's options.
 """
 from __future__ import annotations
 
@@ -24,7 +24,7 @@ from app.trial.reader import open_trial
 SUCCESS_ADD_MM, SUCCESS_ROT_DEG = 5.0, 5.0
 
 
-def run_trial(path: Path, seeds: int) -> dict:
+def run_trial(path: Path, seeds: int, restarts: int | None = None, symmetry_check: bool = True) -> dict:
     """The initialiser ``seeds`` times on the trial's first frame: per-run ADD (mm), rotation (deg), seconds."""
     trial = open_trial(path)
     if trial.groundtruth is None or trial.meta.point_prior is None:
@@ -36,7 +36,8 @@ def run_trial(path: Path, seeds: int) -> dict:
     T_base_camera, _ = trial.camera_poses()
     depth = downsample_nearest(frame.depth_m, *config.resolution)
     points, T_gt = np.asarray(mesh.vertices), trial.groundtruth[0]
-    smc = SMCInitConfig(sigma_t=config.init_point_sigma, restarts=config.init_restarts, budget_s=config.init_budget_s)
+    smc = SMCInitConfig(sigma_t=config.init_point_sigma, restarts=restarts or config.init_restarts,
+                        budget_s=config.init_budget_s, symmetry_check=symmetry_check)
     runs = []
     try:
         for seed in range(seeds):
@@ -60,9 +61,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("trials", nargs="+", type=Path)
     parser.add_argument("--seeds", type=int, default=6)
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--restarts", type=int, default=None, help="runs per initialisation (default: the config's)")
+    parser.add_argument("--no-symmetry-check", action="store_true", help="without the mesh-symmetry check")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    results = [run_trial(p, args.seeds) for p in args.trials]
+    results = [run_trial(p, args.seeds, args.restarts, not args.no_symmetry_check) for p in args.trials]
     print(f"{'trial':<40} {'mesh':<22} {'found':>7} {'ADD med mm':>11} {'s med':>7}")
     for r in results:
         print(f"{r['trial']:<40} {r['mesh']:<22} {r['successes']:>3}/{len(r['runs']):<3} "

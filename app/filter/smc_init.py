@@ -17,15 +17,17 @@ camera), and the bone's outward normal there should match it::
     p(x) = N(d(x); 0, σ_t²) · N(∠(R(q) n(s*(x)), n_z); 0, σ_n²)
 
 with s*(x) the surface point nearest the pointed point. This leaves one rotation (about n_z) and
-the surface point (2 DOF) to search instead of all of SO(3) x surface, and it is what turns the
-sampler from finding the crest in about one run of three into most runs (BENCHMARKS.md). Without
+the surface point (2 DOF) to search instead of all of SO(3) x surface (BENCHMARKS.md §5 lists
+what each part changed). Without
 enough measured points at the pointed point (hidden, invalid) the prior falls back to (B)'s.
 
-The sampler moves a cloud of ~100 particles from the prior to π through the tempered targets
+The sampler moves a cloud of ``particles`` (200; (B): ~100) from the prior to π through the tempered targets
 π_φ ∝ p(x) p(z | x)^φ, 0 = φ_0 < φ_1 < ... < φ_K = 1 ((B) eq. 5.x; DESIGN.md: φ_t = t/T):
 
-1. draw from the prior: q uniform (normalised 4D Gaussian), a surface point s uniform on the
-   mesh, t = point - R(q) s + N(0, σ_t² I)
+1. draw ``prior_draws`` (10,000) poses from the prior: q uniform (normalised 4D Gaussian; with
+   the normal prior: R n(s) = n_z up to σ_n, a uniform twist about n_z), a surface point s uniform
+   on the mesh, t = point - R(q) s + N(0, σ_t² I); score them and keep ``particles`` of them at
+   the first φ
 2. repeat until φ = 1: the next φ is the largest with ESS(w) >= ``target_ess`` · N for the
    incremental weights w_j ∝ p(z | x_j)^(φ' - φ) (adaptive tempering, Jasra et al. 2011: the fixed
    schedule t/T with T steps is the special case that collapses on this likelihood, whose log
@@ -35,22 +37,24 @@ The sampler moves a cloud of ~100 particles from the prior to π through the tem
      c tuned towards ~30 % acceptance), or
    - an orientation move about the pointed point: a local rotation δ = exp(N(0, σ_r² I)), or with
      probability ``p_global`` a uniform δ (with the normal prior: a uniform twist about n_z, or a
-     half turn about n_z through the bone's centre, the end-for-end flip of a ridge); q' = δ ⊗ q, t' = point + R(δ)(t - point),
-     so the surface point under the pointed point stays there
+     half turn about n_z through the bone's centre); q' = δ ⊗ q, t' = point + R(δ)(t - point), so
+     the surface point under the pointed point stays there
    all symmetric, so the acceptance is min(1, π_φ(x') / π_φ(x)).
 3. the result is the equally weighted cloud at φ = 1 and its weighted-mean pose; the particle
    filter is seeded from it (:func:`seed_state`).
+4. ``restarts`` independent runs, the likeliest kept; then the **symmetry check**: a crest is a
+   ridge, and turned end for end (a half turn about its normal) it covers most of its own
+   visible surface, a basin the restarts could all settle in (measured: half of the runs on the
+   synthetic crest, 73 mm / 179 deg off, and the filter then reported ok). The mesh's half-turn
+   self-symmetries are found once by ICP of the mesh onto itself (:func:`mesh_symmetries`); the
+   result turned by each is searched locally and kept when likelier.
 
-**Known failure, measured (BENCHMARKS.md §5):** on the synthetic crest the cloud settles on the
-crest turned end for end (a half turn about the surface normal, ~180° and 25 mm off, hundreds of
-nats below the true pose) in about half of the runs, and all restarts can settle there together.
-That pose covers much of the same visible surface and passes the status rules (the filter then
-reports ok while 73 mm off), so a tracker started this way never reports ok
-(:class:`app.pipeline.tracker.DepthTracker`): the initialiser is for evaluation, not for the
-operating room, until the ambiguity is resolved.
-
-One likelihood evaluation per sweep for the whole cloud (the filter's own backend: the GL
-compute shader, or the numpy reference); the incremental weights reuse the last one.
+**Known failure, measured (BENCHMARKS.md §5):** on a CT crest buried in simulated soft tissue,
+the one-frame likelihood is higher at a wrong pose (45 mm / 70 deg off; the bone laid along the
+tissue surface, we suppose: ~515 nats) than at the true one (~386), so no sampler finds the
+truth from this frame alone, and the status rules do not flag the wrong pose. A tracker started this way
+therefore never reports ok (:class:`app.pipeline.tracker.DepthTracker`): the initialiser is for
+evaluation, not for the operating room, until the likelihood separates the two.
 """
 from __future__ import annotations
 
@@ -84,7 +88,9 @@ class SMCInitConfig:
     tempering step, of which ``particles`` go on (a wider first look at SO(3): with 100-200 draws
     the cloud often settles in a wrong basin); sigma_n : rad, the normal prior (below; 0 = off,
     orientation uniform as in (B)); normal_radius : m, the measured points around the pointed
-    point that give its normal; restarts : independent runs, the most likely one kept.
+    point that give its normal; restarts : independent runs, the most likely one kept; symmetry_check : then search the
+    mesh's half-turn symmetries of the result (:meth:`OnePointInitialiser._symmetry_check`) from a
+    cloud of symmetry_sigma_p (m) / symmetry_sigma_r (rad) around each.
     """
 
     particles: int = 200
@@ -100,6 +106,9 @@ class SMCInitConfig:
     sigma_n: float = 0.35
     normal_radius: float = 0.01
     restarts: int = 3
+    symmetry_check: bool = True
+    symmetry_sigma_p: float = 0.005
+    symmetry_sigma_r: float = 0.07
 
 
 @dataclass
@@ -109,7 +118,8 @@ class SMCResult:
     p, q : (N, 3), (N, 4) the final cloud (equally weighted); log_likelihood : (N,) its p(z | x);
     estimate : weighted-mean pose and spread; phis : the tempering schedule reached; acceptance :
     mean MH acceptance per step; seconds : wall time; reached_target : φ got to 1 within the
-    step and time budgets by tempering (not by the final jump).
+    step and time budgets by tempering (not by the final jump); symmetry_turned : the symmetry
+    check replaced the sampler's cloud.
     """
 
     p: np.ndarray
@@ -120,6 +130,7 @@ class SMCResult:
     acceptance: list[float] = field(default_factory=list)
     seconds: float = 0.0
     reached_target: bool = True
+    symmetry_turned: bool = False
 
 
 class SurfacePrior:
@@ -211,6 +222,47 @@ def measured_normal(depth: np.ndarray, camera, T_base_camera: np.ndarray, point_
     return T_base_camera[:3, :3] @ normal
 
 
+def mesh_symmetries(vertices: np.ndarray, faces: np.ndarray, max_residual: float = 0.003, n_samples: int = 4000,
+                    iterations: int = 50, seed: int = 0) -> list[np.ndarray]:
+    """The mesh's approximate half-turn self-symmetries S (4x4, bone frame): S(mesh) ≈ mesh.
+
+    From the half turn about each principal axis through the centroid, a trimmed point-to-point ICP
+    (Kabsch on the nearest 80 %) of the surface samples onto themselves; a result is kept when the
+    median distance of the moved samples to the surface is below ``max_residual`` (m). A crest is a
+    ridge: turned end for end about its normal it nearly covers itself (the synthetic crest: 2.1 mm
+    median; CT crest_right_03: 2.4 and 2.9 mm about two axes).
+    """
+    import trimesh
+
+    mesh = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces), process=False)
+    pts, _ = trimesh.sample.sample_surface(mesh, n_samples, seed=seed)
+    tree = cKDTree(pts)
+    centre = pts.mean(axis=0)
+    axes = np.linalg.eigh(np.cov((pts - centre).T))[1]
+    found = []
+    for k in range(3):
+        R = quat.to_matrix(quat.exp_map(axes[:, k][None] * np.pi))[0]
+        t = centre - R @ centre
+        for _ in range(iterations):
+            moved = pts @ R.T + t
+            d, j = tree.query(moved)
+            keep = d <= np.percentile(d, 80)
+            dR, dt = _kabsch(moved[keep], pts[j[keep]])
+            R, t = dR @ R, dR @ t + dt
+        if np.median(tree.query(pts @ R.T + t)[0]) < max_residual:
+            found.append(se3.make_pose(R, t))
+    return found
+
+
+def _kabsch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation R and translation t minimising |R a + t - b|² (Kabsch / Umeyama without scale)."""
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, cb - R @ ca
+
+
 def next_phi(phi: float, log_lik: np.ndarray, target_ess: float) -> float:
     """The largest φ' in (φ, 1] whose incremental weights (φ' - φ) log p(z | x) keep ESS >= target · N."""
     n = len(log_lik)
@@ -257,6 +309,7 @@ class OnePointInitialiser:
     def __init__(self, backend, camera, vertices: np.ndarray, faces: np.ndarray, config: SMCInitConfig,
                  rng: np.random.Generator):
         self.backend, self.camera, self.vertices, self.faces = backend, camera, vertices, faces
+        self._symmetries: list[np.ndarray] | None = None
         self.config, self.rng = config, rng
 
     def run(self, depth: np.ndarray, T_base_camera: np.ndarray, point_base: np.ndarray,
@@ -276,15 +329,16 @@ class OnePointInitialiser:
             result = self._run_once(depth, T_base_camera, point_base, sigma_t, left / (self.config.restarts - k))
             if best is None or np.mean(result.log_likelihood) > np.mean(best.log_likelihood):
                 best = result
+        if self.config.symmetry_check:
+            best = self._symmetry_check(best, depth, T_base_camera, point_base, sigma_t)
         best.seconds = time.perf_counter() - t_start
         return best
 
-    def _run_once(self, depth: np.ndarray, T_base_camera: np.ndarray, point_base: np.ndarray,
-                  sigma_t: float | None, budget_s: float) -> SMCResult:
-        c, rng = self.config, self.rng
-        t_start = time.perf_counter()
+    def _target(self, depth, T_base_camera, point_base, sigma_t):
+        """The prior (with the measured normal) and the log-likelihood function of one frame."""
+        c = self.config
         prior = SurfacePrior(self.vertices, self.faces, point_base, c.sigma_t if sigma_t is None else sigma_t,
-                             c.surface_samples, rng)
+                             c.surface_samples, self.rng)
         normal = measured_normal(depth, self.camera, T_base_camera, prior.point_base, c.normal_radius) \
             if c.sigma_n > 0 else None
         if c.sigma_n > 0 and normal is None:
@@ -296,6 +350,60 @@ class OnePointInitialiser:
         def log_lik(p, q):
             ll = np.asarray(self.backend.log_likelihood(T_camera_base @ se3.from_quat_trans(q, p), depth), float)
             return np.where(np.isfinite(ll), ll, -1e12)
+
+        return prior, log_lik
+
+    def _symmetry_check(self, result: SMCResult, depth, T_base_camera, point_base, sigma_t) -> SMCResult:
+        """Look for the bone turned by one of the mesh's half-turn symmetries, and keep it if likelier.
+
+        A ridge turned end for end covers much of its own visible surface, and the sampler's
+        restarts can all settle there (hundreds of nats below the true pose, which the status rules
+        then fail to tell apart). For each symmetry S of :func:`mesh_symmetries` (and S⁻¹), a cloud
+        of N poses around x S (x: the result's mean pose; spread ``symmetry_sigma_p`` /
+        ``symmetry_sigma_r``, because the visible part's symmetry differs from the whole mesh's by
+        millimetres and degrees) is tempered to the likelihood as in the main loop (adaptive φ from
+        0, resampling, local MH sweeps on the full target). The candidate cloud replaces the result
+        when its mean log-likelihood is higher.
+        """
+        c, rng = self.config, self.rng
+        if self._symmetries is None:
+            self._symmetries = mesh_symmetries(self.vertices, self.faces)
+        prior, log_lik = self._target(depth, T_base_camera, point_base, sigma_t)
+        x = result.estimate.T_base_bone
+        best = result
+        for S in self._symmetries:
+            for S_k in (S, se3.inverse(S)):
+                q0, t0 = se3.to_quat_trans(x @ S_k)
+                n = len(result.p)
+                p = t0 + rng.normal(0.0, c.symmetry_sigma_p, (n, 3))
+                q = quat.normalize(quat.multiply(quat.exp_map(rng.normal(0.0, c.symmetry_sigma_r, (n, 3))),
+                                                 np.repeat(q0[None], n, axis=0)))
+                ll, lp = log_lik(p, q), prior.log_density(p, q)
+                phi, scale, scale_r = 0.0, 1.0, 1.0
+                for _ in range(c.max_steps):
+                    new_phi = next_phi(phi, ll, c.target_ess)
+                    idx = rs.resample("systematic", lw_ops.normalise_log_weights((new_phi - phi) * ll), rng)
+                    p, q, ll, lp = p[idx], q[idx], ll[idx], lp[idx]
+                    phi = new_phi
+                    p, q, ll, lp, scale, scale_r, _ = self._sweeps(p, q, ll, lp, phi, c.mh_moves, prior, log_lik,
+                                                                   scale, scale_r, local=True)
+                    if phi >= 1.0:
+                        break
+                log.debug("symmetry check: candidate %.0f vs result %.0f (mean log-likelihood)", np.mean(ll),
+                          np.mean(best.log_likelihood))
+                if phi >= 1.0 and np.mean(ll) > np.mean(best.log_likelihood):
+                    log.info("one-point initialisation: the bone turned by a symmetry of its mesh explains the "
+                             "image better (mean log-likelihood %.0f vs %.0f): taken", np.mean(ll),
+                             np.mean(best.log_likelihood))
+                    best = SMCResult(p, q, ll, estimate(p, q, lw_ops.uniform_log_weights(n)), result.phis,
+                                     result.acceptance, result.seconds, result.reached_target, symmetry_turned=True)
+        return best
+
+    def _run_once(self, depth: np.ndarray, T_base_camera: np.ndarray, point_base: np.ndarray,
+                  sigma_t: float | None, budget_s: float) -> SMCResult:
+        c, rng = self.config, self.rng
+        t_start = time.perf_counter()
+        prior, log_lik = self._target(depth, T_base_camera, point_base, sigma_t)
 
         # step 1 on a wider draw: score prior_draws poses, keep `particles` of them at the first φ
         p, q = prior.sample(max(c.prior_draws, c.particles), rng)

@@ -69,9 +69,10 @@ class DepthTracker:
         first frame that has a camera pose and valid depth (app/filter/smc_init.py); frames before it
         are reported lost.
 
-        Experimental: the sampler can settle on the crest turned end for end, which the status rules
-        do not catch, so a tracker started this way reports uncertain at best, never ok (no template
-        is projected). For evaluating the initialiser in replays, not for the operating room.
+        Experimental: on a CT crest in soft tissue the one-frame likelihood can prefer a wrong pose
+        that the status rules do not catch (BENCHMARKS.md §5), so a tracker started this way reports
+        uncertain at best, never ok (no template is projected). For evaluating the initialiser in
+        replays, not for the operating room.
         """
         point = np.asarray(point_base, dtype=float).reshape(3)
         if not np.all(np.isfinite(point)):
