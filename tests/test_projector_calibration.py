@@ -48,7 +48,7 @@ def simulated():
 
 def test_calibration_recovers_the_simulated_projector(simulated):
     sim, views = simulated
-    result = calibrate_projector(views, sim.projector_size, sim.K_camera, board=sim.board, fix_distortion=True)
+    result = calibrate_projector(views, sim.projector_size, sim.K_camera, board=sim.board, distortion="none")
     assert not result.skipped and len(result.per_view) == 5
     np.testing.assert_allclose(np.diag(result.K)[:2], np.diag(sim.K_projector)[:2], rtol=0.01)
     np.testing.assert_allclose(result.K[:2, 2], sim.K_projector[:2, 2], atol=2.0)
@@ -65,9 +65,10 @@ def test_calibrate_projector_command_writes_a_loadable_projector_yaml(simulated,
     write_captures(folder, [v[1] for v in views], sim.projector_size, sim.board, sim.K_camera, sim.camera_size,
                    truth=sim.truth())
     (folder / "pose_001" / "pattern_003.png").unlink()
-    assert main(["calibrate", "projector", "--captures", str(folder), "--fix-distortion"]) == 0
+    assert main(["calibrate", "projector", "--captures", str(folder)]) == 0
     printed = capsys.readouterr().out
     assert "skipped pose_001" in printed and "vs truth" in printed and "RMS reprojection" in printed
+    assert "with 'k1k2' the projector RMS would be" in printed
     data = yaml.safe_load((folder / "projector.yaml").read_text())
     model = parse_projector_config(data).projector
     assert (model.width, model.height) == sim.projector_size
@@ -78,6 +79,20 @@ def test_too_few_usable_poses_is_a_config_error(simulated, tmp_path):
     sim, views = simulated
     folder = tmp_path / "few"
     write_captures(folder, [v[1] for v in views[:2]], sim.projector_size, sim.board, sim.K_camera, sim.camera_size)
-    args = argparse.Namespace(simulate=0, captures=folder, camera=None, board=None, out=None, fix_distortion=False)
+    args = argparse.Namespace(simulate=0, captures=folder, camera=None, board=None, out=None, distortion="none")
     with pytest.raises(ConfigError, match="2 usable board poses, need at least 3"):
         run_command(args)
+
+
+def test_distortion_models_and_the_alternative_rms(simulated):
+    """'k1k2' fits radial terms (non-zero k1, k2; no tangential), 'none' fits none; each reports the
+    other's projector RMS, which for nested models is never below the richer model's own."""
+    sim, views = simulated
+    plain = calibrate_projector(views, sim.projector_size, sim.K_camera, board=sim.board, distortion="none")
+    radial = calibrate_projector(views, sim.projector_size, sim.K_camera, board=sim.board, distortion="k1k2")
+    assert np.all(plain.dist == 0) and np.any(radial.dist[:2] != 0) and np.all(radial.dist[2:] == 0)
+    assert plain.alternative_rms_px["k1k2"] == pytest.approx(radial.rms_projector_px, rel=1e-6)
+    assert radial.alternative_rms_px["none"] == pytest.approx(plain.rms_projector_px, rel=1e-6)
+    assert radial.rms_projector_px <= plain.rms_projector_px + 1e-9
+    with pytest.raises(ValueError, match="distortion model"):
+        calibrate_projector(views, sim.projector_size, sim.K_camera, board=sim.board, distortion="k1k2k3")

@@ -82,7 +82,9 @@ def register(subparsers) -> None:
     s.add_argument("--camera", type=Path, help="camera intrinsics YAML (default CAPTURES/camera.yaml)")
     s.add_argument("--board", help="board SPEC (default: projector_capture.yaml's)")
     s.add_argument("--out", type=Path, help="projector YAML to write (default CAPTURES/projector.yaml)")
-    s.add_argument("--fix-distortion", action="store_true", help="estimate no projector lens distortion")
+    s.add_argument("--distortion", choices=("none", "k1k2"), default="none",
+                   help="projector lens distortion to estimate (default none: with few poses k1/k2 trade off "
+                        "against the focal length and T_camera_projector; see calibration/projector.py)")
     s.add_argument("--simulate", type=int, default=0, metavar="N",
                    help="first write N simulated board poses into CAPTURES (no hardware needed)")
     s.add_argument("--noise", action="store_true", help="with --simulate: image noise and blur")
