@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.osteonav-installed
 
-.PHONY: demo test bench-rate setup clean
+.PHONY: demo test bench bench-rate bench-marker setup clean
 
 setup: $(STAMP)
 
@@ -17,8 +17,14 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest
 
+bench: $(STAMP)
+	$(VENV)/bin/osteonav bench --quick
+
 bench-rate: $(STAMP)
 	$(VENV)/bin/osteonav bench-rate
+
+bench-marker: $(STAMP)
+	$(VENV)/bin/osteonav bench-marker
 
 clean:
 	rm -rf $(VENV) recordings/demo
