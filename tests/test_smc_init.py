@@ -9,8 +9,8 @@ import pytest
 import trimesh
 
 from app.filter import weights as lw_ops
-from app.filter.smc_init import (SurfacePrior, measured_normal, next_phi, rotate_about, rotation_between,
-                                 systematic_draws)
+from app.filter import resampling as rs
+from app.filter.smc_init import SurfacePrior, measured_normal, next_phi, rotate_about, rotation_between
 from app.geometry import quaternion as quat
 from app.geometry import se3
 from app.geometry.camera import PinholeCamera
@@ -69,9 +69,10 @@ def test_next_phi_keeps_the_target_ess_and_goes_to_one_when_it_can(rng):
     assert next_phi(0.3, np.full(100, -7.0), 0.5) == 1.0                # a flat likelihood: straight to 1
 
 
-def test_systematic_draws_follow_the_weights(rng):
+def test_systematic_resampling_draws_any_count_following_the_weights(rng):
+    """The initialiser keeps n of its wider first draw: systematic resampling with n != N draws."""
     w = np.array([0.5, 0.25, 0.125, 0.125])
-    idx = systematic_draws(np.log(w), 800, rng)
+    idx = rs.systematic(np.log(w), rng.random(), 800)
     np.testing.assert_array_equal(np.bincount(idx, minlength=4), (800 * w).astype(int))
 
 
@@ -153,3 +154,38 @@ def test_mesh_symmetries_are_the_half_turns_that_map_the_mesh_onto_itself():
     assert len(found) == 1
     axis = quat.log_map(se3.to_quat_trans(found[0])[0][None])[0]
     assert abs(axis[2]) / np.linalg.norm(axis) > 0.99          # the cone's own axis (z)
+
+
+def test_symmetry_check_turns_a_cloud_stuck_on_the_turned_bone_back_to_the_likelier_pose(rng):
+    """A cloud settled on the box turned by one of its half-turn symmetries, under a likelihood that
+    peaks only at the true pose: the check must find and take the true pose (and leave a cloud that
+    is already right where it is)."""
+    from app.filter.estimate import estimate
+    from app.filter.smc_init import OnePointInitialiser, SMCInitConfig, SMCResult, mesh_symmetries
+
+    box = trimesh.creation.box((0.08, 0.03, 0.02))
+    T_true = se3.from_rotvec_trans(np.array([0.1, -0.2, 0.3]), np.array([0.4, 0.05, 0.02]))
+    q_true, t_true = se3.to_quat_trans(T_true)
+    top_base = T_true[:3, :3] @ np.array([0.01, 0.0, 0.01]) + T_true[:3, 3]
+    prior = SurfacePrior(box.vertices, box.faces, top_base, 0.005, 4000, rng)
+
+    def log_lik(p, q):   # a narrow peak at the true pose: -(|Δt| / 2 mm)² - (angle / 2 deg)²
+        angle = quat.angle_between(q, np.repeat(q_true[None], len(q), axis=0))
+        return -(np.linalg.norm(p - t_true, axis=1) / 0.002) ** 2 - (angle / np.radians(2.0)) ** 2
+
+    initialiser = OnePointInitialiser(None, None, box.vertices, box.faces, SMCInitConfig(particles=100), rng)
+    S = mesh_symmetries(box.vertices, box.faces)[0]
+
+    def cloud_at(T):
+        q0, t0 = se3.to_quat_trans(T)
+        p = t0 + rng.normal(0.0, 0.0005, (100, 3))
+        q = np.repeat(q0[None], 100, axis=0)
+        ll = log_lik(p, q)
+        return SMCResult(p, q, ll, estimate(p, q, np.full(100, -np.log(100))))
+
+    turned = initialiser._symmetry_check(cloud_at(T_true @ S), prior, log_lik)
+    assert turned.symmetry_turned
+    assert np.linalg.norm(turned.estimate.T_base_bone[:3, 3] - t_true) < 0.003
+    assert np.degrees(se3.rotation_angle(turned.estimate.T_base_bone, T_true)) < 3.0
+    kept = initialiser._symmetry_check(cloud_at(T_true), prior, log_lik)
+    assert not kept.symmetry_turned

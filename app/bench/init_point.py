@@ -2,8 +2,9 @@
 
 For each trial (with ground truth and ``point_prior``), the sampler (app/filter/smc_init.py, the
 default settings and the default tracker's backend) runs ``--seeds`` times on the first frame with
-different seeds; a run succeeds when its pose is within 5 mm ADD and 5 degrees of the truth.
-Prints a table (success count, ADD median, time median) and writes JSON (``--json``). ``--restarts`` and ``--no-symmetry-check`` compare the initialiser's options.
+different seeds (settings: the default tracker config's ``init.*``); a run succeeds when its pose is within 5 mm ADD and 5 degrees of the truth.
+Prints a table (success count, ADD median, time median) and writes JSON (``--json``).
+``--restarts`` and ``--no-symmetry-check`` compare the initialiser's options.
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ import numpy as np
 from app import metrics
 from app.config import load_config
 from app.depth_image import downsample_nearest
-from app.filter.smc_init import OnePointInitialiser, SMCInitConfig
+from app.filter.smc_init import OnePointInitialiser, smc_config_for
 from app.pipeline.tracker import DepthTracker
 from app.trial.reader import open_trial
 
@@ -36,8 +37,7 @@ def run_trial(path: Path, seeds: int, restarts: int | None = None, symmetry_chec
     T_base_camera, _ = trial.camera_poses()
     depth = downsample_nearest(frame.depth_m, *config.resolution)
     points, T_gt = np.asarray(mesh.vertices), trial.groundtruth[0]
-    smc = SMCInitConfig(sigma_t=config.init_point_sigma, restarts=restarts or config.init_restarts,
-                        budget_s=config.init_budget_s, symmetry_check=symmetry_check)
+    smc = smc_config_for(config, restarts=restarts, symmetry_check=symmetry_check)
     runs = []
     try:
         for seed in range(seeds):

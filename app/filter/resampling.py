@@ -42,19 +42,21 @@ def _log_points(s: np.ndarray) -> np.ndarray:
         return np.log(s)
 
 
-def systematic(lw: np.ndarray, u: float) -> np.ndarray:
+def systematic(lw: np.ndarray, u: float, n: int | None = None) -> np.ndarray:
     """Systematic resampling with the given uniform draw u in [0, 1) ((A) Alg. 1).
 
     Parameters
     ----------
     lw : (N,) log-weights, not all -inf
     u : the single uniform variate
+    n : number of draws (default N; another count selects n of N, e.g. the one-point
+        initialiser keeping its particles out of a wider first draw)
 
     Returns
     -------
-    (N,) int64 ancestor indices, non-decreasing
+    (n,) int64 ancestor indices, non-decreasing
     """
-    n = len(lw)
+    n = len(lw) if n is None else int(n)
     return _inverse_cdf_log(_log_points((u + np.arange(n)) / n), lw)
 
 

@@ -22,7 +22,7 @@ what each part changed). Without
 enough measured points at the pointed point (hidden, invalid) the prior falls back to (B)'s.
 
 The sampler moves a cloud of ``particles`` (200; (B): ~100) from the prior to π through the tempered targets
-π_φ ∝ p(x) p(z | x)^φ, 0 = φ_0 < φ_1 < ... < φ_K = 1 ((B) eq. 5.x; DESIGN.md: φ_t = t/T):
+π_φ ∝ p(x) p(z | x)^φ, 0 = φ_0 < φ_1 < ... < φ_K = 1 ((B) ch. 5; DESIGN.md: φ_t = t/T):
 
 1. draw ``prior_draws`` (10,000) poses from the prior: q uniform (normalised 4D Gaussian; with
    the normal prior: R n(s) = n_z up to σ_n, a uniform twist about n_z), a surface point s uniform
@@ -36,9 +36,9 @@ The sampler moves a cloud of ``particles`` (200; (B): ~100) from the prior to π
    - a position move t' = t + ε, ε ~ N(0, c² Σ) with Σ the cloud's position covariance (adaptive,
      c tuned towards ~30 % acceptance), or
    - an orientation move about the pointed point: a local rotation δ = exp(N(0, σ_r² I)), or with
-     probability ``p_global`` a uniform δ (with the normal prior: a uniform twist about n_z, or a
-     half turn about n_z through the bone's centre); q' = δ ⊗ q, t' = point + R(δ)(t - point), so
-     the surface point under the pointed point stays there
+     probability ``p_global`` a uniform δ (with the normal prior: a uniform twist about n_z);
+     q' = δ ⊗ q, t' = point + R(δ)(t - point), so the surface point under the pointed point stays
+     there
    all symmetric, so the acceptance is min(1, π_φ(x') / π_φ(x)).
 3. the result is the equally weighted cloud at φ = 1 and its weighted-mean pose; the particle
    filter is seeded from it (:func:`seed_state`).
@@ -109,6 +109,16 @@ class SMCInitConfig:
     symmetry_check: bool = True
     symmetry_sigma_p: float = 0.005
     symmetry_sigma_r: float = 0.07
+
+
+def smc_config_for(tracker_config, **overrides) -> SMCInitConfig:
+    """The initialiser's settings from a TrackerConfig's ``init.*`` keys (point_sigma, restarts,
+    budget_s), its particles capped at the filter's (the backend's capacity)."""
+    values = dict(particles=min(SMCInitConfig.particles, tracker_config.particles),
+                  sigma_t=tracker_config.init_point_sigma, restarts=tracker_config.init_restarts,
+                  budget_s=tracker_config.init_budget_s)
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    return SMCInitConfig(**values)
 
 
 @dataclass
@@ -282,13 +292,6 @@ def next_phi(phi: float, log_lik: np.ndarray, target_ess: float) -> float:
     return phi + max(lo, 1e-9)
 
 
-def systematic_draws(lw: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """n ancestor indices by systematic resampling of normalised log weights lw (any length)."""
-    cdf = np.cumsum(np.exp(lw - lw.max()))
-    cdf /= cdf[-1]
-    return np.minimum(np.searchsorted(cdf, (np.arange(n) + rng.uniform()) / n), len(lw) - 1)
-
-
 def rotate_about(point: np.ndarray, p: np.ndarray, q: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Apply the rotations dq (N, 4) about ``point`` (3,) to poses (p, q): q' = dq ⊗ q, p' = point + R(dq)(p - point)."""
     return point[None] + quat.rotate(dq, p - point[None]), quat.normalize(quat.multiply(dq, q))
@@ -321,16 +324,17 @@ class OnePointInitialiser:
         nats lower). ``budget_s`` is shared by the runs.
         """
         t_start = time.perf_counter()
+        prior, log_lik = self._target(depth, T_base_camera, point_base, sigma_t)
         best: SMCResult | None = None
         for k in range(max(1, self.config.restarts)):
             left = self.config.budget_s - (time.perf_counter() - t_start)
             if best is not None and left <= 0:
                 break
-            result = self._run_once(depth, T_base_camera, point_base, sigma_t, left / (self.config.restarts - k))
+            result = self._run_once(prior, log_lik, time.perf_counter() + left / (self.config.restarts - k))
             if best is None or np.mean(result.log_likelihood) > np.mean(best.log_likelihood):
                 best = result
         if self.config.symmetry_check:
-            best = self._symmetry_check(best, depth, T_base_camera, point_base, sigma_t)
+            best = self._symmetry_check(best, prior, log_lik)
         best.seconds = time.perf_counter() - t_start
         return best
 
@@ -353,7 +357,7 @@ class OnePointInitialiser:
 
         return prior, log_lik
 
-    def _symmetry_check(self, result: SMCResult, depth, T_base_camera, point_base, sigma_t) -> SMCResult:
+    def _symmetry_check(self, result: SMCResult, prior: SurfacePrior, log_lik) -> SMCResult:
         """Look for the bone turned by one of the mesh's half-turn symmetries, and keep it if likelier.
 
         A ridge turned end for end covers much of its own visible surface, and the sampler's
@@ -361,14 +365,13 @@ class OnePointInitialiser:
         then fail to tell apart). For each symmetry S of :func:`mesh_symmetries` (and S⁻¹), a cloud
         of N poses around x S (x: the result's mean pose; spread ``symmetry_sigma_p`` /
         ``symmetry_sigma_r``, because the visible part's symmetry differs from the whole mesh's by
-        millimetres and degrees) is tempered to the likelihood as in the main loop (adaptive φ from
-        0, resampling, local MH sweeps on the full target). The candidate cloud replaces the result
+        millimetres and degrees) is tempered to the likelihood by :meth:`_temper` from φ = 0 with
+        local moves only. The candidate cloud replaces the result
         when its mean log-likelihood is higher.
         """
         c, rng = self.config, self.rng
         if self._symmetries is None:
             self._symmetries = mesh_symmetries(self.vertices, self.faces)
-        prior, log_lik = self._target(depth, T_base_camera, point_base, sigma_t)
         x = result.estimate.T_base_bone
         best = result
         for S in self._symmetries:
@@ -378,20 +381,15 @@ class OnePointInitialiser:
                 p = t0 + rng.normal(0.0, c.symmetry_sigma_p, (n, 3))
                 q = quat.normalize(quat.multiply(quat.exp_map(rng.normal(0.0, c.symmetry_sigma_r, (n, 3))),
                                                  np.repeat(q0[None], n, axis=0)))
-                ll, lp = log_lik(p, q), prior.log_density(p, q)
-                phi, scale, scale_r = 0.0, 1.0, 1.0
-                for _ in range(c.max_steps):
-                    new_phi = next_phi(phi, ll, c.target_ess)
-                    idx = rs.resample("systematic", lw_ops.normalise_log_weights((new_phi - phi) * ll), rng)
-                    p, q, ll, lp = p[idx], q[idx], ll[idx], lp[idx]
-                    phi = new_phi
-                    p, q, ll, lp, scale, scale_r, _ = self._sweeps(p, q, ll, lp, phi, c.mh_moves, prior, log_lik,
-                                                                   scale, scale_r, local=True)
-                    if phi >= 1.0:
-                        break
+                ll = log_lik(p, q)
+                phi = next_phi(0.0, ll, c.target_ess)
+                idx = rs.systematic(phi * ll, rng.random())
+                p, q, ll = p[idx], q[idx], ll[idx]
+                p, q, ll, lp, _, _, reached = self._temper(p, q, ll, prior.log_density(p, q), phi, prior, log_lik,
+                                                           deadline=None, local=True)
                 log.debug("symmetry check: candidate %.0f vs result %.0f (mean log-likelihood)", np.mean(ll),
                           np.mean(best.log_likelihood))
-                if phi >= 1.0 and np.mean(ll) > np.mean(best.log_likelihood):
+                if reached and np.mean(ll) > np.mean(best.log_likelihood):
                     log.info("one-point initialisation: the bone turned by a symmetry of its mesh explains the "
                              "image better (mean log-likelihood %.0f vs %.0f): taken", np.mean(ll),
                              np.mean(best.log_likelihood))
@@ -399,39 +397,44 @@ class OnePointInitialiser:
                                      result.acceptance, result.seconds, result.reached_target, symmetry_turned=True)
         return best
 
-    def _run_once(self, depth: np.ndarray, T_base_camera: np.ndarray, point_base: np.ndarray,
-                  sigma_t: float | None, budget_s: float) -> SMCResult:
+    def _run_once(self, prior: SurfacePrior, log_lik, deadline: float) -> SMCResult:
+        """One run of the sampler (module docstring, steps 1-3), tempering until ``deadline`` (perf_counter s)."""
         c, rng = self.config, self.rng
         t_start = time.perf_counter()
-        prior, log_lik = self._target(depth, T_base_camera, point_base, sigma_t)
-
         # step 1 on a wider draw: score prior_draws poses, keep `particles` of them at the first φ
         p, q = prior.sample(max(c.prior_draws, c.particles), rng)
         ll = np.concatenate([log_lik(p[i:i + c.particles], q[i:i + c.particles]) for i in range(0, len(p), c.particles)])
         phi = next_phi(0.0, ll, c.target_ess * c.particles / len(p))
-        idx = systematic_draws(lw_ops.normalise_log_weights(phi * ll), c.particles, rng)
+        idx = rs.systematic(phi * ll, rng.random(), c.particles)
         p, q, ll = p[idx], q[idx], ll[idx]
-        lp = prior.log_density(p, q)
-        phis, acceptance, scale, scale_r, reached = [0.0, phi], [], 1.0, 1.0, True
-        while True:
-            p, q, ll, lp, scale, scale_r, accepted = self._sweeps(p, q, ll, lp, phi, c.mh_moves, prior, log_lik,
-                                                                  scale, scale_r)
-            acceptance.append(accepted)
-            if phi >= 1.0:
-                break
-            out_of_budget = len(phis) > c.max_steps or time.perf_counter() - t_start > budget_s
-            new_phi = 1.0 if out_of_budget else next_phi(phi, ll, c.target_ess)
-            reached &= not out_of_budget
-            idx = rs.resample("systematic", lw_ops.normalise_log_weights((new_phi - phi) * ll), rng)
-            p, q, ll, lp = p[idx], q[idx], ll[idx], lp[idx]
-            phi = new_phi
-            phis.append(phi)
+        p, q, ll, _, phis, acceptance, reached = self._temper(p, q, ll, prior.log_density(p, q), phi, prior, log_lik,
+                                                              deadline)
         seconds = time.perf_counter() - t_start
         pose = estimate(p, q, lw_ops.uniform_log_weights(len(p)))
         log.info("one-point initialisation: %d tempering steps, %.2f s, spread %.1f mm / %.1f deg%s", len(phis) - 1,
                  seconds, 1e3 * pose.position_spread, np.degrees(pose.rotation_spread),
                  "" if reached else " (budget reached: φ jumped to 1)")
         return SMCResult(p, q, ll, pose, phis, acceptance, seconds, reached)
+
+    def _temper(self, p, q, ll, lp, phi, prior, log_lik, deadline: float | None, local: bool = False):
+        """MH sweeps at φ, then (step 2) the next φ, resampling, sweeps, until φ = 1; past ``max_steps``
+        or ``deadline`` φ jumps to 1. Returns the cloud, the φ schedule (from 0), the acceptance per
+        step and whether φ = 1 was reached by tempering."""
+        c, rng = self.config, self.rng
+        phis, acceptance, scale, scale_r, reached = [0.0, phi] if phi > 0 else [0.0], [], 1.0, 1.0, True
+        while True:
+            p, q, ll, lp, scale, scale_r, accepted = self._sweeps(p, q, ll, lp, phi, c.mh_moves, prior, log_lik,
+                                                                  scale, scale_r, local)
+            acceptance.append(accepted)
+            if phi >= 1.0:
+                return p, q, ll, lp, phis, acceptance, reached
+            out_of_budget = len(phis) > c.max_steps or (deadline is not None and time.perf_counter() > deadline)
+            new_phi = 1.0 if out_of_budget else next_phi(phi, ll, c.target_ess)
+            reached &= not out_of_budget
+            idx = rs.resample("systematic", lw_ops.normalise_log_weights((new_phi - phi) * ll), rng)
+            p, q, ll, lp = p[idx], q[idx], ll[idx], lp[idx]
+            phi = new_phi
+            phis.append(phi)
 
     def _sweeps(self, p, q, ll, lp, phi, n_sweeps, prior, log_lik, scale, scale_r, local=False):
         """``n_sweeps`` MH sweeps at φ, alternating position and orientation moves (module docstring);
@@ -462,29 +465,21 @@ class OnePointInitialiser:
     def _orientation_move(self, p: np.ndarray, q: np.ndarray, prior: SurfacePrior,
                           scale_r: float, p_global: float) -> tuple[np.ndarray, np.ndarray]:
         """A rotation δ about the pointed point: local N(0, (scale_r σ_r)²), scale_r tuned towards ~30 %
-        acceptance; with probability ``p_global`` a
-        uniform one (with the normal prior: a uniform twist about the measured normal, which keeps
-        the prior's normal term); with probability ``p_global`` / 2 a half turn about the measured
-        normal through the bone's centre (the crest's end-for-end ambiguity: a ridge turned end for
-        end about its middle looks alike). Each is symmetric (δ and δ⁻¹ equally likely)."""
+        acceptance; with probability ``p_global`` a uniform one (with the normal prior: a uniform
+        twist about the measured normal, which keeps the prior's normal term). Both are symmetric
+        (δ and δ⁻¹ equally likely)."""
         n, c, rng = len(p), self.config, self.rng
         dq = quat.exp_map(rng.normal(0.0, scale_r * c.sigma_r, (n, 3)))
-        u = rng.uniform(size=n)
-        jump = u < p_global
+        jump = rng.uniform(size=n) < p_global
         if prior.normal_base is None:
             dq[jump] = quat.random_uniform(rng, int(jump.sum()))
         else:
             dq[jump] = quat.exp_map(prior.normal_base[None] * rng.uniform(-np.pi, np.pi, (int(jump.sum()), 1)))
-            flip = (u >= p_global) & (u < 1.5 * p_global)
-            dq[flip] = quat.exp_map(np.repeat(prior.normal_base[None] * np.pi, int(flip.sum()), axis=0))
-            p_new, q_new = rotate_about(prior.point_base, p, q, dq)
-            p_new[flip] = p[flip]        # the half turn is about the bone's own centre (the mesh is centred)
-            return p_new, q_new
         return rotate_about(prior.point_base, p, q, dq)
 
 
 def seed_state(result: SMCResult, n: int, rng: np.random.Generator) -> ParticleState:
     """The filter's N particles drawn from the sampler's cloud (systematic), at rest, equally weighted."""
-    idx = systematic_draws(lw_ops.uniform_log_weights(len(result.p)), n, rng)
+    idx = rs.systematic(lw_ops.uniform_log_weights(len(result.p)), rng.random(), n)
     return ParticleState(result.p[idx].copy(), np.zeros((n, 3)), result.q[idx].copy(), np.zeros((n, 3)),
                          lw_ops.uniform_log_weights(n))

@@ -2,8 +2,9 @@
 
 For each frame: the joints interpolated at the frame's stamp give ``T_base_camera`` (FK and the
 trial's hand-eye); the depth image is reduced to the filter's resolution; the particle filter
-(started at the trial's ``initial_pose``, or with ``init.method: point`` by the one-point initialiser
-from its ``point_prior`` on the first frame; the summary's ``init`` block gives that run) steps; the estimate goes to the sinks. Writes, in ``out``:
+(started at the trial's ``initial_pose``, or with ``init.method: point`` by the one-point
+initialiser from its ``point_prior`` on the first frame; the summary's ``init`` block gives that
+run) steps; the estimate goes to the sinks. Writes, in ``out``:
 
 - ``estimate.txt``: TUM, the bone in the robot base frame, one row per processed frame;
 - ``status.csv``: ``stamp,status`` per processed frame (RECORDING_FORMAT.md);
@@ -130,7 +131,7 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
             progress(i + 1, n_total)
     elapsed = time.perf_counter() - t_start
     T_est = np.array(estimates)
-    summary = _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_deg, elapsed)
+    summary = _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_deg, elapsed, points)
     if projector_sink is not None:
         summary["projector"] = projector_sink.summary()
         projector_sink.release()
@@ -178,7 +179,7 @@ def _check_start(reader, trial_dir: Path, from_point: bool) -> None:
 def _init_summary(init, reader, points: np.ndarray) -> dict:
     """The one-point initialiser's run: time, tempering steps, spread, and its error when ground truth exists."""
     out = {"method": "point", "seconds": init.seconds, "tempering_steps": len(init.phis) - 1,
-           "reached_target": bool(init.reached_target),
+           "reached_target": bool(init.reached_target), "symmetry_turned": bool(init.symmetry_turned),
            "position_spread_mm": 1e3 * init.estimate.position_spread,
            "rotation_spread_deg": float(np.degrees(init.estimate.rotation_spread))}
     if reader.groundtruth is not None:
@@ -188,7 +189,7 @@ def _init_summary(init, reader, points: np.ndarray) -> dict:
     return out
 
 
-def _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_deg, elapsed) -> dict:
+def _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_deg, elapsed, points) -> dict:
     n = len(stamps)
     summary = {
         "trial": str(reader.path),
@@ -204,7 +205,7 @@ def _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_de
     }
     init = getattr(tracker, "init_result", None)
     if init is not None:
-        summary["init"] = _init_summary(init, reader, np.asarray(reader.load_mesh().vertices))
+        summary["init"] = _init_summary(init, reader, points)
     if add_mm:
         add = np.array(add_mm)
         ok = np.array([s == "ok" for s in statuses])

@@ -81,15 +81,12 @@ class DepthTracker:
         self._started_from_point = True
 
     def _initialise_from_point(self, depth_small: np.ndarray, T_base_camera: np.ndarray) -> None:
-        from app.filter.smc_init import OnePointInitialiser, SMCInitConfig, seed_state
+        from app.filter.smc_init import OnePointInitialiser, seed_state, smc_config_for
 
-        c = self.config
-        smc = SMCInitConfig(particles=min(SMCInitConfig.particles, c.particles), sigma_t=c.init_point_sigma,
-                            restarts=c.init_restarts, budget_s=c.init_budget_s)
-        initialiser = OnePointInitialiser(self.backend, self.camera, self.mesh_vertices, self.mesh_faces, smc,
-                                          self.filter.rng)
+        initialiser = OnePointInitialiser(self.backend, self.camera, self.mesh_vertices, self.mesh_faces,
+                                          smc_config_for(self.config), self.filter.rng)
         self.init_result = initialiser.run(depth_small, T_base_camera, self._pending_point)
-        self.filter.set_state(seed_state(self.init_result, c.particles, self.filter.rng))
+        self.filter.set_state(seed_state(self.init_result, self.config.particles, self.filter.rng))
         self._pending_point = None
 
     def process(self, depth_m: np.ndarray, stamp: float, T_base_camera: np.ndarray | None) -> FilterOutput:
