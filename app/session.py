@@ -534,7 +534,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
             from app.mesh import load_mesh
 
             mesh = load_mesh(ctx["mesh_path"])
-        ctx.update(mesh=mesh, clock=clock, out=out, session_file=config.path)
+        ctx.update(mesh=mesh, clock=clock, out=out, session_file=config.path, image_streams=defaults.get("image_streams"))
         if config.tracker is not None:
             if mesh is None:
                 raise ConfigError("bone.mesh", "missing: the tracker needs the bone mesh")
