@@ -59,11 +59,21 @@ def register(subparsers) -> None:
     s.add_argument("--rrd", type=Path, help="also log captures, frusta and board to this rerun file")
     s.set_defaults(func=run_hand_eye)
 
-    s = sub.add_parser("capture", help="collect captures live from a session's camera and robot")
-    s.add_argument("--config", required=True, type=Path, help="session YAML (camera: simulated)")
+    s = sub.add_parser("capture", help="collect captures live from a session's camera and robot",
+                       description="A session with camera and robot plugins (e.g. realsense with streams "
+                                   "depth,ir + ur): captures when the robot rested 0.5 s with the board seen, "
+                                   "or on Enter (calibration/live.py). 'camera: simulated' uses the "
+                                   "calibration simulator instead.")
+    s.add_argument("--config", required=True, type=Path, help="session YAML (camera and robot plugins)")
     s.add_argument("--out", required=True, type=Path, help="capture folder to create")
     s.add_argument("--count", type=int, default=15, help="captures to take (default 15)")
     s.add_argument("--seed", type=int, default=0, help="seed of the simulated source")
+    s.add_argument("--image", choices=("ir", "color"), default="ir",
+                   help="the camera stream the board is detected in (default ir: the depth camera's own K)")
+    s.add_argument("--manual", action="store_true", help="capture only on Enter (no automatic capture at rest)")
+    s.add_argument("--board", default=DEFAULT_BOARD, help=f"board SPEC (default {DEFAULT_BOARD})")
+    s.add_argument("--rrd", type=Path, help="log the live detection to this rerun file (default: spawn the viewer)")
+    s.add_argument("--no-viewer", action="store_true", help="no rerun logging")
     s.set_defaults(func=run_capture)
 
     s = sub.add_parser("simulate", help="write a folder of simulated captures (no hardware needed)")
@@ -213,6 +223,26 @@ def _source_kind(config: dict, key: str, source: str) -> str:
     return value
 
 
+def _plugin_name(value):
+    return value.get("plugin", value.get("type")) if isinstance(value, dict) else value
+
+
+def _run_live_capture(args) -> int:
+    from app.errors import ConfigError
+    from calibration.live_session import run_live_capture
+
+    if args.count < 3:
+        raise ConfigError("--count", f"hand-eye calibration needs at least 3 captures, got {args.count}")
+    _board_arg(args.board)
+    rrd = False if args.no_viewer else args.rrd
+    print("capturing: move the robot to varied poses with the board in view; it captures when the robot has "
+          f"rested 0.5 s{'' if args.manual else ' (and on Enter)'}; q + Enter stops")
+    n = run_live_capture(args.config, args.out, args.count, args.image, auto=not args.manual, board=args.board,
+                         rrd=rrd)
+    print(f"wrote {n} captures to {args.out}; next: osteonav calibrate hand-eye --captures {args.out}")
+    return 0 if n >= 3 else 1
+
+
 def run_capture(args) -> int:
     import numpy as np
     import yaml
@@ -228,6 +258,8 @@ def run_capture(args) -> int:
     config = yaml.safe_load(args.config.read_text()) or {}
     if not isinstance(config, dict):
         raise ConfigError("(top level)", "expected a mapping", str(args.config))
+    if _plugin_name(config.get("camera")) not in (None, "simulated"):
+        return _run_live_capture(args)
     _source_kind(config, "camera", str(args.config))
     _source_kind(config, "robot", str(args.config))
     if args.count < 1:
