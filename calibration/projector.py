@@ -84,6 +84,12 @@ class ProjectorSimulation:
 
     def render_pose(self, T_camera_board: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """(P, H, W) uint8 camera images of the board under each Gray-code pattern (graycode order)."""
+        render = self.pattern_renderer(T_camera_board)
+        return np.stack([render(pattern, rng) for pattern in patterns(*self.projector_size)])
+
+    def pattern_renderer(self, T_camera_board: np.ndarray):
+        """``render(pattern (ph, pw) uint8, rng) -> (H, W) uint8``: the camera image of the board at
+        ``T_camera_board`` lit by any projector image (the live capture shows patterns one by one)."""
         import cv2
 
         W, H = self.camera_size
@@ -107,16 +113,17 @@ class ProjectorSimulation:
         flat = np.where(lit, yi * pw + xi, 0).astype(np.intp)
         base = (albedo * self.ambient).astype(np.float32)
         gain = (albedo * lit * (255.0 - self.ambient) / 255.0).astype(np.float32)
-        out = []
-        for pattern in patterns(pw, ph):
-            big = cv2.addWeighted(gain * pattern.ravel()[flat].astype(np.float32), 1.0, base, 1.0, 0.0)
+
+        def render(pattern: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+            big = cv2.addWeighted(gain * np.asarray(pattern).ravel()[flat].astype(np.float32), 1.0, base, 1.0, 0.0)
             im = cv2.resize(big, (W, H), interpolation=cv2.INTER_AREA)
             if self.blur_sigma > 0:
                 im = cv2.GaussianBlur(im, (0, 0), self.blur_sigma)
             if self.pixel_noise > 0:
                 im = im + rng.normal(0.0, self.pixel_noise, im.shape)
-            out.append(np.clip(np.rint(im), 0, 255).astype(np.uint8))
-        return np.stack(out)
+            return np.clip(np.rint(im), 0, 255).astype(np.uint8)
+
+        return render
 
     def truth(self) -> dict:
         return {"width": self.projector_size[0], "height": self.projector_size[1], "K": self.K_projector.tolist(),

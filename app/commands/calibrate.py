@@ -99,11 +99,25 @@ def register(subparsers) -> None:
                    help="first write N simulated board poses into CAPTURES (no hardware needed)")
     s.add_argument("--noise", action="store_true", help="with --simulate: image noise and blur")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--live", action="store_true", help="first capture live: the Gray-code sequence in the projector "
+                   "window, the session camera's images (--config), Enter per board pose")
+    s.add_argument("--config", type=Path, help="with --live: session YAML naming the camera plugin")
+    s.add_argument("--poses", type=int, default=8, help="with --live: board poses to capture (default 8)")
+    s.add_argument("--screen", type=int, default=-1, help="with --live: the projector's screen (default the last)")
+    s.add_argument("--image", choices=("ir", "color"), default="ir", help="with --live: camera stream (default ir)")
     s.set_defaults(func=run_projector)
 
 
 def run_projector(args) -> int:
+    from app.errors import ConfigError
     from calibration.projector import run_command
+
+    if args.live:
+        from calibration.projector_live import run_live_projector_capture
+
+        if args.config is None:
+            raise ConfigError("--config", "--live needs the session file naming the camera (e.g. realsense, streams depth,ir)")
+        run_live_projector_capture(args.config, args.captures, args.poses, args.screen, args.image, args.board)
 
     return run_command(args)
 
