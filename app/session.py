@@ -602,6 +602,8 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
                 est = Estimate(frame.stamp, frame.frame_id, None, "lost", T_base_camera, clock.now() - frame.stamp,
                                ("not tracking",))
             else:
+                if hasattr(tracker, "on_frame_images"):   # a tracker that reads the camera's images (marker_imu)
+                    tracker.on_frame_images(frame.infrared, frame.color)
                 result = tracker.process(frame.depth_m, frame.stamp, T_base_camera)
                 status = result.status
                 if T_base_camera is None:
