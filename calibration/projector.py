@@ -41,8 +41,7 @@ from calibration.graycode import Decoded, decode, pattern_count, patterns
 
 log = logging.getLogger(__name__)
 
-WINDOW_PX = 12
-"""Half-size of the camera window around a corner whose decoded pixels fit the local homography."""
+WINDOW_PX = 12   # half-size of the camera window around a corner whose decoded pixels fit the local homography
 MIN_WINDOW_POINTS = 40
 MIN_CORNERS_PER_VIEW = 8
 MIN_VIEWS = 3
@@ -84,8 +83,7 @@ class ProjectorSimulation:
 
     def render_pose(self, T_camera_board: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """(P, H, W) uint8 camera images of the board under each Gray-code pattern (graycode order)."""
-        render = self.pattern_renderer(T_camera_board)
-        return np.stack([render(pattern, rng) for pattern in patterns(*self.projector_size)])
+        return np.stack([self.pattern_renderer(T_camera_board)(p, rng) for p in patterns(*self.projector_size)])
 
     def pattern_renderer(self, T_camera_board: np.ndarray):
         """``render(pattern (ph, pw) uint8, rng) -> (H, W) uint8``: the camera image of the board at
