@@ -9,6 +9,13 @@ rectified, so a non-zero distortion is reported and ignored). Each frame's times
 a stall: logged, then after ``restart_after_s`` the pipeline is stopped and started again, and
 again every ``restart_after_s`` until frames come back.
 
+Images (``streams: depth,ir,color``): the left infrared imager (y8, index 1: the depth frame itself,
+same K) and the colour camera (rgb8, its own K, distortion and ``T_depth_color`` from the SDK's
+extrinsics) come with each depth frame (``DepthFrame.infrared`` / ``color``), paired by timestamp
+(:mod:`plugins._rs_images`), and are declared in ``session_defaults()['image_streams']`` for the
+recorder (trial format 1.1). ``emitter: false`` switches the IR dot projector off on a live
+device (a cleaner calibration board).
+
 Recording (``recording: FILE``): a ``.bag`` (ROS1, written by librealsense up to 2.56 and by the
 RealSense Viewer of that era) or ``.db3`` (ROS2, written by librealsense 2.58 and later) file,
 played in real time: every frame is read (the SDK's non-real-time playback, which drops none) and

@@ -169,3 +169,25 @@ def test_version_1_trial_replays(tmp_path):
     out = tmp_path / "replayed"
     assert main(["replay", str(V1_TRIAL), "--out", str(out), "--no-rrd"]) == 0
     assert (out / "status.csv").read_text().count("\n") == 14 + 1
+
+
+def test_recorder_skips_and_counts_frames_missing_a_declared_image(tmp_path):
+    """Format 1.1: every listed frame has one PNG per stream, so a frame whose IR image the camera dropped
+    is not written (counted as incomplete) and the recording goes on."""
+    from app.interfaces import DepthFrame, JointSamples
+    from plugins.recorder import Recorder
+
+    rng = np.random.default_rng(8)
+    meta = make_meta(rng)
+    rec = Recorder(str(tmp_path / "rec"))
+    rec.open({"mesh_path": bone_mesh(tmp_path), "camera": meta.camera, "robot": {"model": "ur5e"}, "dh": meta.dh,
+              "T_flange_camera": np.eye(4), "image_streams": ImageStreams(InfraredStream(emitter=True))})
+    rec.on_joints(JointSamples(np.arange(0.0, 2.0, 0.01), np.zeros((200, 6))))
+    ir = rng.integers(0, 256, (HEIGHT, WIDTH), dtype=np.uint8)
+    for k in range(4):
+        rec.on_frame(DepthFrame(k, 0.5 + 0.1 * k, make_depth(rng), 0.0, infrared=None if k == 2 else ir))
+    summary = rec.close()
+    assert summary["frames"] == 3 and summary["incomplete"] == 1 and summary["error"] is None
+    reader = open_trial(tmp_path / "rec")
+    assert list(reader.frame_ids) == [0, 1, 3] and reader.meta.streams.infrared.emitter
+    np.testing.assert_array_equal(reader.read_infrared(2), ir)
