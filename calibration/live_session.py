@@ -111,10 +111,15 @@ def run_live_capture(session: str | Path, out: str | Path, count: int = 15, whic
     stop = stop or threading.Event()
     clock = clock or SessionClock()
     camera, robot, camera_model = _open_sources(config, clock)
-    robot_block = config.robot_model or robot.session_defaults().get("robot") or {"model": "ur5e"}
-    dh = dh_from_config(robot_block)
-    streams = camera.session_defaults().get("image_streams")
-    _check_stream(which, streams, str(session))
+    try:
+        robot_block = config.robot_model or robot.session_defaults().get("robot") or {"model": "ur5e"}
+        dh = dh_from_config(robot_block)
+        streams = camera.session_defaults().get("image_streams")
+        _check_stream(which, streams, str(session))
+    except Exception:
+        camera.stop()
+        robot.stop()
+        raise
     spec = parse_board_spec(board or DEFAULT_BOARD_SPEC)
     joints, frames = JointHistory(), DropOldestQueue(4)
     sink = CaptureRerun(rrd) if rrd is not False else None

@@ -196,6 +196,11 @@ class RealSenseCamera(ThreadedSource):
                 pass
             self._pipeline = None
 
+    def stop(self, timeout: float = 5.0) -> None:
+        super().stop(timeout)
+        if self._thread is None:   # opened but never started (a session that failed before starting)
+            self._stop_pipeline()
+
     # -- streaming -------------------------------------------------------------------------------
     def _run(self) -> None:
         rs = _rs()

@@ -21,7 +21,6 @@ def _rig(n, seed=0, **kw):
 def test_live_captures_recover_t_camera_projector_within_1_mm(tmp_path):
     from app.cli import main
     from app.geometry import se3
-    from calibration.projector import write_projector_yaml  # noqa: F401 (the command writes it)
     import yaml
 
     sim, rig = _rig(6, latency_s=0.07)

@@ -127,7 +127,6 @@ def _labels(trial, index):
     """The exact labels of frame ``index`` re-rendered (the simulator does not store them)."""
     from app.render.context import shared_context
     from app.render.scene import SceneRenderer
-    from app.sim import world
     from app.trial.reader import open_trial
 
     reader = open_trial(trial)
