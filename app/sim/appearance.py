@@ -44,7 +44,7 @@ class Material:
 
 MATERIALS = {
     "bone": Material((0.80, 0.71, 0.50), 0.78, 0.30, 40.0),
-    "periosteum": Material((0.74, 0.50, 0.45), 0.70, 0.30, 30.0),
+    "periosteum": Material((0.70, 0.44, 0.40), 0.66, 0.30, 30.0),
     "blood": Material((0.28, 0.02, 0.02), 0.55, 0.55, 80.0),      # wet clot: dark red, bright in NIR
     "muscle": Material((0.40, 0.05, 0.045), 0.50, 0.40, 50.0),
     "fat": Material((0.86, 0.68, 0.30), 0.80, 0.25, 30.0),
@@ -56,24 +56,30 @@ MATERIALS = {
 
 
 class FourierNoise:
-    """A smooth random field on R^3 in about [-1, 1]: n(p) = sqrt(2/K) sum_k cos(w_k . p + phi_k).
+    """A smooth random field on R^3, about N(0, 1): n(p) = sum_k a_k cos(w_k . p + phi_k) / sqrt(sum_k a_k^2 / 2).
 
-    ``scale_m`` is the typical feature size: |w_k| ~ 2 pi / scale_m (log-normal spread).
+    ``scale_m`` is the typical feature size: |w_k| ~ 2 pi / scale_m (log-normal spread); with
+    ``octaves`` > 1, octave o adds waves of twice the frequency at half the amplitude (fractal
+    Brownian motion), which gives stains and patches irregular, ragged edges instead of blobs.
     """
 
-    def __init__(self, rng: np.random.Generator, scale_m: float, n_waves: int = 8):
-        directions = rng.normal(size=(n_waves, 3))
+    def __init__(self, rng: np.random.Generator, scale_m: float, n_waves: int = 8, octaves: int = 1):
+        k = n_waves * octaves
+        directions = rng.normal(size=(k, 3))
         directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-        freq = 2 * np.pi / scale_m * np.exp(rng.normal(0.0, 0.35, n_waves))
+        octave = np.repeat(np.arange(octaves), n_waves)
+        freq = 2 * np.pi / scale_m * 2.0 ** octave * np.exp(rng.normal(0.0, 0.35, k))
         self.w = (directions * freq[:, None]).T.astype(np.float32)       # (3, K)
-        self.phi = rng.uniform(0, 2 * np.pi, n_waves).astype(np.float32)
+        self.phi = rng.uniform(0, 2 * np.pi, k).astype(np.float32)
+        amp = 0.5 ** octave
+        self.amp = (amp / np.sqrt(np.sum(amp ** 2) / 2.0)).astype(np.float32)
 
     def __call__(self, p: np.ndarray) -> np.ndarray:
         """Field values (M,) at points p (M, 3), metres (float32: the phases stay within a few hundred rad)."""
         phase = np.asarray(p, np.float32) @ self.w
         phase += self.phi
         np.cos(phase, out=phase)
-        return np.sqrt(2.0 / len(self.phi)) * phase.sum(axis=1)
+        return phase @ self.amp
 
 
 def _mix(a: np.ndarray, b: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -95,12 +101,14 @@ class SurfaceTextures:
     """Per-pixel material parameters from each pixel's object label and its point in the object's frame."""
 
     def __init__(self, rng: np.random.Generator, bone_bounds: np.ndarray):
-        self.periosteum = FourierNoise(rng, 0.012)
-        self.stain = FourierNoise(rng, 0.010)
-        self.fat = FourierNoise(rng, 0.018)
-        self.pool = FourierNoise(rng, 0.010)
+        self.periosteum = FourierNoise(rng, 0.016, octaves=2)
+        self.stain = FourierNoise(rng, 0.014, octaves=3)
+        self.fat = FourierNoise(rng, 0.022, octaves=3)
+        self.pool = FourierNoise(rng, 0.014, octaves=2)
         self.fine = FourierNoise(rng, 0.0015, n_waves=16)
-        self.smear = FourierNoise(rng, 0.008)
+        self.smear = FourierNoise(rng, 0.008, octaves=2)
+        fibre = rng.normal(size=3) * [1.0, 0.3, 0.2]    # muscle fibres run roughly along the crest
+        self.fibre_w = (2 * np.pi / 0.0012 * fibre / np.linalg.norm(fibre)).astype(np.float32)
         lo, hi = np.asarray(bone_bounds, float)
         extent = hi - lo
         centre = (lo + hi) / 2
@@ -119,7 +127,9 @@ class SurfaceTextures:
             rows = _mix(rows, _material_rows("periosteum", n), 0.8 * _smoothstep(self.periosteum(p_object), 0.4, 1.2))
             rows = _mix(rows, _material_rows("blood", n), 0.85 * _smoothstep(self.stain(p_object), 1.2, 1.9))
         elif name == "tissue":
-            rows = _mix(_material_rows("muscle", n), _material_rows("fat", n), _smoothstep(self.fat(p_object), 0.3, 1.3))
+            muscle = _material_rows("muscle", n)
+            muscle[:, :4] *= 0.86 + 0.14 * np.cos(np.asarray(p_object, np.float32) @ self.fibre_w)[:, None] ** 2
+            rows = _mix(muscle, _material_rows("fat", n), _smoothstep(self.fat(p_object), 0.4, 1.1))
             rows = _mix(rows, _material_rows("blood", n), 0.9 * _smoothstep(self.pool(p_object), 1.3, 2.0))
             rows = self._gauze(rows, p_object)
         elif name == "hand":

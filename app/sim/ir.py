@@ -31,7 +31,7 @@ class DotProjector:
 
     def __init__(self, rng: np.random.Generator, p_emitter_camera: np.ndarray = D415_EMITTER, n_dots: int = 16000,
                  a_max: float = 0.75, b_max: float = 0.58, texel: float = 0.0008, dot_sigma_texels: float = 1.6,
-                 power: float = 0.35):
+                 power: float = 1.0):
         import cv2
 
         self.p_emitter = np.asarray(p_emitter_camera, float)
