@@ -6,8 +6,10 @@ Subcommands::
     osteonav calibrate intrinsics --images DIR [--board SPEC] [--out camera.yaml]
     osteonav calibrate hand-eye  --captures DIR [--camera camera.yaml] [--method auto] [--out FILE]
                                  [--rrd FILE]
-    osteonav calibrate capture   --config session.yaml --out DIR [--count 15]
+    osteonav calibrate capture   --config session.yaml --out DIR [--count 15] [--image ir|color] [--manual]
+                                 [--rrd FILE | --no-viewer]     (live: RealSense + UR; or camera: simulated)
     osteonav calibrate projector --captures DIR [--camera camera.yaml] [--out FILE] [--simulate N]
+                                 [--live --config session.yaml --poses 8 --screen K]
 
 Try it without hardware::
 
