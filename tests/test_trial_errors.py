@@ -125,7 +125,7 @@ def test_truncated_frames_row_without_interruption_marker_is_an_error(trial):
     out, _ = trial
     with open(out / "frames.csv", "a") as f:
         f.write("999,")
-    with pytest.raises(TrialFormatError, match=err(out / "frames.csv", "(line 6)", "stamp must be a number")):
+    with pytest.raises(TrialFormatError, match=err(out / "frames.csv", "(line 6)", "no line end")):
         open_trial(out)
 
 
