@@ -49,9 +49,10 @@ def register(subparsers) -> None:
                    help=f"board SPEC 'charuco:SXxSY:SQUARE_M:MARKER_M:DICT' or a YAML file "
                         f"(default {DEFAULT_BOARD})")
     s.add_argument("--out", type=Path, help="camera YAML to write (default IMAGES/camera.yaml)")
-    s.add_argument("--fix-k3", action="store_true",
-                   help="keep the distortion's k3 at 0 (ordinary lenses, few views; chosen by itself when the "
-                        "images do not constrain k3)")
+    k3 = s.add_mutually_exclusive_group()
+    k3.add_argument("--fix-k3", action="store_true",
+                    help="keep the distortion's k3 at 0 (default: fixed unless freeing it lowers the RMS by 5 %%)")
+    k3.add_argument("--free-k3", action="store_true", help="always estimate k3")
     add_overwrite_argument(s, "an existing --out file")
     s.set_defaults(func=run_intrinsics)
 
@@ -137,12 +138,14 @@ def run_intrinsics(args) -> int:
     from calibration.intrinsics import calibrate_intrinsics_folder, result_info, write_camera_yaml
 
     spec = _board_arg(args.board)
+    if not args.images.is_dir():
+        raise ConfigError("--images", f"image folder {args.images} does not exist")
+    out = prepare_file(args.out or args.images / "camera.yaml", args.overwrite)
     try:
-        result = calibrate_intrinsics_folder(args.images, spec, fix_k3=args.fix_k3)
+        result = calibrate_intrinsics_folder(args.images, spec,
+                                             fix_k3=True if args.fix_k3 else False if args.free_k3 else None)
     except ValueError as exc:
         raise ConfigError("--images", str(exc)) from None
-    out = args.out or args.images / "camera.yaml"
-    prepare_file(out, args.overwrite)
     write_camera_yaml(out, result.camera, result_info(result))
     K = result.camera.K
     print(f"board {result.board}: {len(result.per_image)} images used, {len(result.skipped)} skipped")
@@ -150,7 +153,7 @@ def run_intrinsics(args) -> int:
         print(f"  skipped {s['image']}: {s['reason']}")
     for r in result.per_image:
         print(f"  {r['image']}: {r['error_px']:.3f} px RMS ({r['corners']} corners)")
-    print(f"RMS reprojection error {result.rms_px:.3f} px")
+    print(f"RMS reprojection error {result.rms_px:.3f} px (k3 {result.k3})")
     print(f"fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f}  "
           f"dist {[round(float(v), 5) for v in result.camera.dist]}")
     print(f"wrote {out}")

@@ -33,7 +33,7 @@ def run(args) -> int:
     from app.trial.reader import open_trial
 
     config = load_config(args.config)
-    open_trial(args.trial)   # a broken trial is refused before OUT is touched
+    open_trial(args.trial).load_mesh()   # a broken trial or mesh is refused before OUT is touched
     prepare_dir(args.out, args.overwrite, REPLAY)
     bar = tqdm(desc="replay", unit="frame")
 
@@ -41,10 +41,12 @@ def run(args) -> int:
         bar.total = total
         bar.update(done - bar.n)
 
-    result = replay(args.trial, args.out, config, realtime=args.realtime, rrd=not args.no_rrd, progress=progress,
-                    projector=not args.no_projector, projector_config=args.projector,
-                    projector_images=args.projector_images)
-    bar.close()
+    try:
+        result = replay(args.trial, args.out, config, realtime=args.realtime, rrd=not args.no_rrd, progress=progress,
+                        projector=not args.no_projector, projector_config=args.projector,
+                        projector_images=args.projector_images)
+    finally:
+        bar.close()
     print_summary(result.summary)
     print(f"outputs in {args.out} (estimate.txt, status.csv, summary.json{', log.rrd' if not args.no_rrd else ''})")
     return 0
