@@ -157,8 +157,6 @@ def calibrate_intrinsics(images: "dict[str, np.ndarray | None]", board=DEFAULT_B
                                             flags=cv2.CALIB_FIX_K3 if k3 == "fixed" else 0)
             for k3 in (("fixed", "free") if fix_k3 is None else ("fixed",) if fix_k3 else ("free",))}
     k3, warnings = _choose_k3(fits, (w, h)) if fix_k3 is None else (next(iter(fits)), [])
-    for message in warnings:
-        log.warning("%s", message)
     rms, K, dist, _, _, _, _, per_view = fits["fixed" if k3.startswith("fixed") else "free"]
     per_image = [{"image": n, "error_px": float(e), "corners": int(c)}
                  for n, e, c in zip(names, np.ravel(per_view), counts)]

@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import logging
 import re
+import sys
 from pathlib import Path
 
 from app.commands.outdir import CAPTURES, PROJECTOR_CAPTURES, add_overwrite_argument, prepare_dir, prepare_file
@@ -154,6 +155,8 @@ def run_intrinsics(args) -> int:
     for r in result.per_image:
         print(f"  {r['image']}: {r['error_px']:.3f} px RMS ({r['corners']} corners)")
     print(f"RMS reprojection error {result.rms_px:.3f} px (k3 {result.k3})")
+    for warning in result.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     print(f"fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f}  "
           f"dist {[round(float(v), 5) for v in result.camera.dist]}")
     print(f"wrote {out}")
