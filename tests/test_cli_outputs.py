@@ -219,3 +219,23 @@ def test_a_millimetre_mesh_is_refused_wherever_it_is_loaded(tmp_path):
         with pytest.raises(MeshError, match=r"~120 m across.*millimetres.*prepare-mesh .*mm\.ply --out .* --scale 0.001"):
             load()
     assert len(load_mesh(path, check=False).faces) == 12   # prepare-mesh loads before scaling
+
+
+def test_a_second_session_needs_overwrite_which_clears_out_its_record_and_rrd(tmp_path):
+    """The simulated session's layout: record and the rerun file inside out (configs/sessions/simulated.yaml)."""
+    from app.commands.outdir import OutputError
+    from app.commands.track import prepare_session_dirs
+    from app.session import load_session
+
+    out = tmp_path / "session"
+    config = load_session(REPO / "configs" / "sessions" / "simulated.yaml", {
+        "out": str(out), "record": str(out / "trial"),
+        "outputs": [{"plugin": "rerun", "params": {"path": str(out / "log.rrd")}}]})
+    prepare_session_dirs(config, overwrite=False)
+    for name in ("estimate.txt", "events.csv", "log.rrd", "trial/trial.yaml", "trial/frames.csv"):
+        (out / name).write_text("an earlier session\n")
+    with pytest.raises(OutputError, match=f"out {out} is not empty.*--overwrite"):
+        prepare_session_dirs(config, overwrite=False)
+    assert (out / "log.rrd").exists()
+    prepare_session_dirs(config, overwrite=True)
+    assert sorted(p.name for p in out.iterdir()) == ["trial"] and not any((out / "trial").iterdir())

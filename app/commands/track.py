@@ -6,7 +6,7 @@ Ctrl-C ends it cleanly: sources stop, the recording and logs are flushed, and th
 """
 from __future__ import annotations
 
-from app.commands.outdir import SESSION, TRIAL, add_overwrite_argument, prepare_dir
+from app.commands.outdir import SESSION, TRIAL, add_overwrite_argument, prepare_dir, prepare_file
 
 
 def register(subparsers) -> None:
@@ -48,11 +48,22 @@ def run(args) -> int:
 
 
 def prepare_session_dirs(config, overwrite: bool) -> None:
-    """The overwrite policy (app/commands/outdir.py) for the session's out and record directories."""
+    """The overwrite policy (app/commands/outdir.py) for the session's out and record directories
+    and its rerun outputs' files (a record folder inside out is out's to clear)."""
+    from pathlib import Path
+
     if config.out is not None:
-        prepare_dir(config.out, overwrite, SESSION, "out")
+        owned = SESSION
+        if config.record is not None and Path(config.record).resolve().is_relative_to(Path(config.out).resolve()):
+            inner = Path(config.record).resolve().relative_to(Path(config.out).resolve()).parts
+            owned = SESSION + inner[:1]
+        prepare_dir(config.out, overwrite, owned, "out")
     if config.record is not None:
         prepare_dir(config.record, overwrite, TRIAL, "record")
+    for i, spec in enumerate(config.outputs):
+        path = spec.params.get("path") if spec.name == "rerun" else None
+        if isinstance(path, str):
+            prepare_file(path, overwrite, f"outputs[{i}].params.path")
 
 
 class naming_the_session_file:
