@@ -180,7 +180,7 @@ def test_view_reports_a_viewer_that_exits_at_once_instead_of_hanging(tmp_path, m
     fake.chmod(0o755)
     monkeypatch.setattr(trial_view, "viewer_executable", lambda: fake)
     with pytest.raises(OsteonavError, match="exited at once.*X server.*--save"):
-        trial_view._spawn(port=9)
+        trial_view._spawn(port=9, start_s=120.0)   # the fake exits at once; 120 s is only a safety net
 
 
 # ---------------------------------------------------------------- messages and help

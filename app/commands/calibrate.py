@@ -265,12 +265,13 @@ def _session_rig(path: Path, config: dict):
     camera, robot, T_flange_camera, source = D415_640x480, {"model": "ur5e"}, world.T_FLANGE_CAMERA, "app.sim"
     params = (config.get("camera") or {}).get("params", {}) if isinstance(config.get("camera"), dict) else {}
     trial_dir = params.get("trial_dir")
-    if trial_dir and (path.parent / trial_dir / "trial.yaml").is_file():
+    found = [d for d in (Path(str(trial_dir)), path.parent / str(trial_dir)) if (d / "trial.yaml").is_file()]
+    if trial_dir and found:   # the working directory's (as the plugin resolves it today), else the file's
         from app.trial.meta import load_meta
 
-        meta = load_meta(path.parent / trial_dir / "trial.yaml")
+        meta = load_meta(found[0] / "trial.yaml")
         camera, robot, T_flange_camera = meta.camera, dict(meta.robot), meta.T_flange_camera
-        source = str(path.parent / trial_dir)
+        source = str(found[0])
     calib = config.get("calibration") if isinstance(config.get("calibration"), dict) else {}
     if calib.get("hand_eye") is not None:
         T_flange_camera, source = _matrix4("calibration.hand_eye", calib["hand_eye"], path.parent, str(path)), str(path)

@@ -46,13 +46,15 @@ VIEWER_START_S = 3.0
 """A viewer still running this long after its start is taken as up (one without a display exits at once)."""
 
 
-def _spawn(port: int = 9876) -> RerunLog:
+def _spawn(port: int = 9876, start_s: float = VIEWER_START_S) -> RerunLog:
     """A recording streamed to a newly started viewer (:func:`viewer_executable`).
 
     The viewer is started here rather than by ``rr.spawn`` so that one that exits at once (no usable
     display) is an error with the fix, not a logger blocking on a connection that never comes.
     """
+    import socket
     import subprocess
+    import tempfile
     import time
 
     import rerun as rr
@@ -60,18 +62,28 @@ def _spawn(port: int = 9876) -> RerunLog:
     from app.errors import OsteonavError
     from app.viz.rerun_log import blueprint
 
-    proc = subprocess.Popen([str(viewer_executable()), "--port", str(port)], stdin=subprocess.DEVNULL,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
-    deadline = time.monotonic() + VIEWER_START_S
-    while proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.1)
-    if proc.returncode is not None:
-        last = (proc.stderr.read().decode(errors="replace").strip().splitlines() or ["(no message)"])[-1]
-        raise OsteonavError(f"the rerun viewer exited at once (code {proc.returncode}: {last[:160]}); without a "
-                            f"usable display write a recording instead: osteonav view TRIAL --save trial.rrd")
-    proc.stderr.close()
+    url = f"rerun+http://127.0.0.1:{port}/proxy"
+    with socket.socket() as probe:   # a viewer already listening: log to it, as rr.spawn would
+        probe.settimeout(0.5)
+        if probe.connect_ex(("127.0.0.1", port)) == 0:
+            rec = rr.RecordingStream("osteonav")
+            rec.connect_grpc(url, default_blueprint=blueprint())
+            return RerunLog(rec)
+    with tempfile.TemporaryFile() as log_file:   # a file, not a pipe: the viewer may write after we stop reading
+        proc = subprocess.Popen([str(viewer_executable()), "--port", str(port)], stdin=subprocess.DEVNULL,
+                                stdout=subprocess.DEVNULL, stderr=log_file, start_new_session=True)
+        deadline = time.monotonic() + start_s
+        while proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        if proc.returncode is not None:
+            log_file.seek(0)
+            lines = log_file.read().decode(errors="replace").strip().splitlines() or ["(no message)"]
+            reason = lines[-1].rsplit(": ", 1)[-1][:160]   # the viewer's last message, without its source path
+            raise OsteonavError(f"the rerun viewer exited at once (code {proc.returncode}: {reason}); "
+                                f"without a usable display write a recording instead: osteonav view TRIAL --save "
+                                f"trial.rrd")
     rec = rr.RecordingStream("osteonav")
-    rec.connect_grpc(f"rerun+http://127.0.0.1:{port}/proxy", default_blueprint=blueprint())
+    rec.connect_grpc(url, default_blueprint=blueprint())
     return RerunLog(rec)
 
 
