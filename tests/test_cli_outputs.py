@@ -239,3 +239,17 @@ def test_a_second_session_needs_overwrite_which_clears_out_its_record_and_rrd(tm
     assert (out / "log.rrd").exists()
     prepare_session_dirs(config, overwrite=True)
     assert sorted(p.name for p in out.iterdir()) == ["trial"] and not any((out / "trial").iterdir())
+
+
+def test_errors_raised_while_the_session_runs_name_the_session_file(tmp_path):
+    """run_session's own checks (bone.mesh, calibration.hand_eye, ...) raise without the file's name."""
+    from app.commands.track import naming_the_session_file
+    from app.errors import ConfigError
+
+    path = tmp_path / "session.yaml"
+    with pytest.raises(ConfigError, match=rf"^{path}: config key 'bone.mesh': missing: the tracker needs the bone mesh$"):
+        with naming_the_session_file(path):
+            raise ConfigError("bone.mesh", "missing: the tracker needs the bone mesh")
+    with pytest.raises(ConfigError, match=rf"^{path}: config key 'loop.x': bad$"):   # already named: unchanged
+        with naming_the_session_file(path):
+            raise ConfigError("loop.x", "bad", str(path))

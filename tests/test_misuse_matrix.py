@@ -27,22 +27,23 @@ REPO = Path(__file__).resolve().parents[1]
 SIM_SESSION = REPO / "configs" / "sessions" / "simulated.yaml"
 
 
-def tree_hashes(root: Path) -> dict[str, str]:
-    """Relative path -> sha1 of every file under ``root`` (directories by their presence)."""
+def tree_hashes(*roots: Path) -> dict[str, str]:
+    """Path -> sha1 of every file under ``roots`` (directories by their presence)."""
     out = {}
-    for p in sorted(root.rglob("*")):
-        key = str(p.relative_to(root))
-        out[key] = hashlib.sha1(p.read_bytes()).hexdigest() if p.is_file() else "dir"
+    for root in roots:
+        for p in sorted(root.rglob("*")):
+            out[str(p)] = hashlib.sha1(p.read_bytes()).hexdigest() if p.is_file() else "dir"
     return out
 
 
-def run_cli(argv: list[str], root: Path, capsys) -> tuple[int, str]:
-    """(exit code, stdout + stderr) of ``osteonav argv``; asserts nothing under ``root`` changed."""
-    before = tree_hashes(root)
+def run_cli(argv: list[str], roots: "Path | list[Path]", capsys) -> tuple[int, str]:
+    """(exit code, stdout + stderr) of ``osteonav argv``; asserts nothing under ``roots`` changed."""
+    root = roots if isinstance(roots, list) else [roots]
+    before = tree_hashes(*root)
     code = main([str(a) for a in argv])
     out = capsys.readouterr()
     text = out.out + out.err
-    after = tree_hashes(root)
+    after = tree_hashes(*root)
     changed = [k for k, h in before.items() if after.get(k) != h]
     assert not changed, f"files changed or removed: {changed[:5]}"
     assert "Traceback" not in text
@@ -67,8 +68,10 @@ def sim_trial(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def captures(tmp_path_factory) -> Path:
+    """A hand-eye capture folder (6 captures), and beside it ``projector/``: 3 projector board poses."""
     out = tmp_path_factory.mktemp("matrix") / "captures"
     assert main(["calibrate", "simulate", "--out", str(out), "--captures", "6", "--seed", "2"]) == 0
+    assert main(["calibrate", "projector", "--simulate", "3", "--captures", str(out.parent / "projector")]) == 0
     return out
 
 
@@ -152,6 +155,9 @@ ROWS = [
                                                           t / "he.yaml", "--rrd", t], "calibrate", 2, ["is a directory"]),
     ("calibrate-projector-out-exists", lambda t, tr, c: ["calibrate", "projector", "--captures", c,
                                                          "--out", c / "camera.yaml"], "calibrate", 2, ["already exists"]),
+    ("calibrate-projector-simulate-into-poses", lambda t, tr, c: ["calibrate", "projector", "--simulate", "3",
+                                                                  "--captures", c.parent / "projector"], "calibrate", 2,
+     ["--captures", "not empty", "--overwrite"]),
     ("view-save-exists", lambda t, tr, c: ["view", tr, "--save", _file(t, "x.rrd")], "view", 2, ["already exists"]),
     ("view-save-not-rrd", lambda t, tr, c: ["view", tr, "--save", t / "x.txt"], "view", 2, [".rrd"]),
     ("prepare-mesh-out-xyz", lambda t, tr, c: ["prepare-mesh", REPO / "meshes" / "iliac_crest.ply", "--out",
@@ -189,7 +195,7 @@ def test_misuse_is_one_line_error_and_changes_nothing(tmp_path, sim_trial, captu
                                                       fragments):
     argv = build(tmp_path, sim_trial, captures)
     capsys.readouterr()
-    exit_code, text = run_cli(argv, tmp_path, capsys)
+    exit_code, text = run_cli(argv, [tmp_path, sim_trial, captures.parent], capsys)
     assert exit_code == code, text[-2000:]
     line = error_line(text, command)
     for fragment in fragments:
