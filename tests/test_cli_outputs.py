@@ -28,7 +28,7 @@ def test_replay_with_defaults_succeeds_on_a_ct_crest_and_names_its_plan(tmp_path
     trial, out = tmp_path / "trial", tmp_path / "replay"
     assert main(["simulate", "--out", str(trial), "--mesh", str(mesh), "--seconds", "0.1", "--seed", "1"]) == 0
     capsys.readouterr()
-    assert main(["replay", str(trial), "--out", str(out), "--no-rrd"]) == 0
+    assert main(["replay", str(trial), "--out", str(out)]) == 0   # the defaults: projector on, log.rrd written
     text = capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
     assert summary["projector"]["plan"].startswith("box derived from the mesh")
