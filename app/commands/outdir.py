@@ -53,6 +53,8 @@ def prepare_dir(path: "str | Path", overwrite: bool, owned=TRIAL, flag: str = "-
     if path.exists() and not path.is_dir():
         raise OutputError(f"{flag} {path} is a file, not a directory; choose a directory")
     if path.is_dir():
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise OutputError(f"{flag} {path}: the directory is not writable; choose another one")
         entries = sorted(os.listdir(path))
         if entries:
             _clear(path, entries, overwrite, owned, flag)
@@ -61,8 +63,6 @@ def prepare_dir(path: "str | Path", overwrite: bool, owned=TRIAL, flag: str = "-
             path.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise OutputError(f"{flag} {path}: cannot create the directory ({exc.strerror or exc})") from None
-    if not os.access(path, os.W_OK | os.X_OK):
-        raise OutputError(f"{flag} {path}: the directory is not writable; choose another one")
     return path
 
 
