@@ -169,3 +169,29 @@ def _loop(capturer, camera, frames, joints, which, stop, report, sink) -> None:
         last = kind
     if capturer.warnings and capturer.captured_q:
         report("warning: " + "; ".join(capturer.warnings))
+
+
+def run_command(args) -> int:
+    """``osteonav calibrate capture`` on a live session (app/commands/calibrate.py has the arguments)."""
+    from app.commands.outdir import CAPTURES, prepare_dir
+    from calibration.board import parse_board_spec
+
+    if args.count < 3:
+        raise ConfigError("--count", f"hand-eye calibration needs at least 3 captures, got {args.count}")
+    try:
+        parse_board_spec(args.board)
+    except (ValueError, OSError) as exc:
+        raise ConfigError("--board", str(exc)) from None
+    rrd = False if args.no_viewer else args.rrd
+    if rrd is None:   # spawn a viewer: only where one can open
+        import os
+
+        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            raise ConfigError("--rrd", "no display for the rerun viewer here; pass --rrd FILE.rrd (or --no-viewer)")
+    prepare_dir(args.out, args.overwrite, CAPTURES)
+    print("capturing: move the robot to varied poses with the board in view; it captures when the robot has "
+          f"rested 0.5 s{'' if args.manual else ' (and on Enter)'}; q + Enter stops")
+    n = run_live_capture(args.config, args.out, args.count, args.image, auto=not args.manual, board=args.board,
+                         rrd=rrd)
+    print(f"wrote {n} captures to {args.out}; next: osteonav calibrate hand-eye --captures {args.out}")
+    return 0 if n >= 3 else 1
