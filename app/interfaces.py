@@ -31,18 +31,24 @@ STATUSES = ("ok", "uncertain", "lost")
 
 @dataclass(frozen=True)
 class DepthFrame:
-    """One depth image.
+    """One depth image, with the camera's infrared and colour images of the same instant when it delivers them.
 
     frame_id : the camera's frame counter (increasing, gaps where frames were dropped)
     stamp : capture time, s, host monotonic clock
     depth_m : (H, W) float32 depth in metres along the optical axis, 0 = no measurement
     arrival : host time the frame reached the session, s (for latency accounting)
+    infrared : (H, W) uint8, the left imager, which is the depth frame itself (same K), or None
+    color : (Hc, Wc, 3) uint8 RGB in the colour camera's own frame (its K, distortion and
+        T_depth_color: :class:`app.image_streams.ColorStream`, from the camera's
+        ``session_defaults()['image_streams']``), or None
     """
 
     frame_id: int
     stamp: float
     depth_m: np.ndarray
     arrival: float
+    infrared: np.ndarray | None = None
+    color: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

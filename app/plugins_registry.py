@@ -34,6 +34,7 @@ BUILTIN: dict[str, str] = {
     "robot.simulated": "plugins.trial_player:SimulatedRobot",
     "robot.recorded": "plugins.trial_player:RecordedRobot",
     "robot.static": "plugins.static_robot:StaticRobot",
+    "camera.marker_simulated": "plugins.marker_camera:MarkerSimulatedCamera",
     "robot.ur": "plugins.ur:URRobot",
     "tracker.particle_filter": "plugins.tracker_pf:ParticleFilterTracker",
     "tracker.marker_imu": "plugins.marker_imu:MarkerImuTracker",

@@ -534,7 +534,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
             from app.mesh import load_mesh
 
             mesh = load_mesh(ctx["mesh_path"])
-        ctx.update(mesh=mesh, clock=clock, out=out, session_file=config.path)
+        ctx.update(mesh=mesh, clock=clock, out=out, session_file=config.path, image_streams=defaults.get("image_streams"))
         if config.tracker is not None:
             if mesh is None:
                 raise ConfigError("bone.mesh", "missing: the tracker needs the bone mesh")
@@ -602,6 +602,8 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
                 est = Estimate(frame.stamp, frame.frame_id, None, "lost", T_base_camera, clock.now() - frame.stamp,
                                ("not tracking",))
             else:
+                if hasattr(tracker, "on_frame_images"):   # a tracker that reads the camera's images (marker_imu)
+                    tracker.on_frame_images(frame.infrared, frame.color)
                 result = tracker.process(frame.depth_m, frame.stamp, T_base_camera)
                 status = result.status
                 if T_base_camera is None:

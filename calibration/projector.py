@@ -41,8 +41,7 @@ from calibration.graycode import Decoded, decode, pattern_count, patterns
 
 log = logging.getLogger(__name__)
 
-WINDOW_PX = 12
-"""Half-size of the camera window around a corner whose decoded pixels fit the local homography."""
+WINDOW_PX = 12   # half-size of the camera window around a corner whose decoded pixels fit the local homography
 MIN_WINDOW_POINTS = 40
 MIN_CORNERS_PER_VIEW = 8
 MIN_VIEWS = 3
@@ -84,6 +83,11 @@ class ProjectorSimulation:
 
     def render_pose(self, T_camera_board: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """(P, H, W) uint8 camera images of the board under each Gray-code pattern (graycode order)."""
+        return np.stack([self.pattern_renderer(T_camera_board)(p, rng) for p in patterns(*self.projector_size)])
+
+    def pattern_renderer(self, T_camera_board: np.ndarray):
+        """``render(pattern (ph, pw) uint8, rng) -> (H, W) uint8``: the camera image of the board at
+        ``T_camera_board`` lit by any projector image (the live capture shows patterns one by one)."""
         import cv2
 
         W, H = self.camera_size
@@ -107,16 +111,17 @@ class ProjectorSimulation:
         flat = np.where(lit, yi * pw + xi, 0).astype(np.intp)
         base = (albedo * self.ambient).astype(np.float32)
         gain = (albedo * lit * (255.0 - self.ambient) / 255.0).astype(np.float32)
-        out = []
-        for pattern in patterns(pw, ph):
-            big = cv2.addWeighted(gain * pattern.ravel()[flat].astype(np.float32), 1.0, base, 1.0, 0.0)
+
+        def render(pattern: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+            big = cv2.addWeighted(gain * np.asarray(pattern).ravel()[flat].astype(np.float32), 1.0, base, 1.0, 0.0)
             im = cv2.resize(big, (W, H), interpolation=cv2.INTER_AREA)
             if self.blur_sigma > 0:
                 im = cv2.GaussianBlur(im, (0, 0), self.blur_sigma)
             if self.pixel_noise > 0:
                 im = im + rng.normal(0.0, self.pixel_noise, im.shape)
-            out.append(np.clip(np.rint(im), 0, 255).astype(np.uint8))
-        return np.stack(out)
+            return np.clip(np.rint(im), 0, 255).astype(np.uint8)
+
+        return render
 
     def truth(self) -> dict:
         return {"width": self.projector_size[0], "height": self.projector_size[1], "K": self.K_projector.tolist(),

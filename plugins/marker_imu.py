@@ -3,8 +3,12 @@
 A thin adapter over :class:`app.marker.fusion.MarkerImuFusion`. The session loop is driven by the
 depth camera's frames; this tracker takes each frame's stamp as its tick and reads its own inputs:
 
-- images (``images``): ``simulated`` renders :mod:`app.marker.simulator`'s marker image at the
-  tick (a live grey/IR stream needs an image source in the session; not wired yet);
+- images (``images``): ``ir`` reads each frame's infrared image from the session's camera (a
+  RealSense with ``streams: depth,ir``, or ``camera: marker_simulated``, the simulator's camera),
+  with the session camera's K (the infrared imager is the depth frame); ``color`` reads the colour
+  image, with the colour camera's ``color_K`` (3x3) and ``color_distortion`` given in the params
+  (the tracker is not told the colour stream's calibration); ``simulated`` renders
+  :mod:`app.marker.simulator`'s marker image at the tick itself (the former behaviour);
 - IMU (``imu``): ``simulated`` (the same simulator's drifting IMU), ``udp`` (the protocol of
   :mod:`app.marker.imu`, listening on ``imu_host``:``imu_port``, loopback by default) or ``file``
   (a CSV of :func:`app.marker.imu.read_csv`, replayed by time since the first tick).
@@ -58,13 +62,19 @@ class MarkerImuTracker:
                  dictionary: str = "DICT_4X4_50", marker_id: int = 7, marker_length_m: float = 0.04,
                  q_S_M: list | None = None, T_marker_bone: list | None = None, seed: int = 0,
                  ok_s: float = 0.5, lost_s: float = 2.0, registration_s: float | None = None,
-                 axis_M: list | None = None, rerun="auto", rerun_image_every: int = 1):
+                 axis_M: list | None = None, rerun="auto", rerun_image_every: int = 1,
+                 color_K: list | None = None, color_distortion: list | None = None):
         from app.geometry import quaternion as quat
         from app.marker.aruco import MarkerDetector
         from app.marker.fusion import MarkerImuFusion
 
-        if images != "simulated":
-            raise ConfigError("tracker.params.images", f"got {images!r}; allowed: simulated")
+        if images not in ("ir", "color", "simulated"):
+            raise ConfigError("tracker.params.images", f"got {images!r}; allowed: ir, color, simulated")
+        if images == "ir" and camera is None:
+            raise ConfigError("tracker.params.images", "images: ir needs the session camera's intrinsics")
+        if images == "color" and color_K is None:
+            raise ConfigError("tracker.params.color_K", "images: color needs the colour camera's 3x3 K "
+                                                        "(its trial.yaml color.K or calibrate intrinsics)")
         if imu not in ("simulated", "udp", "file"):
             raise ConfigError("tracker.params.imu", f"got {imu!r}; allowed: simulated, udp, file")
         if imu == "file" and not imu_file:
@@ -89,7 +99,15 @@ class MarkerImuTracker:
         q = quat.from_matrix(self.sim.sc.R_S_M) if q_S_M is None else np.asarray(q_S_M, float)
         if q.shape != (4,) or abs(np.linalg.norm(q) - 1) > 1e-3:
             raise ConfigError("tracker.params.q_S_M", f"expected a unit quaternion (w, x, y, z), got {q_S_M!r}")
-        self.fusion = MarkerImuFusion(MarkerDetector(self.sim.K, None, dictionary, marker_id, marker_length_m), q)
+        self.images = images
+        self._latest: dict[str, np.ndarray | None] = {"ir": None, "color": None}
+        K, dist = self.sim.K, None
+        if images == "ir":
+            K = np.asarray(camera.K, float)
+        elif images == "color":
+            K = np.asarray(color_K, float)
+            dist = None if color_distortion is None else np.asarray(color_distortion, float)
+        self.fusion = MarkerImuFusion(MarkerDetector(K, dist, dictionary, marker_id, marker_length_m), q)
         self.T_marker_bone = np.eye(4) if T_marker_bone is None else np.asarray(T_marker_bone, float)
         self.ok_s, self.lost_s = ok_s, lost_s
         self._t0: float | None = None
@@ -118,6 +136,20 @@ class MarkerImuTracker:
             self.rerun = open_log(self._rerun_target, self._rerun_every)
         self._T_start = np.asarray(T_base_bone, float)
 
+    def on_frame_images(self, infrared: np.ndarray | None, color: np.ndarray | None) -> None:
+        """The session hands over each frame's camera images before :meth:`process`."""
+        self._latest = {"ir": infrared, "color": color}
+
+    def _image(self, t: float) -> np.ndarray | None:
+        if self.images == "simulated":
+            return self.sim.image(t, self.rng)
+        image = self._latest.get(self.images)
+        if image is not None and image.ndim == 3:
+            import cv2
+
+            image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        return image
+
     def _feed_imu(self, t: float) -> None:
         if self.receiver is not None:
             for s in self.receiver.drain():
@@ -142,7 +174,13 @@ class MarkerImuTracker:
         t = min(stamp - self._t0, self.sim.sc.seconds - 1.0)
         self._feed_imu(t)
         self._register(t)
-        gray = self.sim.image(t, self.rng)
+        gray = self._image(t)
+        if gray is None:   # the camera delivers no such image: say so once, report lost
+            if self._frame == 0:
+                log.warning("tracker.params.images is %r but the camera's frames carry no %s image: enable that "
+                            "stream on the camera (e.g. streams: depth,ir)", self.images, self.images)
+            self._frame += 1
+            return MarkerImuResult(self._T_start, "lost", "none", None, {"reason": f"no {self.images} image"})
         det, est = self.fusion.on_image(gray, t)
         if det.found:
             self._last_found = t

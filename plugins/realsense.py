@@ -9,6 +9,13 @@ rectified, so a non-zero distortion is reported and ignored). Each frame's times
 a stall: logged, then after ``restart_after_s`` the pipeline is stopped and started again, and
 again every ``restart_after_s`` until frames come back.
 
+Images (``streams: depth,ir,color``): the left infrared imager (y8, index 1: the depth frame itself,
+same K) and the colour camera (rgb8, its own K, distortion and ``T_depth_color`` from the SDK's
+extrinsics) come with each depth frame (``DepthFrame.infrared`` / ``color``), paired by timestamp
+(:mod:`plugins._rs_images`), and are declared in ``session_defaults()['image_streams']`` for the
+recorder (trial format 1.1). ``emitter: false`` switches the IR dot projector off on a live
+device (a cleaner calibration board).
+
 Recording (``recording: FILE``): a ``.bag`` (ROS1, written by librealsense up to 2.56 and by the
 RealSense Viewer of that era) or ``.db3`` (ROS2, written by librealsense 2.58 and later) file,
 played in real time: every frame is read (the SDK's non-real-time playback, which drops none) and
@@ -67,13 +74,22 @@ class RealSenseCamera(ThreadedSource):
     depth_units : metres per depth unit to set on a live device (None = leave as is)
     timeout_s : a ``wait_for_frames`` longer than this is a stall
     restart_after_s : restart a stalled pipeline after this long (and again as often)
+    streams : 'depth' or e.g. 'depth,ir,color': also the left infrared imager (y8, the depth frame's own
+        K) and the colour camera (rgb8, its own K, distortion and T_depth_color), delivered with each
+        depth frame (:class:`plugins._rs_images.FramePairer`) and declared in ``session_defaults()``
+    emitter : switch the IR dot projector on (true) or off (false; cleaner board images) on a live
+        device; None leaves it as it is (a recording says what it was, when it stored the option)
+    color_width, color_height : live colour stream mode
     """
 
     kind, name = "camera", "realsense"
 
     def __init__(self, recording: str | None = None, serial: str | None = None, width: int = 848, height: int = 480,
                  fps: int = 30, depth_units: float | None = None, timeout_s: float = 0.5,
-                 restart_after_s: float = 2.0):
+                 restart_after_s: float = 2.0, streams: str = "depth", emitter: bool | None = None,
+                 color_width: int = 640, color_height: int = 480):
+        from plugins._rs_images import parse_stream_names
+
         super().__init__()
         if recording is not None and Path(recording).suffix.lower() not in RECORDING_SUFFIXES:
             raise ConfigError("camera.params.recording", f"expected a RealSense recording ({', '.join(RECORDING_SUFFIXES)}), "
@@ -85,6 +101,13 @@ class RealSenseCamera(ThreadedSource):
         self.recording = Path(recording) if recording else None
         self.serial, self.width, self.height, self.fps = serial, int(width), int(height), int(fps)
         self.depth_units = depth_units
+        self.stream_names = parse_stream_names(streams)
+        if emitter is not None and not isinstance(emitter, bool):
+            raise ConfigError("camera.params.emitter", f"expected true or false, got {emitter!r}")
+        self.emitter = emitter
+        self.color_size = (int(color_width), int(color_height))
+        self.image_streams = None
+        self._pairer = None
         self.timeout_s, self.restart_after_s = float(timeout_s), float(restart_after_s)
         self.clock_mapper = ClockMapper(jump_threshold_s=0.5)
         self.depth_scale = None
@@ -106,10 +129,18 @@ class RealSenseCamera(ThreadedSource):
         if self.recording is not None:
             config.enable_device_from_file(str(self.recording), False)
             config.enable_stream(rs.stream.depth)
+            if "ir" in self.stream_names:
+                config.enable_stream(rs.stream.infrared, 1)
+            if "color" in self.stream_names:
+                config.enable_stream(rs.stream.color)
         else:
             if self.serial:
                 config.enable_device(str(self.serial))
             config.enable_stream(rs.stream.depth, self.width, self.height, rs.format.z16, self.fps)
+            if "ir" in self.stream_names:
+                config.enable_stream(rs.stream.infrared, 1, self.width, self.height, rs.format.y8, self.fps)
+            if "color" in self.stream_names:
+                config.enable_stream(rs.stream.color, *self.color_size, rs.format.rgb8, self.fps)
         return config
 
     def _start_pipeline(self, rs) -> None:
@@ -134,12 +165,28 @@ class RealSenseCamera(ThreadedSource):
         sensor = device.first_depth_sensor()
         if self.depth_units is not None and self.recording is None:
             sensor.set_option(rs.option.depth_units, float(self.depth_units))
+        if self.emitter is not None and self.recording is None and sensor.supports(rs.option.emitter_enabled):
+            sensor.set_option(rs.option.emitter_enabled, 1.0 if self.emitter else 0.0)
+        self._describe_images(rs, profile)
         self.depth_scale = float(sensor.get_depth_scale())
         stream = profile.get_stream(rs.stream.depth).as_video_stream_profile()
         self.camera = camera_from_intrinsics(stream.get_intrinsics())
         self._pipeline = pipeline
         log.info("RealSense %s: %dx%d, depth unit %.6g m", self.recording or "device", self.camera.width,
                  self.camera.height, self.depth_scale)
+
+    def _describe_images(self, rs, profile) -> None:
+        from plugins._rs_images import FramePairer, describe_streams
+
+        if self.stream_names == ("depth",):
+            return
+        try:
+            self.image_streams = describe_streams(rs, profile, self.stream_names, self.emitter)
+        except RuntimeError as exc:
+            raise ConfigError("camera.params.streams", f"the RealSense {self.recording or 'device'} does not deliver "
+                              f"{', '.join(self.stream_names)}: {exc}") from exc
+        self._pairer = FramePairer(self.image_streams, self.fps if self.recording is None else
+                                   profile.get_stream(rs.stream.depth).fps())
 
     def _stop_pipeline(self) -> None:
         if self._pipeline is not None:
@@ -148,6 +195,11 @@ class RealSenseCamera(ThreadedSource):
             except RuntimeError:
                 pass
             self._pipeline = None
+
+    def stop(self, timeout: float = 5.0) -> None:
+        super().stop(timeout)
+        if self._thread is None:   # opened but never started (a session that failed before starting)
+            self._stop_pipeline()
 
     # -- streaming -------------------------------------------------------------------------------
     def _run(self) -> None:
@@ -167,12 +219,14 @@ class RealSenseCamera(ThreadedSource):
                 if ok:
                     depth = frames.get_depth_frame()
                     if depth:
-                        self._on_frame(depth, now)
+                        self._on_frameset(frames, depth, now)
                         if stalled:
                             self._event("recovered", f"frames again after {now - last_frame:.2f} s")
                         stalled, last_frame = False, now
                     continue
                 if self.recording is not None:
+                    for item in self._pairer.flush() if self._pairer is not None else []:
+                        self._on_frame(*item, arrival=self.clock.now())
                     self._event("end", f"end of the recording {self.recording}")
                     break
                 if not stalled:
@@ -192,8 +246,24 @@ class RealSenseCamera(ThreadedSource):
             self._stop_pipeline()
             self.finished.set()
 
-    def _on_frame(self, depth, arrival: float) -> None:
-        device_t = depth.get_timestamp() * 1e-3
+    def _on_frameset(self, frames, depth, arrival: float) -> None:
+        """Hand the depth frame on at once, or through the pairer when images are enabled."""
+        if self._pairer is None:
+            self._on_frame((depth.get_timestamp(), depth.get_frame_number(), depth), None, None, arrival)
+            return
+
+        def entry(frame):
+            return (frame.get_timestamp(), frame.get_frame_number(), np.asanyarray(frame.get_data()).copy()) if frame else None
+
+        ir = frames.get_infrared_frame(1) if "ir" in self.stream_names else None
+        color = frames.get_color_frame() if "color" in self.stream_names else None
+        depth_entry = (depth.get_timestamp(), depth.get_frame_number(), np.asanyarray(depth.get_data()).copy())
+        for item in self._pairer.add(depth_entry, entry(ir), entry(color)):
+            self._on_frame(*item, arrival=arrival)
+
+    def _on_frame(self, depth, infrared, color, arrival: float) -> None:
+        """depth : (timestamp ms, frame number, rs.depth_frame or its (H, W) uint16 array)."""
+        device_t = depth[0] * 1e-3
         if self.recording is not None:
             if self._replay_origin is None:
                 self._replay_origin = device_t
@@ -205,67 +275,24 @@ class RealSenseCamera(ThreadedSource):
             stamp, jump = self.clock_mapper.map(device_t, arrival)
             if jump is not None:
                 self._event("clock_jump", f"camera clock jumped by {jump:+.3f} s; mapping re-anchored")
-        data = np.asanyarray(depth.get_data())
+        data = depth[2] if isinstance(depth[2], np.ndarray) else np.asanyarray(depth[2].get_data())
         depth_m = data.astype(np.float32) * np.float32(self.depth_scale)
-        self._push(DepthFrame(int(depth.get_frame_number()), stamp, depth_m, arrival))
+        self._push(DepthFrame(int(depth[1]), stamp, depth_m, arrival, infrared=infrared, color=color))
 
     def session_defaults(self) -> dict:
-        return {"camera": self.camera} if self.camera is not None else {}
+        out = {"camera": self.camera} if self.camera is not None else {}
+        if self.image_streams is not None:
+            out["image_streams"] = self.image_streams
+        return out
 
 
 def write_recording(path: str | Path, depth_units: np.ndarray, stamps_s: np.ndarray, camera: PinholeCamera,
-                    depth_scale: float, fps: int = 30, frame_numbers: np.ndarray | None = None) -> Path:
-    """Write z16 depth frames to a RealSense recording with the SDK's software device and recorder.
+                    depth_scale: float, fps: int = 30, frame_numbers: np.ndarray | None = None, **images) -> Path:
+    """Write depth (and infrared / colour) frames with the SDK's software device: see
+    :func:`plugins.realsense_recording.write_recording` (``images``: infrared, color, color_stream, emitter)."""
+    from plugins.realsense_recording import write_recording as write
 
-    Parameters
-    ----------
-    path : output file; its suffix must be one the installed SDK records (``.bag`` up to
-        librealsense 2.56, ``.db3`` from 2.58): use :func:`recording_suffix`
-    depth_units : (N, H, W) uint16 depth in units of ``depth_scale`` metres
-    stamps_s : (N,) frame timestamps, s (stored as hardware-clock milliseconds)
-    camera : the intrinsics to store
-    """
-    rs = _rs()
-    depth_units = np.ascontiguousarray(depth_units, dtype=np.uint16)
-    n, height, width = depth_units.shape
-    if (width, height) != (camera.width, camera.height):
-        raise ValueError(f"frames are {width}x{height}, the camera is {camera.width}x{camera.height}")
-    device = rs.software_device()
-    sensor = device.add_sensor("Depth")
-    intr = rs.intrinsics()
-    intr.width, intr.height = width, height
-    intr.fx, intr.fy = float(camera.K[0, 0]), float(camera.K[1, 1])
-    intr.ppx, intr.ppy = float(camera.K[0, 2]), float(camera.K[1, 2])
-    intr.model = rs.distortion.brown_conrady
-    intr.coeffs = [0.0] * 5
-    stream = rs.video_stream()
-    stream.type, stream.index, stream.uid = rs.stream.depth, 0, 0
-    stream.width, stream.height, stream.fps, stream.bpp = width, height, int(fps), 2
-    stream.fmt = rs.format.z16
-    stream.intrinsics = intr
-    profile = sensor.add_video_stream(stream)
-    sensor.add_read_only_option(rs.option.depth_units, float(depth_scale))
-    path = Path(path)
-    recorder = rs.recorder(str(path), device)
-    sensor.open(profile)
-    queue = rs.frame_queue(4)
-    sensor.start(queue)
-    numbers = np.arange(n) if frame_numbers is None else np.asarray(frame_numbers)
-    for k in range(n):
-        frame = rs.software_video_frame()
-        frame.pixels = depth_units[k]
-        frame.bpp, frame.stride = 2, 2 * width
-        frame.timestamp = float(stamps_s[k] * 1e3)
-        frame.domain = rs.timestamp_domain.hardware_clock
-        frame.frame_number = int(numbers[k])
-        frame.profile = profile.as_video_stream_profile()
-        sensor.on_video_frame(frame)
-        queue.poll_for_frame()
-    time.sleep(0.05)
-    sensor.stop()
-    sensor.close()
-    del recorder  # the file is finalised when the recorder goes away
-    return path
+    return write(path, depth_units, stamps_s, camera, depth_scale, fps, frame_numbers, **images)
 
 
 def recording_suffix() -> str:
@@ -278,18 +305,27 @@ def recording_suffix() -> str:
 
 
 def write_trial_recording(trial: str | Path, path_stem: str | Path) -> Path:
-    """A trial's depth frames as a RealSense recording ``path_stem`` + :func:`recording_suffix`.
+    """A trial's frames as a RealSense recording ``path_stem`` + :func:`recording_suffix`.
 
-    Stamps, frame numbers, intrinsics and depth unit come from the trial; joints are not stored
-    (play them with ``robot: recorded`` from the same trial).
+    Stamps, frame numbers, intrinsics and depth unit come from the trial, and its infrared and
+    colour streams when it has them (format 1.1); joints are not stored (play them with
+    ``robot: recorded`` from the same trial).
     """
     from app.trial.reader import open_trial
 
     reader = open_trial(trial)
     scale_m = reader.meta.depth_scale * 1e-3
-    frames, ids = [], []
+    frames, ids, ir, rgb = [], [], [], []
     for f in reader.iter_frames():
         frames.append(np.round(f.depth_m / scale_m).astype(np.uint16))
         ids.append(f.frame_id)
+        ir.append(f.infrared)
+        rgb.append(f.color)
+    streams = reader.meta.streams
+    images = {}
+    if streams.infrared is not None:
+        images.update(infrared=np.stack(ir), emitter=streams.infrared.emitter)
+    if streams.color is not None:
+        images.update(color=np.stack(rgb), color_stream=streams.color)
     return write_recording(Path(str(path_stem) + recording_suffix()), np.stack(frames), np.asarray(reader.stamps),
-                           reader.meta.camera, scale_m, frame_numbers=np.asarray(ids))
+                           reader.meta.camera, scale_m, frame_numbers=np.asarray(ids), **images)

@@ -10,6 +10,11 @@ Crash safety rests on the writer's order of work: ``trial.yaml`` first, each PNG
 its ``frames.csv`` row, rows flushed as written, so a kill leaves every frame listed so far
 readable. Frame ids that do not increase (a camera restarted its counter) are renumbered after the
 last one, and said so.
+
+Image streams: when the camera declares infrared and/or colour (``context['image_streams']``, from
+its ``session_defaults()``), the trial is written in format 1.1 with those streams, each frame's
+images beside its depth. A frame that lacks a declared image (the camera dropped it) is not written
+(format 1.1: every listed frame has one PNG per stream); such frames are counted and reported.
 """
 from __future__ import annotations
 
@@ -37,11 +42,13 @@ class Recorder:
         self.frames_written = 0
         self.joints_written = 0
         self.renumbered = 0
+        self.incomplete = 0
         self._last_id = -1
         self.error: str | None = None
 
     def open(self, context: dict) -> None:
         from app.errors import ConfigError
+        from app.image_streams import ImageStreams
         from app.trial.meta import TrialMeta
         from app.trial.writer import TrialWriter
 
@@ -52,7 +59,8 @@ class Recorder:
         meta = TrialMeta(camera=context["camera"], depth_scale=DEPTH_SCALE_MM, robot=dict(context["robot"]),
                          dh=context["dh"], T_flange_camera=context["T_flange_camera"], mesh=Path(mesh_path).name,
                          initial_pose=initial_pose, point_prior=None,
-                         extra={"recorded_by": "osteonav record", "session": str(context.get("session_file"))})
+                         extra={"recorded_by": "osteonav record", "session": str(context.get("session_file"))},
+                         streams=context.get("image_streams") or ImageStreams())
         self.writer = TrialWriter(self.dir, meta, mesh_source=mesh_path, overwrite=self.overwrite)
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self._thread.start()
@@ -72,11 +80,15 @@ class Recorder:
     def _write(self, item) -> None:
         what, data = item
         if what == "frame":
+            streams = self.writer.meta.streams
+            if (streams.infrared is not None and data.infrared is None) or (streams.color is not None and data.color is None):
+                self.incomplete += 1
+                return
             frame_id = data.frame_id
             if frame_id <= self._last_id:
                 frame_id = self._last_id + 1
                 self.renumbered += 1
-            self.writer.write_frame(frame_id, data.stamp, data.depth_m)
+            self.writer.write_frame(frame_id, data.stamp, data.depth_m, infrared=data.infrared, color=data.color)
             self._last_id = frame_id
             self.frames_written += 1
         else:
@@ -103,5 +115,8 @@ class Recorder:
             log.warning("recorder: %d items dropped (the disk fell behind)", self.queue.dropped)
         if self.renumbered:
             log.warning("recorder: %d frames renumbered (the camera's counter went back)", self.renumbered)
+        if self.incomplete:
+            log.warning("recorder: %d frames without a declared infrared/colour image not written", self.incomplete)
         return {"dir": str(self.dir), "frames": self.frames_written, "joint_samples": self.joints_written,
-                "dropped": self.queue.dropped, "renumbered": self.renumbered, "error": self.error}
+                "dropped": self.queue.dropped, "renumbered": self.renumbered, "incomplete": self.incomplete,
+                "error": self.error}

@@ -39,6 +39,7 @@ class RerunOutput:
         if mesh is not None:
             self.log.log_static_scene(context["camera"], np.asarray(mesh.vertices), np.asarray(mesh.faces),
                                       with_groundtruth=False)
+        self.log.log_image_streams(context.get("image_streams"))
 
     def on_frame(self, frame: DepthFrame) -> None:
         pass
@@ -57,6 +58,8 @@ class RerunOutput:
         if est.T_base_camera is not None and self.T_flange_camera is not None:
             T_base_flange = est.T_base_camera @ np.linalg.inv(self.T_flange_camera)
         self.log.log_camera(T_base_flange, est.T_base_camera, depth)
+        if depth is not None:
+            self.log.log_images(frame.infrared, frame.color)
         self.log.log_bone("estimate", est.T_base_bone if est.show_template else None)
         self.log.log_scalar("status", STATUS_CODE.get(est.status, 2))
         if est.latency_s is not None:

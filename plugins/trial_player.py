@@ -8,7 +8,8 @@ the trial's earliest stamp as origin, so camera and robot stay on one clock as t
 ``camera: simulated`` / ``robot: simulated`` first simulate a trial (``app.sim.simulate``) into a
 cache directory named by scenario, seed and duration (reused when already there), then play it the
 same way: the simplest honest live source without hardware. Both plugins of a session given the
-same parameters play the same trial.
+same parameters play the same trial. ``streams: depth,ir,color`` simulates the infrared and colour
+images too (:mod:`app.sim.appearance`); the camera then delivers them with each frame.
 
 A trial also knows its calibration, robot model, mesh and initial pose: ``session_defaults``
 offers them to the session, which uses them for any key its file leaves out.
@@ -47,6 +48,7 @@ def trial_defaults(reader) -> dict:
         "T_flange_camera": np.asarray(meta.T_flange_camera, float), "mesh": mesh,
         "initial_pose": None if meta.initial_pose is None else np.asarray(meta.initial_pose, float),
         "trial": Path(reader.path),
+        "image_streams": meta.streams,
     }
 
 
@@ -56,18 +58,21 @@ def _trial_origin(reader) -> float:
     return float(min(stamps[0], joint_stamps[0]) if len(joint_stamps) else stamps[0])
 
 
-def simulated_trial(scenario: str, seconds: float | None, seed: int, mesh: str | None, trial_dir: str | None) -> Path:
-    """Simulate once per (scenario, seconds, seed, mesh) into ``trial_dir`` (or a cache dir); return it."""
+def simulated_trial(scenario: str, seconds: float | None, seed: int, mesh: str | None, trial_dir: str | None,
+                    streams: str = "depth") -> Path:
+    """Simulate once per (scenario, seconds, seed, mesh, streams) into ``trial_dir`` (or a cache dir); return it."""
     from app.sim.simulator import simulate
 
     if trial_dir is None:
         tag = f"{scenario}-s{seed}-{seconds or 'default'}s" + (f"-{Path(mesh).stem}" if mesh else "")
+        tag += "" if streams == "depth" else "-" + streams.replace(",", "-")
         trial_dir = Path(tempfile.gettempdir()) / "osteonav-sim" / tag
     out = Path(trial_dir)
     with _SIM_LOCK:
         if not (out / "trial.yaml").is_file() or not (out / "simulation.yaml").is_file():
             log.info("simulating %s (%s s, seed %d) into %s", scenario, seconds, seed, out)
-            simulate(out, mesh_path=mesh, scenario_name=scenario, seconds=seconds, seed=seed, overwrite=True)
+            simulate(out, mesh_path=mesh, scenario_name=scenario, seconds=seconds, seed=seed, overwrite=True,
+                     streams=streams)
     return out
 
 
@@ -100,7 +105,8 @@ class RecordedCamera(ThreadedSource):
                 if not self._sleep_until(host_t):
                     return
                 self._push(DepthFrame(int(frame.frame_id) + lap * 10_000_000, host_t,
-                                      np.asarray(frame.depth_m, np.float32), self.clock.now()))
+                                      np.asarray(frame.depth_m, np.float32), self.clock.now(),
+                                      infrared=frame.infrared, color=frame.color))
             if not self.loop:
                 break
             lap += 1
@@ -156,8 +162,8 @@ class SimulatedCamera(RecordedCamera):
     name = "simulated"
 
     def __init__(self, scenario: str = "static_clear", seconds: float | None = None, seed: int = 0,
-                 mesh: str | None = None, trial_dir: str | None = None, loop: bool = False):
-        self._sim = (scenario, seconds, seed, mesh, trial_dir)
+                 mesh: str | None = None, trial_dir: str | None = None, loop: bool = False, streams: str = "depth"):
+        self._sim = (scenario, seconds, seed, mesh, trial_dir, streams)
         super().__init__(trial="", loop=loop)
 
     def open(self, clock: SessionClock, event):
@@ -171,8 +177,8 @@ class SimulatedRobot(RecordedRobot):
     name = "simulated"
 
     def __init__(self, scenario: str = "static_clear", seconds: float | None = None, seed: int = 0,
-                 mesh: str | None = None, trial_dir: str | None = None, loop: bool = False):
-        self._sim = (scenario, seconds, seed, mesh, trial_dir)
+                 mesh: str | None = None, trial_dir: str | None = None, loop: bool = False, streams: str = "depth"):
+        self._sim = (scenario, seconds, seed, mesh, trial_dir, streams)
         super().__init__(trial="", loop=loop)
 
     def open(self, clock: SessionClock, event) -> None:

@@ -106,12 +106,21 @@ def test_capture_from_simulated_session(tmp_path):
     assert main(["calibrate", "hand-eye", "--captures", str(out), "--method", "park"]) == 0
 
 
-def test_capture_with_unsupported_camera_names_the_key(tmp_path, capsys):
+def test_live_capture_session_errors_name_the_key(tmp_path, capsys):
+    """A live session (any camera but 'simulated') goes through the session's plugins: a missing robot and a
+    camera without the infrared stream are named (calibration/live_session.py)."""
     session = tmp_path / "session.yaml"
     session.write_text("camera: {plugin: realsense}\n")
-    assert main(["calibrate", "capture", "--config", str(session), "--out", str(tmp_path / "x")]) == 2
+    assert main(["calibrate", "capture", "--config", str(session), "--out", str(tmp_path / "x"), "--no-viewer"]) == 2
+    assert "config key 'robot'" in capsys.readouterr().err
+    from app.sim.simulator import simulate
+
+    simulate(tmp_path / "trial", scenario_name="static_clear", seconds=0.05, seed=0)
+    session.write_text(f"camera: {{plugin: recorded, params: {{trial: {tmp_path / 'trial'}}}}}\n"
+                       f"robot: {{plugin: recorded, params: {{trial: {tmp_path / 'trial'}}}}}\n")
+    assert main(["calibrate", "capture", "--config", str(session), "--out", str(tmp_path / "y"), "--no-viewer"]) == 2
     err = capsys.readouterr().err
-    assert "config key 'camera'" in err and "realsense" in err
+    assert "config key 'camera.params.streams'" in err and "no ir images" in err
 
 
 def test_bad_board_spec_is_a_config_error(captures, capsys):

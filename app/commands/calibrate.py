@@ -6,8 +6,10 @@ Subcommands::
     osteonav calibrate intrinsics --images DIR [--board SPEC] [--out camera.yaml]
     osteonav calibrate hand-eye  --captures DIR [--camera camera.yaml] [--method auto] [--out FILE]
                                  [--rrd FILE]
-    osteonav calibrate capture   --config session.yaml --out DIR [--count 15]
+    osteonav calibrate capture   --config session.yaml --out DIR [--count 15] [--image ir|color] [--manual]
+                                 [--rrd FILE | --no-viewer]     (live: RealSense + UR; or camera: simulated)
     osteonav calibrate projector --captures DIR [--camera camera.yaml] [--out FILE] [--simulate N]
+                                 [--live --config session.yaml --poses 8 --screen K]
 
 Try it without hardware::
 
@@ -71,11 +73,21 @@ def register(subparsers) -> None:
     add_overwrite_argument(s, "existing --out / --rrd files")
     s.set_defaults(func=run_hand_eye)
 
-    s = sub.add_parser("capture", help="collect captures live from a session's camera and robot")
-    s.add_argument("--config", required=True, type=Path, help="session YAML (camera: simulated)")
+    s = sub.add_parser("capture", help="collect captures live from a session's camera and robot",
+                       description="A session with camera and robot plugins (e.g. realsense with streams "
+                                   "depth,ir + ur): captures when the robot rested 0.5 s with the board seen, "
+                                   "or on Enter (calibration/live.py). 'camera: simulated' uses the "
+                                   "calibration simulator instead.")
+    s.add_argument("--config", required=True, type=Path, help="session YAML (camera and robot plugins)")
     s.add_argument("--out", required=True, type=Path, help="capture folder to create")
     s.add_argument("--count", type=int, default=15, help="captures to take (default 15)")
     s.add_argument("--seed", type=int, default=0, help="seed of the simulated source")
+    s.add_argument("--image", choices=("ir", "color"), default="ir",
+                   help="the camera stream the board is detected in (default ir: the depth camera's own K)")
+    s.add_argument("--manual", action="store_true", help="capture only on Enter (no automatic capture at rest)")
+    s.add_argument("--board", default=DEFAULT_BOARD, help=f"board SPEC (default {DEFAULT_BOARD})")
+    s.add_argument("--rrd", type=Path, help="log the live detection to this rerun file (default: spawn the viewer)")
+    s.add_argument("--no-viewer", action="store_true", help="no rerun logging")
     add_overwrite_argument(s, "the captures in --out")
     s.set_defaults(func=run_capture)
 
@@ -103,6 +115,12 @@ def register(subparsers) -> None:
                    help="first write N simulated board poses into CAPTURES (no hardware needed)")
     s.add_argument("--noise", action="store_true", help="with --simulate: image noise and blur")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--live", action="store_true", help="first capture live: the Gray-code sequence in the projector "
+                   "window, the session camera's images (--config), Enter per board pose")
+    s.add_argument("--config", type=Path, help="with --live: session YAML naming the camera plugin")
+    s.add_argument("--poses", type=int, default=8, help="with --live: board poses to capture (default 8)")
+    s.add_argument("--screen", type=int, default=-1, help="with --live: the projector's screen (default the last)")
+    s.add_argument("--image", choices=("ir", "color"), default="ir", help="with --live: camera stream (default ir)")
     add_overwrite_argument(s, "the poses in --captures (with --simulate) and an existing --out file")
     s.set_defaults(func=run_projector)
 
@@ -120,6 +138,15 @@ def run_projector(args) -> int:
         if args.simulate < MIN_VIEWS:
             raise ConfigError("--simulate", f"at least {MIN_VIEWS} board poses needed, got {args.simulate}")
         prepare_dir(args.captures, args.overwrite, PROJECTOR_CAPTURES, "--captures")
+    if args.live:
+        from calibration.projector_live import run_live_projector_capture
+
+        if args.config is None:
+            raise ConfigError("--config", "--live needs the session file naming the camera (e.g. realsense, streams depth,ir)")
+        if args.simulate:
+            raise ConfigError("--live", "give --live or --simulate, not both")
+        prepare_dir(args.captures, args.overwrite, PROJECTOR_CAPTURES, "--captures")
+        run_live_projector_capture(args.config, args.captures, args.poses, args.screen, args.image, args.board)
     prepare_file(args.out or args.captures / "projector.yaml", args.overwrite)
     return run_command(args)
 
@@ -301,6 +328,11 @@ def run_capture(args) -> int:
         raise ConfigError("(file)", f"not valid YAML: {str(exc).splitlines()[0]}", str(args.config)) from None
     if not isinstance(config, dict):
         raise ConfigError("(top level)", "expected a mapping", str(args.config))
+    camera = config.get("camera")
+    if (camera.get("plugin", camera.get("type")) if isinstance(camera, dict) else camera) not in (None, "simulated"):
+        from calibration.live_session import run_command
+
+        return run_command(args)   # a live session: its camera and robot plugins
     _source_kind(config, "camera", str(args.config))
     _source_kind(config, "robot", str(args.config))
     if args.count < 1:

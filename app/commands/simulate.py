@@ -17,6 +17,9 @@ def register(subparsers) -> None:
     p.add_argument("--seconds", type=float, help="duration (default: the scenario's)")
     p.add_argument("--seed", type=int, default=0)
     add_overwrite_argument(p, "the trial in --out")
+    p.add_argument("--streams", default="depth", help="images per frame: depth (default) or e.g. depth,ir,color "
+                   "(infrared and colour: trial format 1.1)")
+    p.add_argument("--emitter", choices=("on", "off"), default="on", help="IR dot projector in the ir images (default on)")
     p.set_defaults(func=run)
 
 
@@ -25,10 +28,15 @@ def run(args) -> int:
 
     from app.errors import OsteonavError
     from app.sim.scenarios import SCENARIOS
+    from app.sim.images import parse_streams
     from app.sim.simulator import simulate
 
     if args.scenario not in SCENARIOS:
         raise OsteonavError(f"unknown scenario '{args.scenario}'; valid: {', '.join(SCENARIOS)}")
+    try:
+        streams = ",".join(parse_streams(args.streams))
+    except ValueError as exc:
+        raise OsteonavError(f"--streams: {exc}") from None
     if args.mesh:
         from app.mesh import load_mesh
 
@@ -40,7 +48,8 @@ def run(args) -> int:
         bar.total = total
         bar.update(done - bar.n)
 
-    summary = simulate(args.out, args.mesh, args.scenario, args.seconds, args.seed, overwrite=True, progress=progress)
+    summary = simulate(args.out, args.mesh, args.scenario, args.seconds, args.seed, overwrite=True, progress=progress,
+                       streams=streams, emitter=args.emitter == "on")
     bar.close()
     print(f"wrote {summary.frames} frames ({summary.seconds:.1f} s, scenario {summary.scenario}, "
           f"occlusion mean {100 * summary.mean_occlusion:.0f} % max {100 * summary.max_occlusion:.0f} %) to {summary.out}")

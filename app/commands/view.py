@@ -1,6 +1,6 @@
 """``osteonav view TRIAL [--save FILE.rrd]``: a recorded trial in rerun.
 
-Logs the camera (pinhole and depth image), the flange path, the bone mesh at the ground truth and
+Logs the camera (pinhole, depth image, and the infrared and colour images of a 1.1 trial), the flange path, the bone mesh at the ground truth and
 the simulator's occlusion fraction when present, on timelines ``stamp`` and ``frame``, with the
 default blueprint. Without ``--save`` it spawns the viewer.
 """

@@ -7,6 +7,11 @@ visible pixels, an instrument) cross the view; the bone may be repositioned; fra
 depth image gets the stereo sensor's errors (:mod:`app.sim.sensor`). Rendering uses the project's
 own :class:`app.render.scene.SceneRenderer`, so simulated and tracked depth share one camera model.
 
+With ``streams`` including ``ir`` and/or ``color`` it also writes the left imager's infrared image
+(with the D415's dot pattern when ``emitter``) and the colour camera's image of every frame (trial
+format 1.1), rendered through the appearance model of :mod:`app.sim.appearance` and
+:mod:`app.sim.images`; depth alone (version 1) stays the default.
+
 Besides the trial format's files it writes ``simulation.csv`` (per frame: occlusion fraction,
 visible bone pixels) and ``simulation.yaml`` (scenario, seed, the true hand-eye); readers ignore them.
 """
@@ -117,8 +122,16 @@ class _GraftCut:
 
 def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name: str | Scenario = "static_occluded",
              seconds: float | None = None, seed: int = 0, overwrite: bool = False,
-             camera: PinholeCamera = D415_640x480, progress=None) -> SimulationSummary:
-    """Simulate ``scenario_name`` and write the trial to ``out`` (see the module docstring)."""
+             camera: PinholeCamera = D415_640x480, progress=None, streams: str = "depth",
+             emitter: bool = True) -> SimulationSummary:
+    """Simulate ``scenario_name`` and write the trial to ``out`` (see the module docstring).
+
+    streams : 'depth' or e.g. 'depth,ir,color' (:func:`app.sim.images.parse_streams`)
+    emitter : whether the infrared image shows the dot projector's pattern
+    """
+    from app.sim.images import parse_streams
+
+    stream_names = parse_streams(streams)
     from app.mesh import check_units, load_mesh
     from app.render.context import shared_context
     from app.render.scene import SceneRenderer
@@ -130,6 +143,7 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
     else:
         scenario = get_scenario(scenario_name, seconds)
     rng = np.random.default_rng(seed)
+    image_rng = np.random.default_rng([seed, 14])   # its own stream: depth-only trials are unchanged
     mesh_path = Path(mesh_path) if mesh_path else DEFAULT_MESH
     bone = load_mesh(mesh_path)
     check_units(bone, mesh_path)
@@ -147,10 +161,11 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
     T_base_table[2, 3] = (T_base_bone0[:3, :3] @ bone.vertices.T).T[:, 2].min() + T_base_bone0[2, 3] - 0.06
     tissue = world.soft_tissue_mesh(bone, rng)
     renderer = SceneRenderer(shared_context(), camera)
-    for name, mesh, label in (("bone", bone, LABEL_BONE), ("tissue", tissue, LABEL_TISSUE),
-                              ("table", world.table_mesh(), LABEL_TABLE), ("hand", world.hand_mesh(), LABEL_HAND),
-                              ("instrument", world.instrument_mesh(), LABEL_INSTRUMENT)):
+    objects = (("bone", bone, LABEL_BONE), ("tissue", tissue, LABEL_TISSUE), ("table", world.table_mesh(), LABEL_TABLE),
+               ("hand", world.hand_mesh(), LABEL_HAND), ("instrument", world.instrument_mesh(), LABEL_INSTRUMENT))
+    for name, mesh, label in objects:
         renderer.add_mesh(name, mesh.vertices, mesh.faces, label)
+    images = _image_simulator(stream_names, emitter, bone, T_base_bone0, camera, image_rng, objects)
     sensor = SensorModel(invalid_probability=scenario.invalid_probability, scale_error=scenario.depth_scale_error,
                          bias=scenario.depth_bias_m, specular_fraction=scenario.specular_fraction)
     graft = _GraftCut(bone)
@@ -162,7 +177,7 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
     meta = TrialMeta(
         camera=camera, depth_scale=DEPTH_SCALE_MM, robot={"model": "ur5e"}, dh=dh,
         T_flange_camera=hand_eye_in_file, mesh=mesh_path.name, initial_pose=initial_pose,
-        point_prior=point_prior, extra={},
+        point_prior=point_prior, extra={}, streams=images.streams if images else None,
     )
     out = Path(out)
     occlusions = []
@@ -186,16 +201,66 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
                 n_bone = int(bone_mask.sum())
                 occlusion = 1.0 - float((bone_mask & (labels == LABEL_BONE)).sum()) / n_bone if n_bone else 1.0
                 occlusions.append(occlusion)
-                writer.write_frame(int(frame_id), float(stamp), measured)
+                ir = rgb = None
+                if images is not None:
+                    ir, rgb = images.frame(depth, labels, poses, T_camera_base, float(t_rel[k]))
+                writer.write_frame(int(frame_id), float(stamp), measured, infrared=ir, color=rgb)
                 writer.write_groundtruth(float(stamp), T_base_bone[k])
                 sim_csv.write(f"{frame_id},{stamp:.6f},{occlusion:.4f},{n_bone}\n")
                 if progress:
                     progress(k + 1, len(stamps))
         _write_simulation_yaml(out, scenario, seed, T_flange_camera, mesh_path)
     renderer.release()
+    if images is not None:
+        images.release()
     log.info("simulated %s: %d frames in %s", scenario.name, len(stamps), out)
     return SimulationSummary(str(out), scenario.name, len(stamps), scenario.seconds,
                              float(np.mean(occlusions)), float(np.max(occlusions)))
+
+
+class _FrameImages:
+    """The simulator's hook for the image streams: the IR and colour images of one rendered frame."""
+
+    LABEL_OF = {"bone": LABEL_BONE, "tissue": LABEL_TISSUE, "table": LABEL_TABLE, "hand": LABEL_HAND,
+                "instrument": LABEL_INSTRUMENT}
+
+    def __init__(self, sim, color_renderer):
+        self.sim = sim
+        self.color_renderer = color_renderer
+        self.streams = sim.streams
+
+    def frame(self, depth, labels, poses: dict, T_camera_base: np.ndarray, t: float):
+        by_label = {self.LABEL_OF[name]: T for name, T in poses.items()}
+        ir = self.sim.infrared(depth, labels, by_label, T_camera_base, t) if self.sim.with_ir else None
+        rgb = None
+        if self.sim.with_color:
+            rgb = self.sim.color(self.color_renderer.render, poses, self.LABEL_OF, T_camera_base, t)
+        return ir, rgb
+
+    def release(self) -> None:
+        if self.color_renderer is not None:
+            self.color_renderer.release()
+
+
+def _image_simulator(stream_names, emitter: bool, bone, T_base_bone0: np.ndarray, camera: PinholeCamera,
+                     rng: np.random.Generator, objects) -> _FrameImages | None:
+    """The IR/colour image hook for ``stream_names``, or None for depth alone."""
+    if stream_names == ("depth",):
+        return None
+    from app.render.context import shared_context
+    from app.render.scene import SceneRenderer
+    from app.sim.appearance import OperatingField
+    from app.sim.images import ImageSimulator
+
+    scene = OperatingField(rng, bone.bounds, T_base_bone0[:3, 3])
+    sim = ImageSimulator(scene, camera, rng, emitter=emitter, with_ir="ir" in stream_names,
+                         with_color="color" in stream_names)
+    color_renderer = None
+    if sim.with_color:
+        color_renderer = SceneRenderer(shared_context(), sim.color_camera)
+        for name, mesh, label in objects:
+            color_renderer.add_mesh(name, mesh.vertices, mesh.faces, label)
+    return _FrameImages(sim, color_renderer)
 
 
 def _write_joints(writer, stamps: np.ndarray, scenario: Scenario, rng: np.random.Generator) -> None:

@@ -2,12 +2,14 @@
 
 Import as ``from app.trial.meta import TrialMeta, load_meta, dump_meta``.
 
-``load_meta`` validates at the boundary: the format string, the camera (K finite 3x3 with last row
+``load_meta`` validates at the boundary: the format string (version 1 or 1.1), the camera (K finite 3x3 with last row
 (0, 0, 1), positive size, positive ``depth_scale``), the robot (exactly one of ``model`` / ``dh``),
 the hand-eye ``T_flange_camera`` (rigid 4x4), the mesh name and the optional ``initial_pose``
 (rigid 4x4) and ``point_prior`` (3 finite numbers). Every error is a
 :class:`app.errors.TrialFormatError` naming the file and the key. Top-level keys the format does
-not define are kept in ``TrialMeta.extra`` and written back.
+not define are kept in ``TrialMeta.extra`` and written back. Version 1.1's optional ``infrared`` and
+``color`` blocks become ``TrialMeta.streams`` (:class:`app.image_streams.ImageStreams`); a meta
+without image streams is written as version 1, one with them as 1.1.
 
 YAML 1.1 (PyYAML) reads ``1e-05`` (no decimal point) as a string; the reader converts such strings
 wherever a number is expected, and the writer always writes a decimal point (``1.0e-05``).
@@ -25,23 +27,34 @@ from app.errors import TrialFormatError
 from app.geometry import se3
 from app.geometry.camera import PinholeCamera
 from app.geometry.ur import DHParameters, dh_from_config
+from app.image_streams import ColorStream, ImageStreams, InfraredStream
 
 FORMAT = "osteonav-trial/1"
+FORMAT_1_1 = "osteonav-trial/1.1"   # version 1 plus optional image streams (infrared, colour)
+FORMATS = (FORMAT, FORMAT_1_1)
 META_FILE = "trial.yaml"
 FRAMES_FILE = "frames.csv"
 JOINTS_FILE = "joints.csv"
 GROUNDTRUTH_FILE = "groundtruth.txt"
 DEPTH_DIR = "depth"
+IR_DIR = "ir"          # the names this project writes; a 1.1 trial.yaml names its own ('dir')
+COLOR_DIR = "color"
 # present while a writer is recording; left behind by a killed recorder (the trial is interrupted)
 MARKER_FILE = ".recording-in-progress"
 POSE_ATOL = 1e-5  # rigidity tolerance for poses typed into trial.yaml (R^T R = I, det R = 1)
 
 KNOWN_KEYS = ("format", "camera", "robot", "hand_eye", "mesh", "initial_pose", "point_prior")
+STREAM_KEYS = ("infrared", "color")   # version 1.1 only
 
 
 def depth_png_name(frame_id: int) -> str:
     """``depth/{frame:06d}.png``, relative to the trial directory."""
     return f"{DEPTH_DIR}/{int(frame_id):06d}.png"
+
+
+def image_png_name(directory: str, frame_id: int) -> str:
+    """``{directory}/{frame:06d}.png`` (an image stream's PNG), relative to the trial directory."""
+    return f"{directory}/{int(frame_id):06d}.png"
 
 
 @dataclass
@@ -57,6 +70,8 @@ class TrialMeta:
     initial_pose : (4, 4) float64 coarse T_base_bone, or None
     point_prior : (3,) float64 a point on the bone surface in the base frame (metres), or None
     extra : dict, top-level keys the format does not define (kept, written back)
+    streams : ImageStreams, the optional infrared / colour streams (format 1.1); empty = version 1
+    stream_dirs : dict stream name ('ir', 'color') -> directory relative to the trial ('dir' in trial.yaml)
     """
 
     camera: PinholeCamera
@@ -68,8 +83,12 @@ class TrialMeta:
     initial_pose: np.ndarray | None = None
     point_prior: np.ndarray | None = None
     extra: dict = field(default_factory=dict)
+    streams: ImageStreams = field(default_factory=ImageStreams)
+    stream_dirs: dict = field(default_factory=dict)
 
     def __post_init__(self):
+        self.streams = self.streams or ImageStreams()
+        self.stream_dirs = {**{"ir": IR_DIR, "color": COLOR_DIR}, **dict(self.stream_dirs or {})}
         self.depth_scale = float(self.depth_scale)
         self.T_flange_camera = np.asarray(self.T_flange_camera, dtype=float)
         self.mesh = str(self.mesh)
@@ -114,8 +133,9 @@ def parse_meta(data, source: str | Path = META_FILE) -> TrialMeta:
         return mapping[key]
 
     fmt = need(data, "format", "format")
-    if fmt != FORMAT:
-        raise err("format", f"expected '{FORMAT}', got {fmt!r}: not an osteonav trial of this version")
+    if fmt not in FORMATS:
+        raise err("format", f"expected '{FORMAT}' or '{FORMAT_1_1}', got {fmt!r}: not an osteonav trial of "
+                  "a version this reader knows")
 
     cam = need(data, "camera", "camera")
     if not isinstance(cam, dict):
@@ -165,9 +185,64 @@ def parse_meta(data, source: str | Path = META_FILE) -> TrialMeta:
     if point_prior is not None:
         point_prior = _matrix(point_prior, (3,), "point_prior", err)
 
-    extra = {k: v for k, v in data.items() if k not in KNOWN_KEYS}
+    streams, dirs = (ImageStreams(), {}) if fmt == FORMAT else _parse_streams(data, camera, err)
+    own = KNOWN_KEYS + (STREAM_KEYS if fmt == FORMAT_1_1 else ())
+    extra = {k: v for k, v in data.items() if k not in own}
     return TrialMeta(camera=camera, depth_scale=depth_scale, robot=robot, dh=dh, T_flange_camera=T_flange_camera,
-                     mesh=mesh, initial_pose=initial_pose, point_prior=point_prior, extra=extra)
+                     mesh=mesh, initial_pose=initial_pose, point_prior=point_prior, extra=extra, streams=streams,
+                     stream_dirs=dirs)
+
+
+def _stream_dir(block: dict, key: str, err) -> str:
+    value = block.get("dir")
+    if not isinstance(value, str) or not value.strip() or value.strip() in (DEPTH_DIR, ".", ".."):
+        raise err(f"{key}.dir", f"expected a directory name relative to the trial (e.g. 'ir'), got {value!r}")
+    return value.strip().rstrip("/")
+
+
+def _parse_streams(data: dict, depth_camera: PinholeCamera, err) -> tuple[ImageStreams, dict]:
+    """The ``infrared`` and ``color`` blocks of a version 1.1 trial.yaml (RECORDING_FORMAT.md, version 1.1)."""
+    infrared = color = None
+    dirs = {}
+    ir = data.get("infrared")
+    if ir is not None:
+        if not isinstance(ir, dict):
+            raise err("infrared", f"expected a mapping (dir, emitter), got {ir!r}")
+        dirs["ir"] = _stream_dir(ir, "infrared", err)
+        emitter = ir.get("emitter", True)
+        if not isinstance(emitter, bool):
+            raise err("infrared.emitter", f"expected true or false, got {emitter!r}")
+        infrared = InfraredStream(emitter=emitter)
+    c = data.get("color")
+    if c is not None:
+        if not isinstance(c, dict):
+            raise err("color", f"expected a mapping (dir, aligned_to_depth, width, height, K, ...), got {c!r}")
+        dirs["color"] = _stream_dir(c, "color", err)
+        aligned = c.get("aligned_to_depth", False)
+        if not isinstance(aligned, bool):
+            raise err("color.aligned_to_depth", f"expected true or false, got {aligned!r}")
+        if aligned:
+            color = ColorStream(depth_camera, aligned_to_depth=True)
+        else:
+            color = _parse_color_camera(c, err)
+    if dirs.get("ir") is not None and dirs.get("ir") == dirs.get("color"):
+        raise err("color.dir", f"the infrared and colour streams both name the directory '{dirs['ir']}'")
+    return ImageStreams(infrared, color), dirs
+
+
+def _parse_color_camera(c: dict, err) -> ColorStream:
+    for key in ("width", "height", "K", "T_depth_color"):
+        if c.get(key) is None:
+            raise err(f"color.{key}", "missing: an unaligned colour stream needs width, height, K and T_depth_color "
+                      "(or aligned_to_depth: true)")
+    size = {k: _positive_int(c[k], f"color.{k}", err) for k in ("width", "height")}
+    K = _matrix(c["K"], (3, 3), "color.K", err)
+    try:
+        camera = PinholeCamera(K, size["width"], size["height"])
+    except ValueError as exc:
+        raise err("color.K", str(exc)) from exc
+    distortion = _matrix(c.get("distortion", [0.0] * 5), (5,), "color.distortion", err)
+    return ColorStream(camera, distortion, _pose(c["T_depth_color"], "color.T_depth_color", err), aligned_to_depth=False)
 
 
 def _number(value, key: str, err) -> float:
@@ -251,7 +326,7 @@ def meta_to_dict(meta: TrialMeta) -> dict:
         robot["dh"] = meta.dh.to_dict()
     camera = meta.camera.to_dict()
     data = {
-        "format": FORMAT,
+        "format": FORMAT_1_1 if meta.streams else FORMAT,
         "camera": {"width": camera["width"], "height": camera["height"],
                    "K": [[float(x) for x in row] for row in camera["K"]], "depth_scale": float(meta.depth_scale)},
         "robot": robot,
@@ -262,11 +337,29 @@ def meta_to_dict(meta: TrialMeta) -> dict:
         data["initial_pose"] = np.asarray(meta.initial_pose, dtype=float).tolist()
     if meta.point_prior is not None:
         data["point_prior"] = np.asarray(meta.point_prior, dtype=float).reshape(3).tolist()
+    data.update(_streams_to_dict(meta))
     for k, v in meta.extra.items():
-        if k in KNOWN_KEYS:
+        if k in KNOWN_KEYS or (meta.streams and k in STREAM_KEYS):
             raise ValueError(f"TrialMeta.extra must not hold the format's own key '{k}'")
         data[k] = v
     return data
+
+
+def _streams_to_dict(meta: TrialMeta) -> dict:
+    """The version 1.1 ``infrared`` and ``color`` blocks of ``meta`` (empty when it has no image stream)."""
+    out = {}
+    streams = meta.streams
+    if streams.infrared is not None:
+        out["infrared"] = {"dir": meta.stream_dirs["ir"], "emitter": bool(streams.infrared.emitter)}
+    if streams.color is not None:
+        c = streams.color
+        block = {"dir": meta.stream_dirs["color"], "aligned_to_depth": bool(c.aligned_to_depth)}
+        if not c.aligned_to_depth:
+            block.update(width=c.camera.width, height=c.camera.height,
+                         K=[[float(x) for x in row] for row in c.camera.K],
+                         distortion=[float(x) for x in c.distortion], T_depth_color=c.T_depth_color.tolist())
+        out["color"] = block
+    return out
 
 
 def dump_meta(meta: TrialMeta, path: str | Path) -> None:

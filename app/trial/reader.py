@@ -4,15 +4,17 @@ Import as ``from app.trial.reader import open_trial``::
 
     reader = open_trial("trials/sim01")
     T_base_camera, valid = reader.camera_poses()        # (N, 4, 4), (N,) bool
-    for frame in reader.iter_frames():                   # Frame(index, frame_id, stamp, depth_m)
+    for frame in reader.iter_frames():                   # Frame(index, frame_id, stamp, depth_m, infrared, color)
         ...
 
 Opening validates everything that costs no image decoding: ``trial.yaml`` (:func:`load_meta`),
 ``frames.csv`` (header, integer frame ids and finite stamps, both strictly increasing),
 ``joints.csv`` (header ``stamp,q0..q5``, finite values, stamps strictly increasing),
 ``groundtruth.txt`` when present (one row per frame, stamps equal within ``STAMP_ATOL``, unit
-quaternions), that every listed PNG exists, and that the mesh file exists. Depth PNGs are decoded
-on demand and must be 16-bit, single channel, of the camera's size. Every error is a
+quaternions), that every listed PNG exists (depth and, in a version 1.1 trial, each declared image
+stream's), and that the mesh file exists. Depth PNGs are decoded on demand and must be 16-bit,
+single channel, of the camera's size; infrared PNGs 8-bit grey of the depth size; colour PNGs
+8-bit RGB of the colour camera's size (returned RGB). Every error is a
 :class:`app.errors.TrialFormatError` naming the file and the line or frame.
 
 Interrupted trials: a writer keeps the marker ``.recording-in-progress`` while it records. When a
@@ -37,7 +39,7 @@ import numpy as np
 from app.errors import TrialFormatError
 from app.geometry.ur import forward_kinematics, interpolate_joints
 from app.trial.meta import (DEPTH_DIR, FRAMES_FILE, GROUNDTRUTH_FILE, JOINTS_FILE, MARKER_FILE, META_FILE, TrialMeta,
-                            depth_png_name, load_meta)
+                            depth_png_name, image_png_name, load_meta)
 from app.trial.tum import read_tum
 from app.trial.writer import FRAMES_HEADER, JOINTS_HEADER, png_to_depth
 
@@ -54,12 +56,16 @@ class Frame:
     frame_id : the camera's frame counter (names ``depth/{frame_id:06d}.png``)
     stamp : capture time, s, on the joints' clock
     depth_m : (H, W) float32 depth along the optical axis, metres; 0 = no measurement
+    infrared : (H, W) uint8 left-imager image (format 1.1, ``ir/``), or None when the trial has none
+    color : (Hc, Wc, 3) uint8 RGB (format 1.1, ``color/``), or None when the trial has none
     """
 
     index: int
     frame_id: int
     stamp: float
     depth_m: np.ndarray
+    infrared: np.ndarray | None = None
+    color: np.ndarray | None = None
 
 
 def open_trial(path: str | Path) -> "TrialReader":
@@ -193,14 +199,19 @@ class TrialReader:
         return T
 
     def _png_present(self, frame_ids: np.ndarray) -> np.ndarray:
-        depth_dir = self.path / DEPTH_DIR
-        names = set(os.listdir(depth_dir)) if depth_dir.is_dir() else set()
-        present = np.array([depth_png_name(f).split("/", 1)[1] in names for f in frame_ids], dtype=bool)
-        if not self.interrupted and not present.all():
-            k = int(np.flatnonzero(~present)[0])
-            raise TrialFormatError(self.path / depth_png_name(frame_ids[k]),
-                                   f"missing: {FRAMES_FILE} lists frame {frame_ids[k]} but its depth PNG does not exist",
-                                   f"frame {frame_ids[k]}")
+        """(N,) bool: every PNG of the frame exists (depth, then each declared image stream's)."""
+        present = np.ones(len(frame_ids), dtype=bool)
+        streams = [(DEPTH_DIR, "depth")] + [(self.meta.stream_dirs[n], n) for n in self.meta.streams.names]
+        for directory, what in streams:
+            folder = self.path / directory
+            names = set(os.listdir(folder)) if folder.is_dir() else set()
+            here = np.array([f"{int(f):06d}.png" in names for f in frame_ids], dtype=bool)
+            if not self.interrupted and not here.all():
+                k = int(np.flatnonzero(~here)[0])
+                raise TrialFormatError(self.path / image_png_name(directory, frame_ids[k]),
+                                       f"missing: {FRAMES_FILE} lists frame {frame_ids[k]} but its {what} PNG does "
+                                       "not exist", f"frame {frame_ids[k]}")
+            present &= here
         return present
 
     # ------------------------------------------------------------ depth
@@ -233,10 +244,44 @@ class TrialReader:
                                    f"{META_FILE}), got {png.shape[1]}x{png.shape[0]}", where)
         return png_to_depth(png, self.meta.depth_scale)
 
+    def _read_image(self, index: int, stream: str, dtype, channels: int, size: tuple[int, int]) -> np.ndarray:
+        """An image stream's PNG of frame ``index`` as stored, checked for dtype, channels and (width, height)."""
+        import cv2
+
+        frame_id = int(self.frame_ids[index])
+        path = self.path / image_png_name(self.meta.stream_dirs[stream], frame_id)
+        where = f"frame {frame_id}"
+        png = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if path.is_file() else None
+        if png is None:
+            raise TrialFormatError(path, "missing or not a PNG image: the " + stream + " image of a listed frame", where)
+        found = 1 if png.ndim == 2 else png.shape[2]
+        if png.dtype != dtype or found != channels:
+            raise TrialFormatError(path, f"expected an {8 * np.dtype(dtype).itemsize}-bit PNG with {channels} "
+                                   f"channel(s), got {png.dtype} with {found}", where)
+        if (png.shape[1], png.shape[0]) != size:
+            raise TrialFormatError(path, f"expected {size[0]}x{size[1]} pixels ({META_FILE}), got "
+                                   f"{png.shape[1]}x{png.shape[0]}", where)
+        return png
+
+    def read_infrared(self, index: int) -> np.ndarray | None:
+        """Infrared (H, W) uint8 of frame ``index``, or None when the trial has no infrared stream."""
+        if self.meta.streams.infrared is None:
+            return None
+        return self._read_image(index, "ir", np.uint8, 1, (self.meta.camera.width, self.meta.camera.height))
+
+    def read_color(self, index: int) -> np.ndarray | None:
+        """Colour (Hc, Wc, 3) uint8 RGB of frame ``index``, or None when the trial has no colour stream."""
+        color = self.meta.streams.color
+        if color is None:
+            return None
+        bgr = self._read_image(index, "color", np.uint8, 3, (color.camera.width, color.camera.height))
+        return np.ascontiguousarray(bgr[..., ::-1])
+
     def iter_frames(self):
-        """Yield every readable :class:`Frame` in order, decoding one PNG at a time."""
+        """Yield every readable :class:`Frame` in order, decoding one frame's PNGs at a time."""
         for i in range(len(self.frame_ids)):
-            yield Frame(i, int(self.frame_ids[i]), float(self.stamps[i]), self.read_depth(i))
+            yield Frame(i, int(self.frame_ids[i]), float(self.stamps[i]), self.read_depth(i), self.read_infrared(i),
+                        self.read_color(i))
 
     # ------------------------------------------------------------ mesh and poses
 

@@ -5,6 +5,7 @@ Import as ``from app.trial.writer import TrialWriter``::
     with TrialWriter(out_dir, meta, mesh_source="bone.ply") as w:
         w.write_joints(t_robot, q_robot)            # (M,), (M, 6): any number of calls
         w.write_frame(frame_id, stamp, depth_m)     # (H, W) float32 metres, 0 or NaN = no measurement
+        w.write_frame(frame_id, stamp, depth_m, infrared=ir, color=rgb)   # format 1.1: meta.streams declares them
         w.write_groundtruth(stamp, T_base_bone)     # optional, one per frame, same stamps
 
 Order of work, which is what makes a killed recording readable:
@@ -12,8 +13,9 @@ Order of work, which is what makes a killed recording readable:
 1. the marker ``.recording-in-progress`` is created first and removed last (by :meth:`close`);
    a reader that finds it knows the trial was interrupted and tolerates a truncated last line;
 2. ``trial.yaml`` is written atomically (temporary file + ``os.replace``), then the mesh;
-3. each depth PNG is written completely (temporary file + rename) *before* its ``frames.csv``
-   row, and every CSV row is flushed as it is written, so every listed frame has its PNG.
+3. each depth PNG, and each image stream's PNG (``ir/``, ``color/``: format 1.1), is written
+   completely (temporary file + rename) *before* its ``frames.csv`` row, and every CSV row is
+   flushed as it is written, so every listed frame has all its PNGs.
 
 Depth is stored as uint16 ``round(depth_mm / depth_scale)``, clipped to [0, 65535]; NaN, negative
 and zero depths become 0 (no measurement). With ``depth_scale`` = 0.1 mm this spans 6.5 m.
@@ -28,8 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from app.errors import TrialFormatError
+from app.image_streams import check_frame_images
 from app.trial.meta import (DEPTH_DIR, FRAMES_FILE, GROUNDTRUTH_FILE, JOINTS_FILE, MARKER_FILE, META_FILE, TrialMeta,
-                            depth_png_name, dump_meta)
+                            depth_png_name, dump_meta, image_png_name)
 from app.trial.tum import TUM_HEADER, format_tum_row
 
 log = logging.getLogger(__name__)
@@ -90,14 +93,28 @@ class TrialWriter:
 
     def _prepare_directory(self, overwrite: bool) -> None:
         trial_files = [self.path / n for n in (META_FILE, FRAMES_FILE, JOINTS_FILE, GROUNDTRUTH_FILE, MARKER_FILE)]
+        image_dirs = [DEPTH_DIR] + [self.meta.stream_dirs[n] for n in self.meta.streams.names]
         if any(p.exists() for p in trial_files) or (self.path / DEPTH_DIR).exists():
             if not overwrite:
                 raise TrialFormatError(self.path, "already holds a trial; choose another directory or overwrite it "
                                        "(overwrite=True, --overwrite)")
+            old_dirs = self._old_stream_dirs()
             for p in trial_files:
                 p.unlink(missing_ok=True)
-            shutil.rmtree(self.path / DEPTH_DIR, ignore_errors=True)
-        (self.path / DEPTH_DIR).mkdir(parents=True, exist_ok=True)
+            for d in set(image_dirs) | old_dirs:   # the replaced trial's image streams go with it
+                shutil.rmtree(self.path / d, ignore_errors=True)
+        for d in image_dirs:
+            (self.path / d).mkdir(parents=True, exist_ok=True)
+
+    def _old_stream_dirs(self) -> set[str]:
+        """The image-stream directories the trial being overwritten declares (none if unreadable)."""
+        from app.trial.meta import load_meta
+
+        try:
+            old = load_meta(self.path / META_FILE)
+        except TrialFormatError:
+            return set()
+        return {old.stream_dirs[n] for n in old.streams.names}
 
     def _write_mesh(self, mesh_source) -> None:
         if mesh_source is None:
@@ -123,12 +140,15 @@ class TrialWriter:
 
     # ------------------------------------------------------------ streams
 
-    def write_frame(self, frame_id: int, stamp: float, depth_m: np.ndarray) -> None:
-        """Write ``depth/{frame_id:06d}.png``, then its ``frames.csv`` row.
+    def write_frame(self, frame_id: int, stamp: float, depth_m: np.ndarray, infrared: np.ndarray | None = None,
+                    color: np.ndarray | None = None) -> None:
+        """Write ``depth/{frame_id:06d}.png`` and the image streams' PNGs, then its ``frames.csv`` row.
 
         frame_id : int, the camera's counter, strictly increasing
         stamp : float, capture time (s), strictly increasing, on the joints' clock
         depth_m : (H, W) depth in metres along the optical axis; 0, NaN or negative = no measurement
+        infrared : (H, W) uint8, required when ``meta.streams.infrared`` is declared, else ignored
+        color : (Hc, Wc, 3) uint8 RGB, required when ``meta.streams.color`` is declared, else ignored
         """
         self._check_open()
         frame_id = int(frame_id)
@@ -144,6 +164,7 @@ class TrialWriter:
         if depth_m.shape != self._shape:
             raise ValueError(f"depth image of frame {frame_id} has shape {depth_m.shape}, "
                              f"expected {self._shape} (camera height, width)")
+        check_frame_images(self.meta.streams, self._shape, infrared, color, f"frame {frame_id}")
         png = depth_to_png(depth_m, self.meta.depth_scale)
         n_clipped = int(np.count_nonzero(png == PNG_MAX))
         if n_clipped and not self._n_clipped:
@@ -151,6 +172,11 @@ class TrialWriter:
                         PNG_MAX * self.meta.depth_scale * 1e-3, self.meta.depth_scale)
         self._n_clipped += n_clipped
         self._write_png(self.path / depth_png_name(frame_id), png)
+        if self.meta.streams.infrared is not None:
+            self._write_png(self.path / image_png_name(self.meta.stream_dirs["ir"], frame_id), np.asarray(infrared))
+        if self.meta.streams.color is not None:   # PNG channel order is RGB; OpenCV encodes BGR
+            self._write_png(self.path / image_png_name(self.meta.stream_dirs["color"], frame_id),
+                            np.ascontiguousarray(np.asarray(color)[..., ::-1]))
         self._frames_file.write(f"{frame_id},{stamp:.9f}\n")
         self._frames_file.flush()
         self._frame_stamps.append(stamp)

@@ -35,6 +35,9 @@ CAMERA = "world/camera"
 CAMERA_IMAGE = "world/camera/image"
 PROJECTOR_IMAGE = "world/camera/projector/image"   # logged by app/projector/rerun_log.py
 DEPTH = "world/camera/image/depth"
+INFRARED = "world/camera/image/infrared"          # the left imager: the depth camera's own pinhole
+COLOR = "world/camera/color"                      # the colour camera: T_depth_color below the depth camera
+COLOR_IMAGE = "world/camera/color/image"
 BONE_ESTIMATE = "world/bone/estimate"
 BONE_GROUNDTRUTH = "world/bone/groundtruth"
 PARTICLES = "world/particles"
@@ -53,7 +56,8 @@ def blueprint():
         rrb.Horizontal(
             rrb.Spatial3DView(name="Scene (robot base frame)", origin=WORLD),
             rrb.Vertical(
-                rrb.Spatial2DView(name="Depth camera", origin=CAMERA_IMAGE),
+                rrb.Tabs(rrb.Spatial2DView(name="Depth camera", origin=CAMERA_IMAGE),
+                         rrb.Spatial2DView(name="Colour camera", origin=COLOR_IMAGE)),
                 rrb.Spatial2DView(name="Projector", origin=PROJECTOR_IMAGE),
                 rrb.TimeSeriesView(name="Tracking", origin=PLOTS),
                 row_shares=[2, 2, 2],
@@ -127,6 +131,30 @@ class RerunLog:
             small = downsample_for_display(depth_m)
             self.rec.log(DEPTH, rr.DepthImage(np.round(small * 1000.0).astype(np.uint16), meter=1000.0))
 
+    def log_image_streams(self, streams) -> None:
+        """The colour camera's pose in the depth camera (T_depth_color) and its pinhole, once (static).
+
+        streams : :class:`app.image_streams.ImageStreams` or None. The infrared image needs nothing:
+        it is logged under the depth camera's own pinhole.
+        """
+        import rerun as rr
+
+        if streams is None or streams.color is None:
+            return
+        display = display_camera(streams.color.camera)
+        self.rec.log(COLOR, transform(streams.color.T_depth_color), static=True)
+        self.rec.log(COLOR_IMAGE, rr.Pinhole(image_from_camera=display.K, resolution=[display.width, display.height],
+                                             camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.1), static=True)
+
+    def log_images(self, infrared: np.ndarray | None = None, color: np.ndarray | None = None) -> None:
+        """The frame's infrared (H, W) uint8 and colour (Hc, Wc, 3) uint8 RGB, at the display width, JPEG-compressed."""
+        import rerun as rr
+
+        if infrared is not None:
+            self.rec.log(INFRARED, rr.Image(image_for_display(infrared), color_model="L").compress(jpeg_quality=85))
+        if color is not None:
+            self.rec.log(COLOR_IMAGE, rr.Image(image_for_display(color), color_model="RGB").compress(jpeg_quality=85))
+
     def log_flange_path(self, p_base_flange: np.ndarray) -> None:
         import rerun as rr
 
@@ -168,6 +196,16 @@ def display_camera(camera: PinholeCamera) -> PinholeCamera:
     width = min(DISPLAY_WIDTH, camera.width)
     height = int(round(camera.height * width / camera.width))
     return camera.resized(width, height)
+
+
+def image_for_display(image: np.ndarray) -> np.ndarray:
+    """An 8-bit infrared or colour image averaged down (area) to ``DISPLAY_WIDTH`` columns."""
+    import cv2
+
+    h, w = image.shape[:2]
+    if w <= DISPLAY_WIDTH:
+        return image
+    return cv2.resize(image, (DISPLAY_WIDTH, int(round(h * DISPLAY_WIDTH / w))), interpolation=cv2.INTER_AREA)
 
 
 def downsample_for_display(depth_m: np.ndarray) -> np.ndarray:

@@ -96,6 +96,7 @@ def log_trial(trial_dir: str | Path, save: str | Path | None = None, every: int 
     mesh = reader.load_mesh()
     sink.log_static_scene(reader.meta.camera, np.asarray(mesh.vertices), np.asarray(mesh.faces),
                           with_groundtruth=reader.groundtruth is not None)
+    sink.log_image_streams(reader.meta.streams)
     T_base_camera, valid = reader.camera_poses()
     q_joints = reader.joints
     T_base_flange_path = forward_kinematics(reader.meta.dh, q_joints[:: max(1, len(q_joints) // 2000)])
@@ -111,6 +112,8 @@ def log_trial(trial_dir: str | Path, save: str | Path | None = None, every: int 
         depth = frame.depth_m if i % every == 0 else None
         sink.log_camera(T_base_camera[i] @ T_camera_flange if pose_ok else None,
                         T_base_camera[i] if pose_ok else None, depth)
+        if depth is not None:
+            sink.log_images(frame.infrared, frame.color)
         if reader.groundtruth is not None:
             sink.log_bone("groundtruth", reader.groundtruth[i])
         if frame.frame_id in occlusion:

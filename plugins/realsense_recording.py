@@ -1,0 +1,129 @@
+"""Writing RealSense recordings (``.bag`` / ``.db3``) with the SDK's own software device and recorder.
+
+The tests use it to make recordings the RealSense plugin plays exactly as it plays a camera's; it
+is also a way to turn a trial into a file the RealSense Viewer opens. Streams as on a D415:
+depth (z16) and the left infrared imager (y8, index 1) on the "Stereo Module" sensor, colour
+(rgb8) with the extrinsics depth -> colour registered
+(``T_color_depth``, the inverse of a trial's ``T_depth_color``) and the emitter state stored as the
+depth sensor's read-only ``emitter_enabled`` option. Frames of one instant share a timestamp and
+frame number; the software device's matcher (depth + infrared + colour) groups them for playback.
+
+The colour stream is written on the "Stereo Module" sensor too, not on a separate "RGB Camera"
+sensor as a D415 has it (``separate_color_sensor=True`` does that): with pyrealsense2 2.59, a
+recording whose streams come from two sensors sometimes plays back nothing, or only its last
+frameset, through a pipeline (measured: 1 run in 4 gave no frame; 8 of 8 runs with one sensor
+delivered every frame). A camera's own two-sensor recordings may therefore play unreliably.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from app.geometry import se3
+from app.geometry.camera import PinholeCamera
+from app.image_streams import ColorStream
+
+
+def _intrinsics(rs, camera: PinholeCamera, distortion=None):
+    intr = rs.intrinsics()
+    intr.width, intr.height = camera.width, camera.height
+    intr.fx, intr.fy = float(camera.K[0, 0]), float(camera.K[1, 1])
+    intr.ppx, intr.ppy = float(camera.K[0, 2]), float(camera.K[1, 2])
+    intr.model = rs.distortion.brown_conrady   # OpenCV's k1, k2, p1, p2, k3
+    intr.coeffs = [float(c) for c in (np.zeros(5) if distortion is None else distortion)]
+    return intr
+
+
+def _video_stream(rs, kind, index: int, uid: int, camera: PinholeCamera, fmt, bpp: int, fps: int, distortion=None):
+    stream = rs.video_stream()
+    stream.type, stream.index, stream.uid = kind, index, uid
+    stream.width, stream.height, stream.fps, stream.bpp = camera.width, camera.height, int(fps), bpp
+    stream.fmt = fmt
+    stream.intrinsics = _intrinsics(rs, camera, distortion)
+    return stream
+
+
+def _extrinsics(rs, T_to_from: np.ndarray):
+    """rs.extrinsics of a pose T_to_from (rotation stored column-major, as librealsense does)."""
+    ext = rs.extrinsics()
+    ext.rotation = [float(x) for x in np.asarray(T_to_from)[:3, :3].T.ravel()]
+    ext.translation = [float(x) for x in np.asarray(T_to_from)[:3, 3]]
+    return ext
+
+
+def write_recording(path: str | Path, depth_units: np.ndarray, stamps_s: np.ndarray, camera: PinholeCamera,
+                    depth_scale: float, fps: int = 30, frame_numbers: np.ndarray | None = None,
+                    infrared: np.ndarray | None = None, color: np.ndarray | None = None,
+                    color_stream: ColorStream | None = None, emitter: bool | None = None,
+                    separate_color_sensor: bool = False) -> Path:
+    """Write z16 depth frames (and optionally y8 infrared and rgb8 colour frames) to a RealSense recording.
+
+    Parameters
+    ----------
+    path : output file; its suffix must be one the installed SDK records (``.bag`` up to
+        librealsense 2.56, ``.db3`` from 2.58): use :func:`plugins.realsense.recording_suffix`
+    depth_units : (N, H, W) uint16 depth in units of ``depth_scale`` metres
+    stamps_s : (N,) frame timestamps, s (stored as hardware-clock milliseconds)
+    camera : the depth (and infrared) intrinsics to store
+    infrared : (N, H, W) uint8 left-imager frames, or None
+    color, color_stream : (N, Hc, Wc, 3) uint8 RGB frames and their camera (K, distortion, T_depth_color)
+    emitter : stored as the depth sensor's ``emitter_enabled`` option (None: not stored)
+    """
+    from plugins.realsense import _rs
+
+    rs = _rs()
+    depth_units = np.ascontiguousarray(depth_units, dtype=np.uint16)
+    n, height, width = depth_units.shape
+    if (width, height) != (camera.width, camera.height):
+        raise ValueError(f"frames are {width}x{height}, the camera is {camera.width}x{camera.height}")
+    if (color is None) != (color_stream is None):
+        raise ValueError("give both color frames and color_stream, or neither")
+    device = rs.software_device()
+    streams = [("depth", depth_units, 2)]
+    if infrared is not None or color is not None:
+        device.create_matcher(rs.matchers.di_c if infrared is not None and color is not None else
+                              rs.matchers.di if infrared is not None else rs.matchers.default)
+    stereo = device.add_sensor("Stereo Module" if infrared is not None or color is not None else "Depth")
+    profiles = {"depth": stereo.add_video_stream(_video_stream(rs, rs.stream.depth, 0, 0, camera, rs.format.z16, 2, fps))}
+    stereo.add_read_only_option(rs.option.depth_units, float(depth_scale))
+    if emitter is not None:
+        stereo.add_read_only_option(rs.option.emitter_enabled, 1.0 if emitter else 0.0)
+    if infrared is not None:
+        profiles["ir"] = stereo.add_video_stream(_video_stream(rs, rs.stream.infrared, 1, 1, camera, rs.format.y8, 1, fps))
+        streams.append(("ir", np.ascontiguousarray(infrared, dtype=np.uint8), 1))
+    rgb_sensor = None
+    if color is not None:
+        rgb_sensor = device.add_sensor("RGB Camera") if separate_color_sensor else stereo
+        profiles["color"] = rgb_sensor.add_video_stream(_video_stream(rs, rs.stream.color, 0, 2, color_stream.camera,
+                                                                      rs.format.rgb8, 3, fps, color_stream.distortion))
+        profiles["depth"].register_extrinsics_to(profiles["color"], _extrinsics(rs, se3.inverse(color_stream.T_depth_color)))
+        streams.append(("color", np.ascontiguousarray(color, dtype=np.uint8), 3))
+    recorder = rs.recorder(str(Path(path)), device)
+    stereo.open([profiles[k] for k in ("depth", "ir", "color") if k in profiles and (k != "color" or rgb_sensor is stereo)])
+    queue = rs.frame_queue(16)
+    stereo.start(queue)
+    if rgb_sensor is not None and rgb_sensor is not stereo:
+        rgb_sensor.open(profiles["color"])
+        rgb_sensor.start(queue)
+    numbers = np.arange(n) if frame_numbers is None else np.asarray(frame_numbers)
+    for k in range(n):
+        for name, frames, bpp in streams:
+            frame = rs.software_video_frame()
+            frame.pixels = frames[k]
+            frame.bpp, frame.stride = bpp, bpp * frames.shape[2]
+            frame.timestamp = float(stamps_s[k] * 1e3)
+            frame.domain = rs.timestamp_domain.hardware_clock
+            frame.frame_number = int(numbers[k])
+            frame.profile = profiles[name].as_video_stream_profile()
+            (rgb_sensor if name == "color" else stereo).on_video_frame(frame)
+        while queue.poll_for_frame():
+            pass
+    time.sleep(0.05)
+    for sensor in (stereo, rgb_sensor if rgb_sensor is not stereo else None):
+        if sensor is not None:
+            sensor.stop()
+            sensor.close()
+    del recorder  # the file is finalised when the recorder goes away
+    return Path(path)
