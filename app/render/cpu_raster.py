@@ -28,7 +28,7 @@ background ratio with the occluder margin, α tempering or the pixel-count regul
 4.37), packed into a float64 vector by :func:`pack_params`.
 
 Parallelism: ``prange`` over chunks of hypotheses (hypothesis j goes to chunk j mod C); each chunk
-owns one z-buffer, cleared only inside the boxes its triangles touched.
+owns one z-buffer, read and cleared only inside the pixel box of the pose's projected vertices.
 """
 from __future__ import annotations
 
@@ -77,7 +77,7 @@ def pack_params(p: LikelihoodParams) -> np.ndarray:
 # ---------------------------------------------------------------- rasterisation
 
 @_njit()
-def _raster_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, cam, cull, zbuf, box):
+def _raster_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, cam, cull, zbuf):
     """Z-buffer one projected triangle (pixel coordinates u, v and 1 / z of its vertices, all with
     z >= near); with ``cull`` a triangle of area >= 0 (n · a >= 0: facing away) is skipped."""
     area = (ub - ua) * (vc - va) - (uc - ua) * (vb - va)
@@ -93,8 +93,6 @@ def _raster_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, cam, cull, zbuf, box
     if v_lo > v_hi:
         return
     i_u0, i_u1, i_v0, i_v1 = int(u_lo), int(u_hi), int(v_lo), int(v_hi)
-    box[0], box[1] = min(box[0], i_u0), min(box[1], i_v0)
-    box[2], box[3] = max(box[2], i_u1), max(box[3], i_v1)
     # barycentrics as affine functions of the pixel centre: b_k = (C_k + A_k u + B_k v) / area
     inv_area = 1.0 / area
     a_a, b_a, c_a = (vb - vc) * inv_area, (uc - ub) * inv_area, (ub * vc - uc * vb) * inv_area
@@ -118,11 +116,11 @@ def _raster_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, cam, cull, zbuf, box
 
 
 @_njit()
-def _raster_camera_triangle(x0, y0, z0, x1, y1, z1, x2, y2, z2, cam, cull, zbuf, box):
+def _raster_camera_triangle(x0, y0, z0, x1, y1, z1, x2, y2, z2, cam, cull, zbuf):
     """Project a triangle given in the camera frame (z >= near) and z-buffer it."""
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     _raster_triangle(fx * x0 / z0 + cx, fy * y0 / z0 + cy, 1.0 / z0, fx * x1 / z1 + cx, fy * y1 / z1 + cy, 1.0 / z1,
-                     fx * x2 / z2 + cx, fy * y2 / z2 + cy, 1.0 / z2, cam, cull, zbuf, box)
+                     fx * x2 / z2 + cx, fy * y2 / z2 + cy, 1.0 / z2, cam, cull, zbuf)
 
 
 @_njit()
@@ -148,21 +146,31 @@ def _clip_near(p, i0, i1, i2, near, poly):
 
 @_njit()
 def _render_one(T, vertices, faces, cam, cull, p, poly, zbuf, box):
-    """Z-buffer the mesh at pose T (camera <- bone) into ``zbuf`` (all 0 on entry); ``box`` gets the
-    inclusive pixel box (u0, v0, u1, v1) that holds every written pixel (empty: u1 < u0).
+    """Z-buffer the mesh at pose T (camera <- bone) into ``zbuf`` (all 0 on entry); ``box`` gets an
+    inclusive pixel box (u0, v0, u1, v1) that holds every written pixel (empty: u1 < u0): the
+    projected vertices' bounding box, or the whole image when a vertex lies before the near plane.
 
     ``p`` (V, 6) scratch: camera-frame x, y, z and, for z >= near, pixel u, v and 1 / z per vertex.
     Culling compares the projected area's sign: for vertices in front of the camera
     sign(area) = sign(det[a, b, c]) = sign(n · a); a clipped triangle uses n · a itself.
     """
     fx, fy, cx, cy, near, far = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5]
+    u_min, v_min, u_max, v_max = np.inf, np.inf, -np.inf, -np.inf
     for i in range(vertices.shape[0]):
         for r in range(3):
             p[i, r] = T[r, 0] * vertices[i, 0] + T[r, 1] * vertices[i, 1] + T[r, 2] * vertices[i, 2] + T[r, 3]
         if p[i, 2] >= near:
             iz = 1.0 / p[i, 2]
             p[i, 3], p[i, 4], p[i, 5] = fx * p[i, 0] * iz + cx, fy * p[i, 1] * iz + cy, iz
-    box[0], box[1], box[2], box[3] = zbuf.shape[1], zbuf.shape[0], -1, -1
+            u_min, u_max = min(u_min, p[i, 3]), max(u_max, p[i, 3])
+            v_min, v_max = min(v_min, p[i, 4]), max(v_max, p[i, 4])
+        else:                                   # clipped triangles can reach anywhere
+            u_min, v_min, u_max, v_max = -np.inf, -np.inf, np.inf, np.inf
+    # the box of every pixel centre the projected vertices' hull can cover (conservative)
+    h, w = zbuf.shape
+    # clamp before rounding: numba's ceil/floor return int64, which cannot hold ±inf
+    box[0], box[1] = math.ceil(min(max(u_min, 0.0), w)), math.ceil(min(max(v_min, 0.0), h))
+    box[2], box[3] = math.floor(max(min(u_max, w - 1.0), -1.0)), math.floor(max(min(v_max, h - 1.0), -1.0))
     for f in range(faces.shape[0]):
         a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
         za, zb, zc = p[a, 2], p[b, 2], p[c, 2]
@@ -170,7 +178,7 @@ def _render_one(T, vertices, faces, cam, cull, p, poly, zbuf, box):
             if za > far and zb > far and zc > far:
                 continue
             _raster_triangle(p[a, 3], p[a, 4], p[a, 5], p[b, 3], p[b, 4], p[b, 5], p[c, 3], p[c, 4], p[c, 5],
-                             cam, cull, zbuf, box)
+                             cam, cull, zbuf)
         elif za >= near or zb >= near or zc >= near:
             if cull:
                 e1x, e1y, e1z = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1], p[b, 2] - p[a, 2]
@@ -181,7 +189,7 @@ def _render_one(T, vertices, faces, cam, cull, p, poly, zbuf, box):
             n = _clip_near(p, a, b, c, near, poly)
             for k in range(1, n - 1):
                 _raster_camera_triangle(poly[0, 0], poly[0, 1], poly[0, 2], poly[k, 0], poly[k, 1], poly[k, 2],
-                                        poly[k + 1, 0], poly[k + 1, 1], poly[k + 1, 2], cam, False, zbuf, box)
+                                        poly[k + 1, 0], poly[k + 1, 1], poly[k + 1, 2], cam, False, zbuf)
 
 
 @_njit(parallel=True)
@@ -219,28 +227,34 @@ def _normal_cdf(x):
 def _occlusion_density(z, z_star, sigma, prm):
     """p_e(z | z*): truncated exponential, or with prm[11] the smooth one of (B) eq. 4.33."""
     lam = prm[1]
-    norm = lam / (1.0 - math.exp(-lam * z_star))
     if prm[11] != 0.0:
         s2 = lam * sigma * sigma
         window = _normal_cdf((z_star - z + s2) / sigma) - _normal_cdf((s2 - z) / sigma)
-        return norm * math.exp(-lam * z + 0.5 * lam * s2) * window
+        return lam / (1.0 - math.exp(-lam * z_star)) * math.exp(-lam * z + 0.5 * lam * s2) * window
     if z > 0.0 and z < z_star:
-        return norm * math.exp(-lam * z)
+        return lam / (1.0 - math.exp(-lam * z_star)) * math.exp(-lam * z)
     return 0.0
 
 
 @_njit()
 def pixel_log_likelihood(z, z_star, prm):
-    """l_i of :func:`app.filter.likelihood_ref.pixel_log_likelihood` for one covered pixel (z* > 0)."""
+    """l_i of :func:`app.filter.likelihood_ref.pixel_log_likelihood` for one covered pixel (z* > 0).
+
+    Same value, fewer transcendental calls: a pixel the background ratio makes neutral returns 0
+    before any, and exp(-r²/2) is skipped where it is exactly 0.0 in float64 (r²/2 > 746).
+    """
     z_max, w_u, w_e, w_n, l0 = prm[0], prm[2], prm[3], prm[4], prm[7]
     classification, ratio = prm[12] != 0.0, prm[13] != 0.0
     p_u = w_u / z_max
     if not (z > 0.0 and z <= z_max):       # 0, negative, > z_max, NaN, ±inf: invalid
         l_invalid = _safe_log(p_u) - (l0 if classification else 0.0)
         return l_invalid - _safe_log(p_u) if ratio else l_invalid
+    if ratio and z < z_star - prm[10]:     # an occluder in front: says nothing about the bone
+        return 0.0
     sigma = prm[5] * z_star * z_star + prm[6]
     r = (z - z_star) / sigma
-    p_n = _INV_SQRT_2PI / sigma * math.exp(-0.5 * r * r)
+    half_r2 = 0.5 * r * r
+    p_n = _INV_SQRT_2PI / sigma * math.exp(-half_r2) if half_r2 < 746.0 else 0.0
     p_e = _occlusion_density(z, z_star, sigma, prm)
     if classification:
         l_obj = _safe_log(w_n * p_n)
@@ -248,11 +262,7 @@ def pixel_log_likelihood(z, z_star, prm):
         l = l_obj if l_obj >= l_bg else l_bg - l0
     else:
         l = _safe_log(p_u + w_e * p_e + w_n * p_n)
-    if ratio:
-        if z < z_star - prm[10]:
-            return 0.0
-        l += math.log(z_max)
-    return l
+    return l + math.log(z_max) if ratio else l
 
 
 @_njit()
