@@ -117,7 +117,7 @@ def _numba_cache_state() -> str:
     """'hit' when the fused kernel came from numba's on-disk cache in this process, else 'compiled'."""
     from app.render import cpu_raster
 
-    hits = sum(cpu_raster.log_likelihood_batch.stats.cache_hits.values())
+    hits = sum(cpu_raster.batch.stats.cache_hits.values())
     return "hit" if hits else "compiled"
 
 

@@ -192,24 +192,6 @@ def _render_one(T, vertices, faces, cam, cull, p, poly, zbuf, box):
                                         poly[k + 1, 0], poly[k + 1, 1], poly[k + 1, 2], cam, False, zbuf)
 
 
-@_njit(parallel=True)
-def render_batch(T_camera_bone, vertices, faces, cam, cull, zbufs, out):
-    """Rendered linear depth of every pose into ``out`` (N, h, w) float32 (0 = not covered)."""
-    n, chunks = T_camera_bone.shape[0], zbufs.shape[0]
-    for c in prange(chunks):
-        p = np.empty((vertices.shape[0], 6))
-        poly = np.empty((4, 3))
-        box = np.empty(4, np.int64)
-        zbuf = zbufs[c]
-        for j in range(c, n, chunks):
-            out[j, :, :] = 0.0
-            _render_one(T_camera_bone[j], vertices, faces, cam, cull, p, poly, zbuf, box)
-            for v in range(box[1], box[3] + 1):
-                for u in range(box[0], box[2] + 1):
-                    out[j, v, u] = zbuf[v, u]
-                    zbuf[v, u] = 0.0
-
-
 # ---------------------------------------------------------------- the pixel term (likelihood_ref.py)
 
 @_njit()
@@ -283,10 +265,12 @@ def _score_and_clear(depth_meas, zbuf, box, prm):
 
 
 @_njit(parallel=True)
-def log_likelihood_batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out):
-    """(N,) log p(z | x_j) into ``out``: render each pose and score it in one pass (no depth image
-    leaves the chunk's z-buffer)."""
+def batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out_ll, out_depth):
+    """Render every pose; with ``out_depth`` of N images copy its depth there (0 = not covered),
+    otherwise score it into ``out_ll[j]`` = log p(z | x_j) in the same pass (no depth image leaves
+    the chunk's z-buffer). One parallel kernel for both keeps numba's compile time down."""
     n, chunks = T_camera_bone.shape[0], zbufs.shape[0]
+    render = out_depth.shape[0] == n and n > 0
     for c in prange(chunks):
         p = np.empty((vertices.shape[0], 6))
         poly = np.empty((4, 3))
@@ -294,4 +278,24 @@ def log_likelihood_batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, 
         zbuf = zbufs[c]
         for j in range(c, n, chunks):
             _render_one(T_camera_bone[j], vertices, faces, cam, cull, p, poly, zbuf, box)
-            out[j] = _score_and_clear(depth_meas, zbuf, box, prm)
+            if not render:
+                out_ll[j] = _score_and_clear(depth_meas, zbuf, box, prm)
+                continue
+            out_depth[j, :, :] = 0.0
+            for v in range(box[1], box[3] + 1):
+                for u in range(box[0], box[2] + 1):
+                    out_depth[j, v, u] = zbuf[v, u]
+                    zbuf[v, u] = 0.0
+
+
+def log_likelihood_batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out):
+    """(N,) log p(z | x_j) into ``out`` (:func:`batch`)."""
+    no_depth = np.zeros((0, 1, 1), dtype=np.float32)
+    batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out, no_depth)
+
+
+def render_batch(T_camera_bone, vertices, faces, cam, cull, zbufs, out):
+    """Rendered linear depth of every pose into ``out`` (N, h, w) float32 (0 = not covered)."""
+    h, w = out.shape[1:]
+    batch(T_camera_bone, vertices, faces, cam, cull, np.zeros((h, w), np.float32), np.zeros(N_PARAMS),
+          zbufs, np.empty(len(out)), out)
