@@ -86,7 +86,7 @@ def test_the_tracker_runs_on_the_cpu_backend_and_the_summary_says_so(tmp_path):
     from app.pipeline.replay import replay
     from app.sim.simulator import simulate
 
-    simulate(tmp_path / "trial", scenario_name="static_clear", seconds=1.5, seed=11)
+    simulate(tmp_path / "trial", scenario_name="static_clear", seconds=0.8, seed=11)
     config = replace(load_config(None), backend="cpu")
     result = replay(tmp_path / "trial", tmp_path / "out", config, rrd=False, projector=False)
     add = np.asarray(result.errors["add_mm"])
