@@ -213,8 +213,8 @@ def test_log_likelihood_matches_the_reference_for_every_option(meshes, backend_n
     likelihood_case(meshes, backend_name, "default", "80x60", option, rng)
 
 
-@pytest.mark.parametrize("option", ["all", "background_ratio"])
-@pytest.mark.parametrize("resolution, mesh_name", [("160x120", "default"), ("80x60", "ct"), ("160x120", "ct")])
+@pytest.mark.parametrize("resolution, mesh_name, option", [("160x120", "default", "all"), ("80x60", "ct", "all"),
+                                                            ("160x120", "ct", "background_ratio")])
 @pytest.mark.parametrize("backend_name", list(BACKENDS))
 def test_log_likelihood_matches_the_reference_at_160x120_and_on_a_ct_crest(meshes, backend_name, mesh_name,
                                                                             resolution, option, rng):
