@@ -78,7 +78,7 @@ class TrackerConfig(FilterConfig):
     far: float = 4.0
     mesh_triangles: int = 1000
     cull_back_faces: bool = True
-    backend: str = "gl"
+    backend: str = "auto"
     seed: int = 0
     init_method: str = "pose"
     init_point_sigma: float = 0.005

@@ -41,6 +41,14 @@ class LikelihoodBackend(Protocol):
         """(N, 4, 4) poses -> (N, h, w) float32 linear depth in metres, image row order, 0 = not covered."""
         ...
 
+    def describe(self) -> str:
+        """One line naming the backend and where it runs (summaries, logs, benchmarks)."""
+        ...
+
+    def sync(self) -> None:
+        """Wait until the work issued so far is done (benchmarks time whole frames with it)."""
+        ...
+
     def release(self) -> None:
         """Free the backend's resources (GL objects); the backend is unusable afterwards."""
         ...
