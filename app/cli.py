@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except (OsteonavError, FileNotFoundError) as exc:
+    except (OsteonavError, OSError) as exc:   # OSError: a file system refusal the commands did not foresee
         print(f"osteonav {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

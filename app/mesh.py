@@ -21,8 +21,12 @@ MAX_EXTENT_M = 1.0   # no bone is a metre long: larger means millimetres
 MIN_EXTENT_M = 0.005
 
 
-def load_mesh(path: str | Path) -> trimesh.Trimesh:
-    """One triangle mesh from any file trimesh reads (a scene's geometries are merged)."""
+def load_mesh(path: str | Path, check: bool = True) -> trimesh.Trimesh:
+    """One triangle mesh from any file trimesh reads (a scene's geometries are merged).
+
+    ``check`` (default): also :func:`check_units`, so every mesh osteonav loads is in metres;
+    only prepare-mesh, which scales first, loads without it.
+    """
     path = Path(path)
     if not path.exists():
         raise MeshError(f"{path}: mesh file not found")
@@ -34,17 +38,24 @@ def load_mesh(path: str | Path) -> trimesh.Trimesh:
         raise MeshError(f"{path}: no triangles found")
     if not np.all(np.isfinite(loaded.vertices)):
         raise MeshError(f"{path}: vertices contain NaN or infinite values")
+    if check:
+        check_units(loaded, path)
     return loaded
 
 
 def check_units(mesh: trimesh.Trimesh, source: str | Path = "mesh") -> None:
-    """Raise :class:`MeshError` unless the mesh's size is plausible for a bone in metres."""
+    """Raise :class:`MeshError` unless the mesh's size is plausible for a bone in metres.
+
+    The message gives the fix: the prepare-mesh command line that converts the file.
+    """
     extent = float(np.max(mesh.extents))
+    out = Path(str(source)).with_name(Path(str(source)).stem + "_m.ply")
     if extent > MAX_EXTENT_M:
-        raise MeshError(f"{source}: largest extent is {extent:g}; this looks like millimetres, osteonav needs metres. "
-                        "Convert it with: osteonav prepare-mesh INPUT --out OUTPUT --scale 0.001")
+        raise MeshError(f"mesh {source} is ~{extent:.3g} m across: it looks like millimetres (osteonav needs "
+                        f"metres); run: osteonav prepare-mesh {source} --out {out} --scale 0.001")
     if extent < MIN_EXTENT_M:
-        raise MeshError(f"{source}: largest extent is {extent:g} m, too small for a bone; check the units")
+        raise MeshError(f"mesh {source} is ~{extent:.3g} m across, too small for a bone; check its units "
+                        f"(osteonav prepare-mesh {source} --out {out} --scale S converts them)")
 
 
 def decimate(mesh: trimesh.Trimesh, max_triangles: int) -> trimesh.Trimesh:

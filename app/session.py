@@ -112,9 +112,9 @@ class SessionConfig:
     loop: LoopConfig = field(default_factory=LoopConfig)
 
 
-def _allowed(key: str, value: Any, allowed) -> None:
+def _allowed(key: str, value: Any, allowed, src: str | None = None) -> None:
     if value not in allowed:
-        raise ConfigError(key, f"got {value!r}; allowed: {', '.join(map(str, allowed))}")
+        raise ConfigError(key, f"got {value!r}; allowed: {', '.join(map(str, allowed))}", src)
 
 
 def _mapping(key: str, value: Any, src: str) -> dict:
@@ -167,11 +167,11 @@ def _plugin(kind: str, value: Any, base: Path, src: str, default: str | None = N
     key = kind
     block = {"plugin": default} if value is None and default else _mapping(key, value, src)
     for k in block:
-        _allowed(f"{key}.{k}", k, ("plugin", "params", "model", "dh") if kind == "robot" else ("plugin", "params"))
+        _allowed(f"{key}.{k}", k, ("plugin", "params", "model", "dh") if kind == "robot" else ("plugin", "params"), src)
     name = block.get("plugin")
     if name is None:
         raise ConfigError(f"{key}.plugin", f"missing; allowed: {', '.join(registry.available(kind))}", src)
-    _allowed(f"{key}.plugin", name, registry.available(kind))
+    _allowed(f"{key}.plugin", name, registry.available(kind), src)
     params = dict(_mapping(f"{key}.params", block.get("params"), src))
     for k, v in params.items():
         if k in INPUT_PATH_PARAMS and isinstance(v, str):
@@ -197,7 +197,7 @@ def load_session(path: str | Path, overrides: dict | None = None) -> SessionConf
 
 def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | None = None) -> SessionConfig:
     for k in raw:
-        _allowed(k, k, TOP_KEYS)
+        _allowed(k, k, TOP_KEYS, src)
     if raw.get("format", FORMAT) != FORMAT:
         raise ConfigError("format", f"got {raw['format']!r}; allowed: {FORMAT}", src)
     for k in ("camera", "robot"):
@@ -227,7 +227,7 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
         outputs.append(spec)
     calib = _mapping("calibration", raw.get("calibration"), src)
     for k in calib:
-        _allowed(f"calibration.{k}", k, ("hand_eye", "intrinsics"))
+        _allowed(f"calibration.{k}", k, ("hand_eye", "intrinsics"), src)
     intrinsics = None
     if calib.get("intrinsics") is not None:
         value = calib["intrinsics"]
@@ -243,14 +243,14 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
             raise ConfigError("calibration.intrinsics", f"expected width, height and K (3x3): {exc}", src) from None
     bone = _mapping("bone", raw.get("bone"), src)
     for k in bone:
-        _allowed(f"bone.{k}", k, ("mesh", "initial_pose"))
+        _allowed(f"bone.{k}", k, ("mesh", "initial_pose"), src)
     mesh = _resolve(base, bone.get("mesh"))
     if mesh is not None and not mesh.is_file():
         raise ConfigError("bone.mesh", f"file not found: {mesh}", src)
     loop_raw = _mapping("loop", raw.get("loop"), src)
     loop = LoopConfig()
     for k, v in loop_raw.items():
-        _allowed(f"loop.{k}", k, tuple(LoopConfig.__dataclass_fields__))
+        _allowed(f"loop.{k}", k, tuple(LoopConfig.__dataclass_fields__), src)
         if v is not None and (not isinstance(v, (int, float)) or isinstance(v, bool) or v <= 0):
             raise ConfigError(f"loop.{k}", f"expected a positive number, got {v!r}", src)
         setattr(loop, k, v)

@@ -102,7 +102,7 @@ def test_unreadable_png(trial):
 
 # ---------------------------------------------------------------- frames.csv
 
-@pytest.mark.parametrize("line, row, message", [
+FRAMES_CASES = [
     (3, "{id1},{s0}", "stamps must increase strictly"),            # equal stamp
     (3, "{id0},{s2}", "frame ids must increase strictly"),
     (4, "{id2},{s1}", "stamps must increase strictly"),
@@ -110,13 +110,20 @@ def test_unreadable_png(trial):
     (2, "{id0},nan", "stamp must be finite"),
     (2, "{id0}", "expected 2 values"),
     (1, "frame,time", "expected the header 'frame,stamp'"),
-])
-def test_bad_frames_csv_names_the_line(trial, line, row, message):
-    out, w = trial
+]
+
+
+def break_frames_csv(out, w, line: int, row: str) -> None:
+    """Replace line ``line`` of frames.csv by ``row`` with {id0} {s0} ... filled from the trial."""
     ids, s = w["frame_ids"], w["stamps"]
     fields = {"id0": ids[0], "id1": ids[1], "id2": ids[2], "s0": f"{s[0]:.9f}", "s1": f"{s[1]:.9f}", "s2": f"{s[2]:.9f}"}
-    row = row.format(**fields)
-    edit_line(out / "frames.csv", line, row)
+    edit_line(out / "frames.csv", line, row.format(**fields))
+
+
+@pytest.mark.parametrize("line, row, message", FRAMES_CASES)
+def test_bad_frames_csv_names_the_line(trial, line, row, message):
+    out, w = trial
+    break_frames_csv(out, w, line, row)
     with pytest.raises(TrialFormatError, match=err(out / "frames.csv", f"(line {line})", message)):
         open_trial(out)
 
@@ -125,7 +132,21 @@ def test_truncated_frames_row_without_interruption_marker_is_an_error(trial):
     out, _ = trial
     with open(out / "frames.csv", "a") as f:
         f.write("999,")
-    with pytest.raises(TrialFormatError, match=err(out / "frames.csv", "(line 6)", "stamp must be a number")):
+    with pytest.raises(TrialFormatError, match=err(out / "frames.csv", "(line 6)", "no line end")):
+        open_trial(out)
+
+
+@pytest.mark.parametrize("groundtruth", [True, False], ids=["with-groundtruth", "without-groundtruth"])
+def test_frames_csv_cut_mid_line_names_frames_csv_and_the_line(trial, groundtruth):
+    """A copy cut short inside a row (here in line 4's stamp) used to replay the first rows silently
+    without groundtruth.txt, and to blame groundtruth.txt with it."""
+    out, _ = trial
+    if not groundtruth:
+        (out / "groundtruth.txt").unlink()
+    text = (out / "frames.csv").read_text()
+    cut = text.index("\n", text.index("\n", text.index("\n") + 1) + 1) + 6   # 5 characters into line 4
+    (out / "frames.csv").write_text(text[:cut])
+    with pytest.raises(TrialFormatError, match=err(out / "frames.csv", "(line 4)", "no line end")):
         open_trial(out)
 
 
@@ -214,7 +235,7 @@ def test_trial_yaml_not_yaml_names_the_line(trial):
         open_trial(out)
 
 
-@pytest.mark.parametrize("key, change, message", [
+YAML_CASES = [
     ("format", lambda d: d.update(format="osteonav-trial/2"), "expected 'osteonav-trial/1'"),
     ("format", lambda d: d.pop("format"), "missing"),
     ("hand_eye", lambda d: d.pop("hand_eye"), "missing"),
@@ -232,7 +253,10 @@ def test_trial_yaml_not_yaml_names_the_line(trial):
     ("initial_pose", lambda d: d.update(initial_pose=[[1, 0, 0, 0]]), "4x4 matrix"),
     ("point_prior", lambda d: d.update(point_prior=[1, "a", 2]), "expected a number, got 'a'"),
     ("mesh", lambda d: d.update(mesh=3), "expected a file name"),
-])
+]
+
+
+@pytest.mark.parametrize("key, change, message", YAML_CASES)
 def test_malformed_trial_yaml_names_the_key(trial, key, change, message):
     out, _ = trial
     rewrite_yaml(out, change)

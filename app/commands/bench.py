@@ -1,6 +1,8 @@
 """``osteonav bench``: every configuration on every trial, one table (see :mod:`app.bench.bench`)."""
 from __future__ import annotations
 
+from app.commands.outdir import PLOTS, add_overwrite_argument, prepare_dir
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -23,6 +25,7 @@ def register(subparsers) -> None:
     p.add_argument("--out", help="keep each run's estimate.txt / status.csv under OUT/<config>/<mesh>/<scenario>")
     p.add_argument("--no-vsd", action="store_true", help="skip VSD (saves two renderings per frame)")
     p.add_argument("--markdown", action="store_true", help="print the table as Markdown")
+    add_overwrite_argument(p, "the --plots and --out folders' earlier contents")
     p.set_defaults(func=run)
 
 
@@ -39,6 +42,10 @@ def run(args) -> int:
     if args.seconds is not None and args.seconds <= 0:
         raise ConfigError("--seconds", f"expected a duration > 0 s, got {args.seconds}")
     configs = bench.resolve_configs(args.configs)
+    if args.plots:
+        prepare_dir(args.plots, args.overwrite, PLOTS, "--plots")
+    if args.out:
+        prepare_dir(args.out, args.overwrite, tuple(c.name for c in configs), "--out")
     seconds = args.seconds or (bench.QUICK_SECONDS if args.quick else None)
     if args.trials:
         trials = bench.recorded_trials(args.trials, seconds)

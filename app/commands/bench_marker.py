@@ -6,7 +6,9 @@ from __future__ import annotations
 def register(subparsers) -> None:
     p = subparsers.add_parser("bench-marker", help="marker + IMU (publication C): errors and rates of marker-only, "
                                                    "IMU-only and fused tracking on simulated sequences")
-    p.add_argument("--seconds", type=float, default=60.0, help="length of each simulated sequence (s)")
+    p.add_argument("--seconds", type=float, default=60.0,
+                   help="length of each simulated sequence, s; must exceed 5 (registration and transfer take the "
+                        "first 3 s) (default %(default)s)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="one sequence per seed; the table averages them")
     p.add_argument("--camera-fps", type=float, default=10.0, help="camera (marker) rate, Hz")
     p.add_argument("--imu-rate", type=float, default=100.0, help="IMU rate, Hz")
@@ -25,7 +27,8 @@ def run(args) -> int:
     from app.marker import bench
 
     if args.seconds <= 5.0:
-        raise OsteonavError(f"--seconds must exceed 5 (registration and transfer take 3 s), got {args.seconds}")
+        raise OsteonavError(f"--seconds must exceed 5 (registration and transfer take the first 3 s), got "
+                            f"{args.seconds:g}; try --seconds 10")
     extra = {} if args.yaw_drift is None else {"yaw_drift_deg_s": args.yaw_drift}
     runs = []
     for seed in args.seeds:

@@ -1,4 +1,4 @@
-"""``osteonav calibrate``: camera intrinsics (ChArUco) and eye-in-hand hand-eye calibration.
+"""``osteonav calibrate``: camera intrinsics (ChArUco), eye-in-hand hand-eye and projector calibration.
 
 Subcommands::
 
@@ -14,6 +14,10 @@ Try it without hardware::
     osteonav calibrate simulate --out /tmp/cal --noise
     osteonav calibrate intrinsics --images /tmp/cal/images --out /tmp/cal/camera_fit.yaml
     osteonav calibrate hand-eye --captures /tmp/cal --rrd /tmp/cal/hand_eye.rrd
+    osteonav calibrate projector --simulate 5 --captures /tmp/projcal
+
+Every step refuses to replace an earlier output (a non-empty capture folder, an existing YAML or
+.rrd) unless given --overwrite, which first removes that step's own earlier outputs.
 
 Formats: the board SPEC in ``calibration.board``, capture folders in ``calibration.captures``,
 the camera YAML in ``calibration.intrinsics``, the hand-eye YAML in ``calibration.handeye``.
@@ -22,7 +26,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import re
+import sys
 from pathlib import Path
+
+from app.commands.outdir import CAPTURES, PROJECTOR_CAPTURES, add_overwrite_argument, prepare_dir, prepare_file
 
 log = logging.getLogger(__name__)
 
@@ -31,8 +39,8 @@ DEFAULT_BOARD = "charuco:7x5:0.04:0.03:DICT_5X5_100"   # = calibration.board.DEF
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "calibrate", help="camera intrinsics and hand-eye calibration (ChArUco board)",
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+        "calibrate", help="camera intrinsics, hand-eye and projector calibration (ChArUco board)",
+        description=_plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="calibrate_command", metavar="STEP")
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 
@@ -42,8 +50,11 @@ def register(subparsers) -> None:
                    help=f"board SPEC 'charuco:SXxSY:SQUARE_M:MARKER_M:DICT' or a YAML file "
                         f"(default {DEFAULT_BOARD})")
     s.add_argument("--out", type=Path, help="camera YAML to write (default IMAGES/camera.yaml)")
-    s.add_argument("--fix-k3", action="store_true",
-                   help="keep the distortion's k3 at 0 (ordinary lenses, few views)")
+    k3 = s.add_mutually_exclusive_group()
+    k3.add_argument("--fix-k3", action="store_true",
+                    help="keep the distortion's k3 at 0 (default: fixed unless freeing it lowers the RMS by 5 %%)")
+    k3.add_argument("--free-k3", action="store_true", help="always estimate k3")
+    add_overwrite_argument(s, "an existing --out file")
     s.set_defaults(func=run_intrinsics)
 
     s = sub.add_parser("hand-eye", help="T_flange_camera from captures (AX = XB), all methods compared")
@@ -57,6 +68,7 @@ def register(subparsers) -> None:
                    help="method whose result is written (auto: lowest reprojection error)")
     s.add_argument("--out", type=Path, help="hand-eye YAML to write (default CAPTURES/hand_eye.yaml)")
     s.add_argument("--rrd", type=Path, help="also log captures, frusta and board to this rerun file")
+    add_overwrite_argument(s, "existing --out / --rrd files")
     s.set_defaults(func=run_hand_eye)
 
     s = sub.add_parser("capture", help="collect captures live from a session's camera and robot")
@@ -64,6 +76,7 @@ def register(subparsers) -> None:
     s.add_argument("--out", required=True, type=Path, help="capture folder to create")
     s.add_argument("--count", type=int, default=15, help="captures to take (default 15)")
     s.add_argument("--seed", type=int, default=0, help="seed of the simulated source")
+    add_overwrite_argument(s, "the captures in --out")
     s.set_defaults(func=run_capture)
 
     s = sub.add_parser("simulate", help="write a folder of simulated captures (no hardware needed)")
@@ -73,6 +86,7 @@ def register(subparsers) -> None:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--corrupt", default="",
                    help="captures to spoil, e.g. '3:blank,7:missing' (blank, noise, missing, garbage)")
+    add_overwrite_argument(s, "the captures in --out")
     s.set_defaults(func=run_simulate)
 
     s = sub.add_parser("projector", help="K_p and T_camera_projector from Gray-code captures of the board",
@@ -89,12 +103,24 @@ def register(subparsers) -> None:
                    help="first write N simulated board poses into CAPTURES (no hardware needed)")
     s.add_argument("--noise", action="store_true", help="with --simulate: image noise and blur")
     s.add_argument("--seed", type=int, default=0)
+    add_overwrite_argument(s, "the poses in --captures (with --simulate) and an existing --out file")
     s.set_defaults(func=run_projector)
 
 
-def run_projector(args) -> int:
-    from calibration.projector import run_command
+def _plain(doc: str) -> str:
+    """A docstring as --help text: no reST markup (``code``, ``::``)."""
+    return re.sub(r"::\n", ":\n", doc.replace("``", ""))
 
+
+def run_projector(args) -> int:
+    from app.errors import ConfigError
+    from calibration.projector import MIN_VIEWS, run_command
+
+    if args.simulate:
+        if args.simulate < MIN_VIEWS:
+            raise ConfigError("--simulate", f"at least {MIN_VIEWS} board poses needed, got {args.simulate}")
+        prepare_dir(args.captures, args.overwrite, PROJECTOR_CAPTURES, "--captures")
+    prepare_file(args.out or args.captures / "projector.yaml", args.overwrite)
     return run_command(args)
 
 
@@ -113,11 +139,14 @@ def run_intrinsics(args) -> int:
     from calibration.intrinsics import calibrate_intrinsics_folder, result_info, write_camera_yaml
 
     spec = _board_arg(args.board)
+    if not args.images.is_dir():
+        raise ConfigError("--images", f"image folder {args.images} does not exist")
+    out = prepare_file(args.out or args.images / "camera.yaml", args.overwrite)
     try:
-        result = calibrate_intrinsics_folder(args.images, spec, fix_k3=args.fix_k3)
+        result = calibrate_intrinsics_folder(args.images, spec,
+                                             fix_k3=True if args.fix_k3 else False if args.free_k3 else None)
     except ValueError as exc:
         raise ConfigError("--images", str(exc)) from None
-    out = args.out or args.images / "camera.yaml"
     write_camera_yaml(out, result.camera, result_info(result))
     K = result.camera.K
     print(f"board {result.board}: {len(result.per_image)} images used, {len(result.skipped)} skipped")
@@ -125,7 +154,9 @@ def run_intrinsics(args) -> int:
         print(f"  skipped {s['image']}: {s['reason']}")
     for r in result.per_image:
         print(f"  {r['image']}: {r['error_px']:.3f} px RMS ({r['corners']} corners)")
-    print(f"RMS reprojection error {result.rms_px:.3f} px")
+    print(f"RMS reprojection error {result.rms_px:.3f} px (k3 {result.k3})")
+    for warning in result.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     print(f"fx {K[0, 0]:.2f} fy {K[1, 1]:.2f} cx {K[0, 2]:.2f} cy {K[1, 2]:.2f}  "
           f"dist {[round(float(v), 5) for v in result.camera.dist]}")
     print(f"wrote {out}")
@@ -144,6 +175,10 @@ def run_hand_eye(args) -> int:
         raise ConfigError("--camera", f"no intrinsics: {camera_path} does not exist; run "
                           f"`osteonav calibrate intrinsics` first or pass --camera FILE")
     camera = read_camera_yaml(camera_path)
+    out = args.out or args.captures / "hand_eye.yaml"
+    prepare_file(out, args.overwrite)
+    if args.rrd is not None:
+        prepare_file(args.rrd, args.overwrite, "--rrd")
     board = _board_arg(args.board).to_string() if args.board else None
     robot = {"model": args.robot} if args.robot else None
     obs, skipped, robot = handeye.observations_from_folder(
@@ -154,7 +189,6 @@ def run_hand_eye(args) -> int:
         raise ConfigError("--captures", f"{args.captures}: {exc}") from None
     result.skipped = skipped
     data = handeye.result_to_dict(result, robot=robot, camera=camera.to_dict())
-    out = args.out or args.captures / "hand_eye.yaml"
     handeye.write_hand_eye_yaml(out, data)
 
     print(f"{len(obs)} captures used, {len(skipped)} skipped")
@@ -213,6 +247,42 @@ def _source_kind(config: dict, key: str, source: str) -> str:
     return value
 
 
+def _session_rig(path: Path, config: dict):
+    """The session's rig as a calibration SimulationConfig, and where it came from.
+
+    calibration.hand_eye and robot.model from the session file when given; otherwise the simulated
+    sources' own: the trial in their ``trial_dir`` when it exists, else the trial simulator's
+    constants (app.sim: T_FLANGE_CAMERA, the D415 640x480 intrinsics, a UR5e), which is the trial
+    those sources would simulate. So the captures solve for the hand-eye the session's trial uses.
+    """
+    import numpy as np
+
+    from app.session import _matrix4
+    from app.sim import world
+    from app.sim.simulator import D415_640x480
+    from calibration.simulator import SimulationConfig
+
+    camera, robot, T_flange_camera, source = D415_640x480, {"model": "ur5e"}, world.T_FLANGE_CAMERA, "app.sim"
+    params = (config.get("camera") or {}).get("params", {}) if isinstance(config.get("camera"), dict) else {}
+    trial_dir = params.get("trial_dir")
+    found = [d for d in (Path(str(trial_dir)), path.parent / str(trial_dir)) if (d / "trial.yaml").is_file()]
+    if trial_dir and found:   # the working directory's (as the plugin resolves it today), else the file's
+        from app.trial.meta import load_meta
+
+        meta = load_meta(found[0] / "trial.yaml")
+        camera, robot, T_flange_camera = meta.camera, dict(meta.robot), meta.T_flange_camera
+        source = str(found[0])
+    calib = config.get("calibration") if isinstance(config.get("calibration"), dict) else {}
+    if calib.get("hand_eye") is not None:
+        T_flange_camera, source = _matrix4("calibration.hand_eye", calib["hand_eye"], path.parent, str(path)), str(path)
+    robot_block = config.get("robot") if isinstance(config.get("robot"), dict) else {}
+    if "model" in robot_block or "dh" in robot_block:
+        robot = {k: robot_block[k] for k in ("model", "dh") if k in robot_block}
+    sim = SimulationConfig(width=camera.width, height=camera.height, K=np.asarray(camera.K, float), robot=robot,
+                           T_flange_camera=np.asarray(T_flange_camera, float))
+    return sim, source
+
+
 def run_capture(args) -> int:
     import numpy as np
     import yaml
@@ -221,18 +291,22 @@ def run_capture(args) -> int:
     from calibration.board import parse_board_spec
     from calibration.captures import CaptureWriter, collect_captures
     from calibration.intrinsics import CameraIntrinsics, write_camera_yaml
-    from calibration.simulator import SimulatedCaptureRig, SimulationConfig, make_scene, plan_captures
+    from calibration.simulator import SimulatedCaptureRig, make_scene, plan_captures
 
     if not args.config.is_file():
         raise ConfigError("--config", f"{args.config} does not exist")
-    config = yaml.safe_load(args.config.read_text()) or {}
+    try:
+        config = yaml.safe_load(args.config.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError("(file)", f"not valid YAML: {str(exc).splitlines()[0]}", str(args.config)) from None
     if not isinstance(config, dict):
         raise ConfigError("(top level)", "expected a mapping", str(args.config))
     _source_kind(config, "camera", str(args.config))
     _source_kind(config, "robot", str(args.config))
     if args.count < 1:
         raise ConfigError("--count", f"must be at least 1, got {args.count}")
-    sim = SimulationConfig()
+    sim, rig_source = _session_rig(args.config, config)
+    prepare_dir(args.out, args.overwrite, CAPTURES)
     rng = np.random.default_rng(args.seed)
     scene = make_scene(sim)
     rig = SimulatedCaptureRig(scene, plan_captures(scene, args.count, rng), rng)
@@ -240,7 +314,10 @@ def run_capture(args) -> int:
         n = collect_captures(rig, rig, w, args.count, trigger=rig.move)
     write_camera_yaml(args.out / "camera.yaml", CameraIntrinsics(sim.K, np.zeros(5), sim.width, sim.height),
                       {"source": "simulated camera (true intrinsics)"})
-    print(f"wrote {n} captures to {args.out}")
+    truth = {"note": "simulated session's rig; readers of capture folders ignore this file", "rig": rig_source,
+             "hand_eye": sim.T_flange_camera.tolist(), "T_base_board": scene.T_base_board.tolist()}
+    (args.out / "truth.yaml").write_text(yaml.safe_dump(truth, sort_keys=False, default_flow_style=None))
+    print(f"wrote {n} captures to {args.out} (the session's rig from {rig_source}; truth in truth.yaml)")
     return 0
 
 
@@ -272,6 +349,7 @@ def run_simulate(args) -> int:
     bad = [k for k in corrupt if not 0 <= k < args.captures]
     if bad:
         raise ConfigError("--corrupt", f"capture indices {bad} outside 0..{args.captures - 1}")
+    prepare_dir(args.out, args.overwrite, CAPTURES)
     config = noisy() if args.noise else SimulationConfig()
     try:
         truth = simulate_captures(args.out, args.captures, np.random.default_rng(args.seed), config,

@@ -8,6 +8,12 @@ moved the same way, p_out = scale * p_in - offset.
 """
 from __future__ import annotations
 
+from app.commands.outdir import add_overwrite_argument, prepare_file
+
+
+EXPORT_FORMATS = ("ply", "stl", "obj", "off", "glb")
+"""Mesh formats --out may name (all written by trimesh and read back by osteonav)."""
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("prepare-mesh", help="scale, centre and decimate a bone mesh for tracking")
@@ -16,10 +22,13 @@ def register(subparsers) -> None:
     p.add_argument("--triangles", type=int, default=1000, help="triangle budget (default 1000)")
     p.add_argument("--scale", type=float, default=1.0, help="scale factor to metres, e.g. 0.001 for millimetres")
     p.add_argument("--no-center", action="store_true", help="keep the mesh's own origin (no centring)")
+    add_overwrite_argument(p, "an existing --out file")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from pathlib import Path
+
     import numpy as np
 
     from app.errors import MeshError
@@ -29,12 +38,17 @@ def run(args) -> int:
         raise MeshError(f"--triangles must be at least 4, got {args.triangles}")
     if not args.scale > 0:
         raise MeshError(f"--scale must be positive, got {args.scale}")
-    mesh = load_mesh(args.input)
+    suffix = Path(args.out).suffix.lower().lstrip(".")
+    if suffix not in EXPORT_FORMATS:
+        raise MeshError(f"--out {args.out}: cannot write a mesh as {suffix or 'a file without a suffix'!r}; "
+                        f"use one of: {', '.join('.' + f for f in EXPORT_FORMATS)}")
+    mesh = load_mesh(args.input, check=False)
     n_in, extents_in = len(mesh.faces), mesh.extents.copy()
     if args.scale != 1.0:
         mesh.apply_scale(args.scale)
     check_units(mesh, args.input)
     out = prepare_mesh(mesh, max_triangles=args.triangles, center=not args.no_center)
+    prepare_file(args.out, args.overwrite)
     out.export(args.out)
     offset = np.asarray(out.metadata["centering_offset"])
     fmt = lambda v: "[" + ", ".join(f"{x:.6f}" for x in v) + "]"  # noqa: E731

@@ -8,6 +8,8 @@ tracked (no mesh needed beyond the trial's ``mesh``); ``--track`` also runs the 
 """
 from __future__ import annotations
 
+from app.commands.outdir import add_overwrite_argument
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("record", help="record a session's camera and robot streams as a trial")
@@ -16,13 +18,14 @@ def register(subparsers) -> None:
     p.add_argument("--track", action="store_true", help="also run the tracker (estimates in --track-out)")
     p.add_argument("--track-out", help="directory for the tracker's outputs (with --track)")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
+    add_overwrite_argument(p, "the trial in --out (and --track-out's outputs)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from pathlib import Path
 
-    from app.commands.track import print_summary
+    from app.commands.track import naming_the_session_file, prepare_session_dirs, print_summary
     from app.session import load_session, run_session
 
     overrides = {"record": str(Path(args.out).resolve())}
@@ -34,7 +37,9 @@ def run(args) -> int:
     config = load_session(args.config, overrides)
     if args.duration:
         config.loop.duration_s = args.duration
-    result = run_session(config)
-    print_summary(result.summary)
+    prepare_session_dirs(config, args.overwrite)
+    with naming_the_session_file(args.config):
+        result = run_session(config)
+    print_summary(result.summary, tracked=args.track)
     print(f"trial written to {args.out}")
     return 0

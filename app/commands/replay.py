@@ -1,5 +1,12 @@
-"""``osteonav replay TRIAL --out DIR [--config FILE] [--realtime]``: track a recorded trial."""
+"""``osteonav replay TRIAL --out DIR [--config FILE] [--realtime] [--overwrite]``: track a recorded trial.
+
+The projector's plan (configs/projector.yaml) is checked against the trial's mesh; when it does not
+fit, a plan of the same shape is placed on this mesh's ridge (one warning line; the summary names
+the plan), or the projector is skipped when nothing fits: a valid trial always replays.
+"""
 from __future__ import annotations
+
+from app.commands.outdir import REPLAY, add_overwrite_argument, prepare_dir
 
 
 def register(subparsers) -> None:
@@ -12,6 +19,7 @@ def register(subparsers) -> None:
     p.add_argument("--projector", help="projector and plan YAML (default: configs/projector.yaml)")
     p.add_argument("--no-projector", action="store_true", help="do not render the projector's template")
     p.add_argument("--projector-images", action="store_true", help="also write the projector images to OUT/projector/")
+    add_overwrite_argument(p, "OUT's replay outputs")
     p.set_defaults(func=run)
 
 
@@ -22,17 +30,23 @@ def run(args) -> int:
     from app.pipeline.replay import replay
     from app.pipeline.report import print_summary
 
+    from app.trial.reader import open_trial
+
     config = load_config(args.config)
+    open_trial(args.trial).load_mesh()   # a broken trial or mesh is refused before OUT is touched
+    prepare_dir(args.out, args.overwrite, REPLAY)
     bar = tqdm(desc="replay", unit="frame")
 
     def progress(done: int, total: int) -> None:
         bar.total = total
         bar.update(done - bar.n)
 
-    result = replay(args.trial, args.out, config, realtime=args.realtime, rrd=not args.no_rrd, progress=progress,
-                    projector=not args.no_projector, projector_config=args.projector,
-                    projector_images=args.projector_images)
-    bar.close()
+    try:
+        result = replay(args.trial, args.out, config, realtime=args.realtime, rrd=not args.no_rrd, progress=progress,
+                        projector=not args.no_projector, projector_config=args.projector,
+                        projector_images=args.projector_images)
+    finally:
+        bar.close()
     print_summary(result.summary)
     print(f"outputs in {args.out} (estimate.txt, status.csv, summary.json{', log.rrd' if not args.no_rrd else ''})")
     return 0

@@ -1,6 +1,8 @@
 """``osteonav simulate``: write a simulated recorded trial (see :mod:`app.sim.simulator`)."""
 from __future__ import annotations
 
+from app.commands.outdir import TRIAL, add_overwrite_argument, prepare_dir
+
 
 def register(subparsers) -> None:
     from app.sim.scenarios import DEFAULT_SCENARIO, SCENARIOS
@@ -14,7 +16,7 @@ def register(subparsers) -> None:
     p.add_argument("--scenario", default=DEFAULT_SCENARIO, help=f"one of: {', '.join(SCENARIOS)}")
     p.add_argument("--seconds", type=float, help="duration (default: the scenario's)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--overwrite", action="store_true", help="replace an existing trial in --out")
+    add_overwrite_argument(p, "the trial in --out")
     p.set_defaults(func=run)
 
 
@@ -27,13 +29,18 @@ def run(args) -> int:
 
     if args.scenario not in SCENARIOS:
         raise OsteonavError(f"unknown scenario '{args.scenario}'; valid: {', '.join(SCENARIOS)}")
+    if args.mesh:
+        from app.mesh import load_mesh
+
+        load_mesh(args.mesh)   # unreadable or not in metres: refused before --out is touched
+    prepare_dir(args.out, args.overwrite, TRIAL)
     bar = tqdm(desc=f"simulate {args.scenario}", unit="frame")
 
     def progress(done: int, total: int) -> None:
         bar.total = total
         bar.update(done - bar.n)
 
-    summary = simulate(args.out, args.mesh, args.scenario, args.seconds, args.seed, args.overwrite, progress=progress)
+    summary = simulate(args.out, args.mesh, args.scenario, args.seconds, args.seed, overwrite=True, progress=progress)
     bar.close()
     print(f"wrote {summary.frames} frames ({summary.seconds:.1f} s, scenario {summary.scenario}, "
           f"occlusion mean {100 * summary.mean_occlusion:.0f} % max {100 * summary.max_occlusion:.0f} %) to {summary.out}")

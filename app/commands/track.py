@@ -6,6 +6,8 @@ Ctrl-C ends it cleanly: sources stop, the recording and logs are flushed, and th
 """
 from __future__ import annotations
 
+from app.commands.outdir import SESSION, TRIAL, add_overwrite_argument, prepare_dir, prepare_file
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("track", help="run a tracking session (camera + robot + tracker) until stopped")
@@ -18,6 +20,7 @@ def add_session_arguments(p) -> None:
     p.add_argument("--config", required=True, help="session YAML (see configs/sessions/)")
     p.add_argument("--out", help="directory for estimate.txt, status.csv, events.csv, summary.json (overrides out:)")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
+    add_overwrite_argument(p, "the outputs (out, record) of an earlier session")
 
 
 def overrides_from(args) -> dict:
@@ -37,9 +40,48 @@ def run(args) -> int:
     config = load_session(args.config, overrides_from(args))
     if args.duration:
         config.loop.duration_s = args.duration
-    result = run_session(config, progress=_progress_printer())
+    prepare_session_dirs(config, args.overwrite)
+    with naming_the_session_file(args.config):
+        result = run_session(config, progress=_progress_printer())
     print_summary(result.summary)
     return 0
+
+
+def prepare_session_dirs(config, overwrite: bool) -> None:
+    """The overwrite policy (app/commands/outdir.py) for the session's out and record directories
+    and its rerun outputs' files (a record folder inside out is out's to clear)."""
+    from pathlib import Path
+
+    if config.out is not None:
+        owned = SESSION
+        if config.record is not None and Path(config.record).resolve().is_relative_to(Path(config.out).resolve()):
+            inner = Path(config.record).resolve().relative_to(Path(config.out).resolve()).parts
+            owned = SESSION + inner[:1]
+        prepare_dir(config.out, overwrite, owned, "out")
+    if config.record is not None:
+        prepare_dir(config.record, overwrite, TRIAL, "record")
+    for i, spec in enumerate(config.outputs):
+        path = spec.params.get("path") if spec.name == "rerun" else None
+        if isinstance(path, str):
+            prepare_file(path, overwrite, f"outputs[{i}].params.path")
+
+
+class naming_the_session_file:
+    """Context manager: a ConfigError raised while the session runs names the session file."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        from app.errors import ConfigError
+
+        if isinstance(exc, ConfigError) and self.path not in str(exc):
+            message = str(exc).split(f"config key '{exc.key}': ", 1)[-1]
+            raise ConfigError(exc.key, message, self.path) from None
+        return False
 
 
 def _progress_printer():
@@ -58,14 +100,16 @@ def _progress_printer():
     return progress
 
 
-def print_summary(summary: dict) -> None:
+def print_summary(summary: dict, tracked: bool = True) -> None:
+    """The session summary; ``tracked=False`` (record without --track): no tracker counts or statuses."""
     lat = summary.get("latency_ms", {})
     frames = summary.get("frames", {})
-    print(f"session: {summary.get('seconds', 0):.1f} s, {frames.get('frames_accepted', 0)} frames accepted, "
-          f"{summary.get('processed', 0)} tracked, {summary.get('frames_skipped_by_tracker', 0)} skipped by the tracker")
+    counts = (f", {summary.get('processed', 0)} tracked, {summary.get('frames_skipped_by_tracker', 0)} skipped by "
+              f"the tracker") if tracked else " (recorded, not tracked)"
+    print(f"session: {summary.get('seconds', 0):.1f} s, {frames.get('frames_accepted', 0)} frames accepted{counts}")
     if lat.get("n"):
         print(f"latency frame->estimate: median {lat['median']:.1f} ms, p99 {lat['p99']:.1f} ms, max {lat['max']:.1f} ms")
-    if summary.get("status_counts"):
+    if tracked and summary.get("status_counts"):
         print("status: " + ", ".join(f"{k} {v}" for k, v in sorted(summary["status_counts"].items())))
     if summary.get("events"):
         print("events: " + ", ".join(f"{k} x{v}" for k, v in sorted(summary["events"].items())))

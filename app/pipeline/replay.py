@@ -33,6 +33,7 @@ import numpy as np
 
 from app import metrics
 from app.config import TrackerConfig, load_config
+from app.errors import MeshError
 from app.pipeline.tracker import DepthTracker
 
 log = logging.getLogger(__name__)
@@ -90,14 +91,18 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
                                   with_groundtruth=reader.groundtruth is not None)
             sink.log_text("backend", tracker.gl_description)
     points = np.asarray(mesh.vertices)
-    projector_sink = None
+    projector_sink, projector_skipped = None, None
     if projector and out is not None:
         from app.projector.sink import ProjectorSink
 
-        projector_sink = ProjectorSink.from_config(projector_config, np.asarray(mesh.vertices), np.asarray(mesh.faces),
-                                                   rec=sink.rec if sink is not None else None,
-                                                   png_dir=out / "projector" if projector_images else None,
-                                                   error_every=2)
+        try:   # a plan that does not fit this trial's mesh is replaced by one derived from it (never a failed replay)
+            projector_sink = ProjectorSink.from_config(projector_config, np.asarray(mesh.vertices),
+                                                       np.asarray(mesh.faces), rec=sink.rec if sink is not None else None,
+                                                       png_dir=out / "projector" if projector_images else None,
+                                                       error_every=2, derive_plan=True)
+        except MeshError as exc:
+            log.warning("projector skipped: no plan fits this trial's mesh (%s)", exc)
+            projector_skipped = str(exc)
     stamps, estimates, statuses, add_mm, trans_mm, rot_deg = [], [], [], [], [], []
     t_start = time.perf_counter()
     wall0, stamp0 = time.perf_counter(), None
@@ -133,6 +138,8 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
     elapsed = time.perf_counter() - t_start
     T_est = np.array(estimates)
     summary = _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_deg, elapsed, points)
+    if projector_skipped is not None:
+        summary["projector"] = {"plan": None, "skipped": projector_skipped}
     if projector_sink is not None:
         summary["projector"] = projector_sink.summary()
         projector_sink.release()

@@ -26,8 +26,10 @@ def summary_rows(summary: dict) -> list[tuple[str, str]]:
     s = summary["status_fraction"]
     rows.append(("status ok / uncertain / lost", f"{100 * s['ok']:.0f} / {100 * s['uncertain']:.0f} / {100 * s['lost']:.0f} %"))
     p = summary.get("projector")
-    if p:
-        shown = f"template shown in {p['template_shown']} of {p['frames']} projector frames"
+    if p and p.get("skipped"):
+        rows.append(("projector", f"skipped: {p['skipped']}"))
+    elif p:
+        shown = f"plan {p.get('plan')}; template shown in {p['template_shown']} of {p['frames']} projector frames"
         if "template_error_mean_mm" in p:
             shown += (f"; outline on the bone off by {p['template_error_mean_mm']:.2f} mm mean, "
                       f"{p['template_error_p95_mm']:.2f} p95, {p['template_error_max_mm']:.2f} max")

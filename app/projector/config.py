@@ -20,6 +20,7 @@ Usage::
 """
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,7 +28,10 @@ import numpy as np
 
 from app.errors import ConfigError
 from app.projector.model import ProjectorModel, default_projector
-from app.projector.plan import PLAN_TOLERANCE_M, SHAPES, Plan, load_plan, make_crest_plan
+from app.errors import MeshError
+from app.projector.plan import PLAN_TOLERANCE_M, SHAPES, Plan, derive_crest_plan, load_plan, make_crest_plan
+
+log = logging.getLogger(__name__)
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "projector.yaml"
 _KEYS = {"width", "height", "K", "T_camera_projector", "dist", "line_width_mm", "color", "max_age_s",
@@ -92,8 +96,27 @@ def load_projector_config(path: "str | Path" = DEFAULT_CONFIG) -> ProjectorConfi
     return parse_projector_config(yaml.safe_load(path.read_text()) or {}, str(path), path.resolve().parent)
 
 
-def build_plan(cfg: ProjectorConfig, vertices: np.ndarray, faces: np.ndarray) -> Plan:
-    """The configured plan, checked against the bone mesh (MeshError when it is not on it)."""
+def build_plan(cfg: ProjectorConfig, vertices: np.ndarray, faces: np.ndarray, derive: bool = False) -> Plan:
+    """The configured plan, checked against the bone mesh (MeshError when it is not on it).
+
+    ``derive`` (replay of a recorded trial): when the configured plan does not fit this mesh, one
+    warning line and a plan of the configured shape and size placed on this mesh's ridge instead
+    (:func:`app.projector.plan.derive_crest_plan`; its ``name`` says so).
+    """
+    try:
+        return _configured_plan(cfg, vertices, faces)
+    except MeshError as exc:
+        if not derive:
+            raise
+        shape = cfg.plan.get("shape", "box")
+        sizes = {k: float(cfg.plan.get(k, d)) for k, d in (("length_mm", 20.0), ("width_mm", 10.0), ("angle_deg", 0.0))}
+        plan = derive_crest_plan(shape if shape in SHAPES else "box", vertices, faces, sizes["length_mm"] / 1000.0,
+                                 sizes["width_mm"] / 1000.0, sizes["angle_deg"])
+        log.warning("projector: the configured plan does not fit this mesh (%s); using a %s", exc, plan.name)
+        return plan
+
+
+def _configured_plan(cfg: ProjectorConfig, vertices: np.ndarray, faces: np.ndarray) -> Plan:
     p = cfg.plan
     if "file" in p:
         path = Path(p["file"])

@@ -151,25 +151,86 @@ def shape_outline(shape: str, length: float = 0.020, width: float = 0.010) -> np
 
 def make_crest_plan(shape: str, vertices: np.ndarray, faces: np.ndarray, center_x: float = 0.0,
                     length: float = 0.020, width: float = 0.010, angle_deg: float = 0.0,
-                    spacing: float = PLAN_SPACING_M) -> Plan:
+                    spacing: float = PLAN_SPACING_M, center_y: float | None = None) -> Plan:
     """Publication A's ``box`` or ``hockey`` outline drawn on the crest's top.
 
     Parameters
     ----------
     shape : 'box' | 'hockey'
     vertices, faces : the bone mesh (bone frame, metres, crest top towards +z)
-    center_x : position of the outline's centre along the bone's x axis, metres; its y is the ridge's
+    center_x : position of the outline's centre along the bone's x axis, metres
+    center_y : its y, metres; None: the ridge's (the crest's highest point at ``center_x``)
     length, width : size of the box / the hockey stick's shaft, metres
     angle_deg : rotation of the outline about +z
     """
     vertices = np.asarray(vertices, dtype=float)
-    y0 = _crest_line_y(center_x, vertices, faces)
+    y0 = _crest_line_y(center_x, vertices, faces) if center_y is None else float(center_y)
     a = np.deg2rad(angle_deg)
     R = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
     outline2d = shape_outline(shape, length, width) @ R.T
     outline = densify(np.column_stack([outline2d, np.zeros(len(outline2d))]), spacing)[:, :2]
     xy = outline + np.array([center_x, y0])
     return Plan((_drop_on_surface(xy, vertices, faces, f"plan '{shape}'"),), shape)
+
+
+RIDGE_GRID_M = 0.002
+"""Cell of the top-view height map searched by :func:`derive_crest_plan` (metres)."""
+
+
+def _height_map(vertices: np.ndarray, faces: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Top view of the mesh: grid axes xs (X,), ys (Y,) and the first-hit height z (Y, X), NaN = no bone."""
+    lo, hi = vertices[:, :2].min(axis=0), vertices[:, :2].max(axis=0)
+    xs, ys = np.arange(lo[0], hi[0] + cell, cell), np.arange(lo[1], hi[1] + cell, cell)
+    gx, gy = np.meshgrid(xs, ys)
+    top = float(np.max(vertices[:, 2])) + 0.05
+    origins = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, top)])
+    t, _ = ray_mesh_first_hit(origins, np.tile([0.0, 0.0, -1.0], (gx.size, 1)), vertices, faces)
+    return xs, ys, np.where(np.isfinite(t), top - t, np.nan).reshape(gx.shape)
+
+
+def derive_crest_plan(shape: str, vertices: np.ndarray, faces: np.ndarray, length: float = 0.020,
+                      width: float = 0.010, angle_deg: float = 0.0, cell: float = RIDGE_GRID_M) -> Plan:
+    """The outline of the configured size placed on this mesh's crest ridge, for a plan that does not fit it.
+
+    The top view of the mesh is sampled on a ``cell`` grid (height z(x, y) of the first hit from +z).
+    Every grid cell is tried as the centre and every 15 degrees (plus ``angle_deg``) as the direction;
+    an outline fits when all its points (at ``cell`` spacing) land on the bone. Among those that fit,
+    the one whose points lie highest on average, argmax_{c, a} mean_k z(c + R(a) p_k), is taken: it
+    lies along the crest's ridge. MeshError when the outline fits nowhere on the mesh.
+    """
+    vertices = np.asarray(vertices, dtype=float)
+    xs, ys, z = _height_map(vertices, faces, cell)
+    outline = densify(np.column_stack([shape_outline(shape, length, width), np.zeros(5 if shape == "box" else 7)]),
+                      cell)[:, :2]
+    cy, cx = np.nonzero(np.isfinite(z))
+    centres = np.column_stack([xs[cx], ys[cy]])
+    best = (-np.inf, None, None)
+    for angle in angle_deg + np.arange(0.0, 180.0, 15.0):
+        a = np.deg2rad(angle)
+        pts = outline @ np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]).T
+        ix = np.rint((centres[:, None, 0] + pts[None, :, 0] - xs[0]) / cell).astype(int)
+        iy = np.rint((centres[:, None, 1] + pts[None, :, 1] - ys[0]) / cell).astype(int)
+        inside = (ix >= 0) & (ix < len(xs)) & (iy >= 0) & (iy < len(ys))
+        h = np.where(inside, z[np.clip(iy, 0, len(ys) - 1), np.clip(ix, 0, len(xs) - 1)], np.nan)
+        fits = np.all(np.isfinite(h), axis=1)
+        if fits.any():
+            score = np.where(fits, np.nanmean(np.where(np.isfinite(h), h, 0.0), axis=1), -np.inf)
+            k = int(np.argmax(score))
+            if score[k] > best[0]:
+                best = (score[k], centres[k], angle)
+    if best[1] is None:
+        raise MeshError(f"plan '{shape}': a {length * 1000:.0f} x {width * 1000:.0f} mm outline fits nowhere on the "
+                        f"crest seen from +z")
+    (x0, y0), angle = best[1], float(best[2])
+    for dx, dy in ((0, 0), (cell / 2, 0), (-cell / 2, 0), (0, cell / 2), (0, -cell / 2)):
+        try:   # the grid test is at cell resolution: nudge the centre if an edge ray just misses
+            plan = make_crest_plan(shape, vertices, faces, x0 + dx, length, width, angle, center_y=y0 + dy)
+        except MeshError:
+            continue
+        name = (f"{shape} derived from the mesh: centre ({(x0 + dx) * 1000:.1f}, {(y0 + dy) * 1000:.1f}) mm, "
+                f"{angle % 180:.0f} deg on the ridge")
+        return Plan(plan.polylines, name)
+    raise MeshError(f"plan '{shape}': no outline along the ridge at ({x0 * 1000:.1f}, {y0 * 1000:.1f}) mm fits")
 
 
 # --- files ---------------------------------------------------------------------------------------

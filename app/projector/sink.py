@@ -64,12 +64,12 @@ class ProjectorSink:
 
     @classmethod
     def from_config(cls, config_path: "str | Path | None", vertices: np.ndarray, faces: np.ndarray, rec=None,
-                    png_dir=None, ctx=None, error_every: int = 1) -> "ProjectorSink":
-        """Build from configs/projector.yaml (None: that default file)."""
+                    png_dir=None, ctx=None, error_every: int = 1, derive_plan: bool = False) -> "ProjectorSink":
+        """Build from configs/projector.yaml (None: that default file); ``derive_plan``: see ``build_plan``."""
         from app.projector.config import DEFAULT_CONFIG, build_plan, load_projector_config
 
         cfg = load_projector_config(config_path or DEFAULT_CONFIG)
-        plan = build_plan(cfg, vertices, faces)
+        plan = build_plan(cfg, vertices, faces, derive=derive_plan)
         view = ProjectorView.create(cfg.projector, vertices, faces, plan, ctx=ctx, line_width=cfg.line_width_m,
                                     color=cfg.color, max_age_s=cfg.max_age_s)
         return cls(view, vertices, faces, rec, png_dir, error_every)
@@ -102,7 +102,8 @@ class ProjectorSink:
 
     def summary(self) -> dict:
         """Frames, frames with the template shown, and the template error (mm) over the scored frames."""
-        out = {"frames": self.frames, "template_shown": self.shown, "scored_frames": len(self.errors)}
+        out = {"plan": self.plan.name, "frames": self.frames, "template_shown": self.shown,
+               "scored_frames": len(self.errors)}
         if self.errors:
             means = np.array([e.mean_mm for e in self.errors])
             maxes = np.array([e.max_mm for e in self.errors])

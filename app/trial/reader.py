@@ -112,6 +112,9 @@ class TrialReader:
         elif self.interrupted and lines:
             log.warning("%s: dropped the unterminated last line %r of the interrupted recording", path, lines[-1])
             lines = lines[:-1]
+        elif len(lines) > 1:   # the writer ends every row with a newline: a file cut mid-line is truncated
+            raise TrialFormatError(path, f"the last line {lines[-1]!r} has no line end: the file was cut short "
+                                   f"(copy it again from the recording)", f"line {len(lines)}")
         if not lines:
             if self.interrupted:
                 return []
