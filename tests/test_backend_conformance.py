@@ -51,15 +51,14 @@ PER_PIXEL_BOUND = 70.0   # |l_i| <= -log(LOG_FLOOR) + log(z_max) + l0 for these 
 T_TRUE = se3.make_pose(quat.to_matrix(quat.exp_map(np.array([2.9, 0.2, 0.1]))), np.array([0.0, 0.0, 0.45]))
 
 
-def make_gl(mesh, camera, capacity, params, cull):
-    from app.render.context import shared_context
+def make_gl(ctx, mesh, camera, capacity, params, cull):
     from app.render.likelihood import GLLikelihoodBackend
 
-    return GLLikelihoodBackend(shared_context(), mesh.vertices, mesh.faces, camera, capacity, params,
+    return GLLikelihoodBackend(ctx, mesh.vertices, mesh.faces, camera, capacity, params,
                                near=NEAR, far=FAR, cull_back_faces=cull)
 
 
-def make_cpu(mesh, camera, capacity, params, cull):
+def make_cpu(ctx, mesh, camera, capacity, params, cull):
     from app.render.cpu_likelihood import CPULikelihoodBackend
 
     return CPULikelihoodBackend(mesh.vertices, mesh.faces, camera, capacity, params, near=NEAR, far=FAR,
@@ -156,11 +155,11 @@ def at_a_threshold(depth, reference_depth, params, eps):
 @pytest.mark.parametrize("resolution", list(CAMERAS))
 @pytest.mark.parametrize("mesh_name", ["default", "ct"])
 @pytest.mark.parametrize("backend_name", list(BACKENDS))
-def test_render_depth_matches_the_ray_cast(meshes, backend_name, mesh_name, resolution, rng):
+def test_render_depth_matches_the_ray_cast(ctx, meshes, backend_name, mesh_name, resolution, rng):
     mesh, cull = get_mesh(meshes, mesh_name)
     camera = CAMERAS[resolution]
     poses = random_poses(rng, 24 if resolution == "80x60" else 14, mesh)
-    backend = BACKENDS[backend_name](mesh, camera, len(poses), LikelihoodParams(), cull)
+    backend = BACKENDS[backend_name](ctx, mesh, camera, len(poses), LikelihoodParams(), cull)
     try:
         rendered = backend.render_depth(poses)
     finally:
@@ -176,14 +175,14 @@ def test_render_depth_matches_the_ray_cast(meshes, backend_name, mesh_name, reso
     assert np.all(depth_off <= np.maximum(2, 0.005 * covered)), (depth_off, covered)
 
 
-def likelihood_case(meshes, backend_name, mesh_name, resolution, option, rng):
+def likelihood_case(ctx, meshes, backend_name, mesh_name, resolution, option, rng):
     mesh, cull = get_mesh(meshes, mesh_name)
     camera = CAMERAS[resolution]
     params = replace(LikelihoodParams(), **OPTIONS[option])
     poses = random_poses(rng, 40 if resolution == "80x60" else 14, mesh)   # the reference's erfc is slow
     truth = raycast_depth(mesh.vertices, mesh.faces, camera, true_pose(mesh)[None], NEAR, FAR, cull)[0]
     depth = measured_image(truth, rng, params.z_max)
-    backend = BACKENDS[backend_name](mesh, camera, len(poses), params, cull)
+    backend = BACKENDS[backend_name](ctx, mesh, camera, len(poses), params, cull)
     try:
         values = backend.log_likelihood(poses, depth)
         own = backend.render_depth(poses)       # only to tell which poses rasterised exactly like the ray cast
@@ -209,20 +208,20 @@ def likelihood_case(meshes, backend_name, mesh_name, resolution, option, rng):
 
 @pytest.mark.parametrize("option", list(OPTIONS))
 @pytest.mark.parametrize("backend_name", list(BACKENDS))
-def test_log_likelihood_matches_the_reference_for_every_option(meshes, backend_name, option, rng):
-    likelihood_case(meshes, backend_name, "default", "80x60", option, rng)
+def test_log_likelihood_matches_the_reference_for_every_option(ctx, meshes, backend_name, option, rng):
+    likelihood_case(ctx, meshes, backend_name, "default", "80x60", option, rng)
 
 
 @pytest.mark.parametrize("resolution, mesh_name, option", [("160x120", "default", "all"), ("80x60", "ct", "all"),
                                                             ("160x120", "ct", "background_ratio")])
 @pytest.mark.parametrize("backend_name", list(BACKENDS))
-def test_log_likelihood_matches_the_reference_at_160x120_and_on_a_ct_crest(meshes, backend_name, mesh_name,
+def test_log_likelihood_matches_the_reference_at_160x120_and_on_a_ct_crest(ctx, meshes, backend_name, mesh_name,
                                                                             resolution, option, rng):
-    likelihood_case(meshes, backend_name, mesh_name, resolution, option, rng)
+    likelihood_case(ctx, meshes, backend_name, mesh_name, resolution, option, rng)
 
 
 @pytest.mark.parametrize("backend_name", list(BACKENDS))
-def test_the_true_pose_scores_best(meshes, backend_name, rng):
+def test_the_true_pose_scores_best(ctx, meshes, backend_name, rng):
     mesh, cull = meshes["default"]
     camera = CAMERAS["160x120"]
     params = LikelihoodParams(background_ratio=True, pixel_weight=0.2)
@@ -230,7 +229,7 @@ def test_the_true_pose_scores_best(meshes, backend_name, rng):
     depth = measured_image(truth, rng, params.z_max)
     poses = true_pose(mesh) @ se3.from_quat_trans(quat.exp_map(rng.normal(0, 0.05, (50, 3))), rng.normal(0, 0.01, (50, 3)))
     poses[0] = true_pose(mesh)
-    backend = BACKENDS[backend_name](mesh, camera, len(poses), params, cull)
+    backend = BACKENDS[backend_name](ctx, mesh, camera, len(poses), params, cull)
     try:
         assert np.argmax(backend.log_likelihood(poses, depth)) == 0
     finally:
@@ -238,10 +237,10 @@ def test_the_true_pose_scores_best(meshes, backend_name, rng):
 
 
 @pytest.mark.parametrize("backend_name", list(BACKENDS))
-def test_a_pose_straddling_the_border_leaves_the_others_values_unchanged(meshes, backend_name, rng):
+def test_a_pose_straddling_the_border_leaves_the_others_values_unchanged(ctx, meshes, backend_name, rng):
     """In GL, the image border is a tile border: a pose reaching it must not bleed into a neighbour."""
     mesh, cull = meshes["default"]
-    backend = BACKENDS[backend_name](mesh, CAMERA_80, 9, LikelihoodParams(), cull)
+    backend = BACKENDS[backend_name](ctx, mesh, CAMERA_80, 9, LikelihoodParams(), cull)
     depth = measured_image(raycast_depth(mesh.vertices, mesh.faces, CAMERA_80, true_pose(mesh)[None], NEAR, FAR, cull)[0],
                            rng, 2.0)
     poses = true_pose(mesh) @ se3.from_quat_trans(quat.exp_map(rng.normal(0, 0.1, (9, 3))), rng.normal(0, 0.01, (9, 3)))
@@ -259,9 +258,9 @@ def test_a_pose_straddling_the_border_leaves_the_others_values_unchanged(meshes,
 
 
 @pytest.mark.parametrize("backend_name", list(BACKENDS))
-def test_a_wrong_image_size_is_refused(meshes, backend_name):
+def test_a_wrong_image_size_is_refused(ctx, meshes, backend_name):
     mesh, cull = meshes["default"]
-    backend = BACKENDS[backend_name](mesh, CAMERA_80, 4, LikelihoodParams(), cull)
+    backend = BACKENDS[backend_name](ctx, mesh, CAMERA_80, 4, LikelihoodParams(), cull)
     try:
         with pytest.raises(ValueError, match="80x60"):
             backend.log_likelihood(np.repeat(true_pose(mesh)[None], 4, axis=0), np.zeros((120, 160), np.float32))

@@ -49,7 +49,7 @@ from app.filter.likelihood_ref import LOG_FLOOR, LikelihoodParams
 
 log = logging.getLogger(__name__)
 
-N_PARAMS = 14
+N_PARAMS = 16
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 _SQRT1_2 = 1.0 / math.sqrt(2.0)
 
@@ -69,9 +69,11 @@ def _njit(parallel: bool = False):
 
 def pack_params(p: LikelihoodParams) -> np.ndarray:
     """The likelihood parameters as the kernels' float64 vector (order fixed by :data:`N_PARAMS`)."""
+    p_u = p.w_u / p.z_max
     return np.array([p.z_max, p.lam, p.w_u, p.w_e, p.w_n, p.k, p.sigma_base, p.l0_weight, p.pixel_count_reg,
                      p.pixel_weight, p.occluder_margin, float(p.occlusion == "smooth_exponential"),
-                     float(bool(p.classification)), float(bool(p.background_ratio))], dtype=np.float64)
+                     float(bool(p.classification)), float(bool(p.background_ratio)),
+                     math.log(p.z_max), math.log(max(p_u, LOG_FLOOR))], dtype=np.float64)
 
 
 # ---------------------------------------------------------------- rasterisation
@@ -227,10 +229,10 @@ def pixel_log_likelihood(z, z_star, prm):
     """
     z_max, w_u, w_e, w_n, l0 = prm[0], prm[2], prm[3], prm[4], prm[7]
     classification, ratio = prm[12] != 0.0, prm[13] != 0.0
-    p_u = w_u / z_max
+    p_u, log_p_u = w_u / z_max, prm[15]
     if not (z > 0.0 and z <= z_max):       # 0, negative, > z_max, NaN, ±inf: invalid
-        l_invalid = _safe_log(p_u) - (l0 if classification else 0.0)
-        return l_invalid - _safe_log(p_u) if ratio else l_invalid
+        l_invalid = log_p_u - (l0 if classification else 0.0)
+        return l_invalid - log_p_u if ratio else l_invalid
     if ratio and z < z_star - prm[10]:     # an occluder in front: says nothing about the bone
         return 0.0
     sigma = prm[5] * z_star * z_star + prm[6]
@@ -244,7 +246,7 @@ def pixel_log_likelihood(z, z_star, prm):
         l = l_obj if l_obj >= l_bg else l_bg - l0
     else:
         l = _safe_log(p_u + w_e * p_e + w_n * p_n)
-    return l + math.log(z_max) if ratio else l
+    return l + prm[14] if ratio else l
 
 
 @_njit()
