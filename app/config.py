@@ -17,7 +17,7 @@ has six sections; each key maps to one attribute:
 - ``likelihood.*`` -> ``config.likelihood`` (:class:`app.filter.likelihood_ref.LikelihoodParams`)
 - ``status.*``     -> ``config.status`` (:class:`app.filter.status.StatusThresholds`)
 - ``render.*``     -> ``config.resolution`` (width, height), ``near``, ``far``,
-                      ``mesh_triangles``, ``cull_back_faces``
+                      ``mesh_triangles``, ``cull_back_faces``, ``backend``
 
 Keys left out take their defaults. Validation happens here, once (STYLE.md §11): types, ranges,
 allowed names and unknown keys (with a "did you mean" suggestion) raise
@@ -37,6 +37,7 @@ import yaml
 from app.errors import ConfigError
 from app.filter.likelihood_ref import OCCLUSION_MODELS, LikelihoodParams
 from app.filter.motion import MotionParams
+from app.filter.observation import BACKENDS
 from app.filter.particle_filter import SAMPLING_MODES, FilterConfig
 from app.filter.resampling import SCHEMES
 
@@ -53,6 +54,8 @@ class TrackerConfig(FilterConfig):
     near, far : m, clip planes of the batched renderer
     mesh_triangles : triangle budget of the decimated tracking mesh
     cull_back_faces : cull back faces when the mesh is consistently wound outwards
+    backend : likelihood backend, 'auto' (cpu on a software GL renderer such as llvmpipe, gl on a
+        GPU), 'gl' or 'cpu' (app/render/backends.py)
     seed : seed of the filter's np.random.Generator (a replay with one seed is reproducible)
     init_method : 'pose' (particles around the coarse initial pose) or 'point' (the one-point SMC
         initialiser of DESIGN.md on the first frame, from a point on the bone, app/filter/smc_init.py)
@@ -75,6 +78,7 @@ class TrackerConfig(FilterConfig):
     far: float = 4.0
     mesh_triangles: int = 1000
     cull_back_faces: bool = True
+    backend: str = "auto"
     seed: int = 0
     init_method: str = "pose"
     init_point_sigma: float = 0.005
@@ -154,6 +158,7 @@ KEYS: dict[str, _Key] = {
     "render.far": _f("far", 0.0, 100.0, lo_open=True),
     "render.mesh_triangles": _i("mesh_triangles", 4, 10_000_000),
     "render.cull_back_faces": _Key(("cull_back_faces",), "bool"),
+    "render.backend": _Key(("backend",), "choice", choices=BACKENDS),
 }
 SECTIONS = tuple(dict.fromkeys(k.split(".")[0] for k in KEYS))
 

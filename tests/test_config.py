@@ -84,6 +84,7 @@ def test_unknown_section_is_rejected_with_the_valid_ones():
     ({"render": {"resolution": [80]}}, "render.resolution", r"\[width, height\]"),
     ({"render": {"resolution": "80x60"}}, "render.resolution", r"\[width, height\]"),
     ({"render": {"near": 1.0, "far": 0.5}}, "render.far", "must exceed near"),
+    ({"render": {"backend": "numba"}}, "render.backend", r"'numba' is not one of: auto, gl, cpu"),
     ({"status": {"uncertain_position_spread": 0.02}}, "status.uncertain_position_spread", "must not exceed"),
     ({"filter": [1, 2]}, "filter", "expected a mapping"),
 ])

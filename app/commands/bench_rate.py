@@ -1,9 +1,10 @@
-"""``osteonav bench-rate``: the filter's frame rate and stage split (see :mod:`app.bench.rate`)."""
+"""``osteonav bench-rate``: the filter's frame rate and stage split per likelihood backend (see :mod:`app.bench.rate`)."""
 from __future__ import annotations
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("bench-rate", help="frames/s of the particle filter for particle counts and resolutions")
+    p = subparsers.add_parser("bench-rate", help="frames/s of the particle filter per backend, particle count and resolution")
+    p.add_argument("--backends", nargs="+", default=None, help="likelihood backends side by side: cpu gl (default: both)")
     p.add_argument("--particles", type=int, nargs="+", default=None, help="default: 200 700 1500")
     p.add_argument("--resolutions", nargs="+", default=None, help="WxH, default: 80x60 100x75 160x120")
     p.add_argument("--frames", type=int, default=30, help="frames timed per configuration")
@@ -12,22 +13,46 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _parse(args):
+    """(backends, particles, resolutions) from the arguments; a clear error for a bad value."""
+    from app.bench import rate
+    from app.errors import OsteonavError
+
+    try:
+        resolutions = [tuple(int(x) for x in r.lower().split("x")) for r in args.resolutions] if args.resolutions else rate.RESOLUTIONS
+        if any(len(r) != 2 or min(r) < 8 for r in resolutions):
+            raise ValueError("two integers >= 8")
+    except ValueError as exc:
+        raise OsteonavError(f"--resolutions takes WxH values like 80x60 ({exc})") from exc
+    backends = args.backends or rate.BACKENDS
+    bad = [b for b in backends if b not in rate.BACKENDS]
+    if bad:
+        raise OsteonavError(f"--backends: {', '.join(bad)} unknown; valid: {' '.join(rate.BACKENDS)} "
+                            "(auto is not measured: it picks one of them)")
+    particles = args.particles or rate.PARTICLES
+    if min(particles) < 1:
+        raise OsteonavError("--particles takes positive integers like 200 700 1500")
+    return backends, particles, resolutions
+
+
 def run(args) -> int:
     import json
     from pathlib import Path
 
     from app.bench import rate
     from app.config import load_config
-    from app.errors import OsteonavError
 
-    try:
-        resolutions = [tuple(int(x) for x in r.lower().split("x")) for r in args.resolutions] if args.resolutions else rate.RESOLUTIONS
-    except ValueError as exc:
-        raise OsteonavError(f"--resolutions takes WxH values like 80x60 ({exc})") from exc
-    particles = args.particles or rate.PARTICLES
-    results = rate.run(particles, resolutions, args.frames, load_config(args.config),
-                       progress=lambda r: print(f"  measured N={r['particles']} at {r['resolution'][0]}x{r['resolution'][1]}: {r['fps']:.1f} frames/s", flush=True))
-    print(f"\n{results[0]['gl']}\n")
+    backends, particles, resolutions = _parse(args)
+    results = rate.run(particles, resolutions, args.frames, load_config(args.config), backends=backends,
+                       progress=lambda r: print(f"  measured {r['backend']} N={r['particles']} at {r['resolution']}: "
+                                                f"{r['fps']:.1f} frames/s", flush=True))
+    for description in dict.fromkeys(r["description"] for r in results):
+        print(description)
+    first = [r for r in results if r["first_call_s"] is not None]
+    if first:
+        print(f"cpu backend: first kernel calls {first[0]['first_call_s']:.2f} s (numba cache: {first[0]['numba_cache']}), "
+              "not included in the rates")
+    print()
     print(rate.table(results))
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(results, indent=2))

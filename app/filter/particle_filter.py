@@ -2,8 +2,8 @@
 
 Import as ``from app.filter.particle_filter import ParticleFilter``. DESIGN.md "The particle
 filter"; the particles are poses ``T_base_bone`` (:mod:`app.filter.motion`), the likelihood comes
-from a :class:`LikelihoodBackend` (the GL one in ``app/render/likelihood.py``, or any object with
-the same two methods), which sees ``T_camera_bone = inv(T_base_camera) @ T_base_bone``.
+from a :class:`app.filter.observation.LikelihoodBackend` (GL: ``app/render/likelihood.py``, CPU:
+``app/render/cpu_likelihood.py``), which sees ``T_camera_bone = inv(T_base_camera) @ T_base_bone``.
 
 ``step(depth, stamp, T_base_camera)``, with ΔT = stamp - previous stamp (``first_dt`` = 1/90 s on
 the first frame; a non-increasing stamp gives ΔT = 0). ΔT is predicted in sub-steps of at most
@@ -37,7 +37,6 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 
@@ -47,6 +46,7 @@ from app.filter import resampling as rs
 from app.filter import weights as lw_ops
 from app.filter.estimate import PoseEstimate, estimate
 from app.filter.motion_gate import MotionGate
+from app.filter.observation import LikelihoodBackend
 from app.filter.likelihood_ref import LikelihoodParams
 from app.filter.motion import MotionParams, ParticleState
 from app.filter.status import StatusInputs, StatusThresholds, TrackingStatus, classify
@@ -56,18 +56,6 @@ log = logging.getLogger(__name__)
 
 SAMPLING_MODES = ("joint", "blockwise")
 STAGES = ("predict", "likelihood", "weight", "resample", "estimate")
-
-
-class LikelihoodBackend(Protocol):
-    """Scores N pose hypotheses against one measured depth image (filter resolution h x w)."""
-
-    def log_likelihood(self, T_camera_bone: np.ndarray, depth_meas: np.ndarray) -> np.ndarray:
-        """(N, 4, 4) float64 poses, (h, w) float32 metres -> (N,) float64 log p(z | x_j)."""
-        ...
-
-    def render_depth(self, T_camera_bone: np.ndarray) -> np.ndarray:
-        """(N, 4, 4) poses -> (N, h, w) float32 linear depth, 0 = not covered."""
-        ...
 
 
 @dataclass

@@ -89,6 +89,7 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
             sink = RerunLog.to_file(out / "log.rrd")
             sink.log_static_scene(reader.meta.camera, tracker.mesh_vertices, tracker.mesh_faces,
                                   with_groundtruth=reader.groundtruth is not None)
+            sink.log_text("backend", tracker.gl_description)
     points = np.asarray(mesh.vertices)
     projector_sink, projector_skipped = None, None
     if projector and out is not None:
@@ -207,6 +208,7 @@ def _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_de
         "resolution": list(config.resolution),
         "sampling": config.sampling,
         "gl": tracker.gl_description,
+        "backend": getattr(tracker, "backend_name", None),   # the likelihood backend that ran (render.backend)
         "status_fraction": {s: statuses.count(s) / n if n else 0.0 for s in ("ok", "uncertain", "lost")},
         "timings_ms": tracker.mean_timings_ms(),
     }

@@ -1,6 +1,7 @@
-"""The depth tracker: the particle filter wired to the GL likelihood at the filter's resolution.
+"""The depth tracker: the particle filter wired to the configured likelihood backend at the filter's resolution.
 
-One object per session: it owns the GL resources (created on the calling thread), the
+One object per session: it owns the backend (``render.backend``: GL resources are created on the
+calling thread; app/render/backends.py), the
 tracking mesh (decimated to ``config.mesh_triangles``) and the filter. ``process`` is the per-frame
 entry point used by ``replay`` and ``track``: full-resolution depth in, estimate and status out.
 """
@@ -36,8 +37,7 @@ class DepthTracker:
     def __init__(self, config: TrackerConfig, mesh: trimesh.Trimesh, camera: PinholeCamera,
                  T_flange_camera: np.ndarray | None = None):
         from app.mesh import outward_wound, prepare_mesh
-        from app.render.context import describe, shared_context
-        from app.render.likelihood import GLLikelihoodBackend
+        from app.render.backends import make_backend
 
         self.config = config
         self.T_flange_camera = T_flange_camera
@@ -46,13 +46,14 @@ class DepthTracker:
         self.mesh_faces = np.asarray(tracking_mesh.faces)
         width, height = config.resolution
         self.camera = camera.resized(width, height)
-        ctx = shared_context()
-        self.gl_description = describe(ctx)
         cull = config.cull_back_faces and outward_wound(tracking_mesh)
         if config.cull_back_faces and not cull:
             log.warning("the mesh's triangles are not consistently wound outwards: back-face culling disabled (slower)")
-        self.backend = GLLikelihoodBackend(ctx, self.mesh_vertices, self.mesh_faces, self.camera, config.particles,
-                                           config.likelihood, near=config.near, far=config.far, cull_back_faces=cull)
+        # gl_description names the backend that runs (and the GL renderer for gl); the summary and rerun show it
+        self.backend, self.gl_description = make_backend(
+            config.backend, self.mesh_vertices, self.mesh_faces, self.camera, config.particles, config.likelihood,
+            near=config.near, far=config.far, cull_back_faces=cull)
+        self.backend_name = self.backend.name
         self.filter = ParticleFilter(config, self.backend, np.random.default_rng(config.seed))
         self._timings: dict[str, float] = defaultdict(float)
         self._frames = 0
@@ -103,7 +104,7 @@ class DepthTracker:
         for stage, seconds in result.timings.items():
             self._timings[stage] += seconds
         for stage, seconds in self.backend.timings.items():
-            self._timings[f"gl_{stage}"] += seconds
+            self._timings[f"{self.backend_name}_{stage}"] += seconds
         self._frames += 1
         return result
 

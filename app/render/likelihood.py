@@ -1,6 +1,6 @@
 """GL likelihood backend: batched rendering + per-particle log-likelihood in a compute shader.
 
-Implements the :class:`app.filter.particle_filter.LikelihoodBackend` protocol with the same
+Implements the :class:`app.filter.observation.LikelihoodBackend` protocol with the same
 observation model as the numpy reference :func:`app.filter.likelihood_ref.log_likelihood`
 (DESIGN.md "Observation"; (B) eq. 4.33 smooth occlusion, 4.34-4.39 pixel classification with L0,
 4.37 pixel-count regularisation). ``likelihood.comp.glsl`` runs one work group per particle with a
@@ -42,6 +42,8 @@ class GLLikelihoodBackend:
     profile : if True, wait for the GPU after each stage so ``timings`` splits render /
         likelihood / read-back (slower; for benchmarks)
     """
+
+    name = "gl"
 
     def __init__(
         self,
@@ -130,6 +132,16 @@ class GLLikelihoodBackend:
         values = np.frombuffer(self.output.read(size=4 * n), dtype=np.float32).astype(np.float64)
         self._mark("readback", t)
         return values
+
+    def describe(self) -> str:
+        """One line for summaries and logs: which backend ran, on which GL renderer."""
+        from app.render.context import describe
+
+        return f"gl backend on {describe(self.ctx)}"
+
+    def sync(self) -> None:
+        """Wait for the GL commands issued so far (benchmarks time whole frames with it)."""
+        self.ctx.finish()
 
     def render_depth(self, T_camera_bone: np.ndarray) -> np.ndarray:
         """(N, h, w) float32 rendered linear depth of the poses (image row order)."""

@@ -1,0 +1,303 @@
+"""Numba kernels of the CPU likelihood backend: an exact z-buffer rasteriser fused with the pixel term.
+
+Import as ``from app.render import cpu_raster``; the backend class is
+:class:`app.render.cpu_likelihood.CPULikelihoodBackend`. All numba code lives in this one module:
+numba's on-disk cache (``cache=True``) is invalidated per source file, so a kernel calling a
+function of another module could run a stale copy of it after an edit.
+
+Rasterisation, with the GL renderer's conventions (``batched.py``, ``depth.vert.glsl``,
+:meth:`PinholeCamera.opengl_projection`):
+
+- a pixel (u, v) is sampled at its centre, the OpenCV image point (u, v); a vertex p (camera
+  frame, metres) projects to (fx x / z + cx, fy y / z + cy);
+- a triangle covers the pixel when the three screen-space barycentrics of the centre are >= 0
+  (edges are inclusive; GL's tie rule differs only for centres exactly on an edge);
+- the pixel's depth is the perspective-correct interpolation of the camera z, exactly as GL
+  interpolates ``v_depth``: 1 / z = Σ_k b_k / z_k (screen-space barycentrics b_k);
+- clipping: triangles are clipped against the near plane z = near in the camera frame
+  (Sutherland-Hodgman, then a fan), pixels farther than ``far`` are dropped (GL clips both in clip
+  space, which gives the same pixels), and the image border is the tile border;
+- back-face culling (optional, for meshes wound counter-clockwise seen from outside): a triangle is
+  culled when its normal n = (b - a) × (c - a) has n · a >= 0 in the camera frame, which is GL's
+  ``front_face = ccw`` in its y-up window after the OpenCV -> OpenGL flip;
+- the z-buffer keeps the nearest depth; 0 means "not covered".
+
+The pixel term is :func:`app.filter.likelihood_ref.pixel_log_likelihood` in float64 (every
+option: beam / classification with L0, exponential / smooth exponential occlusion ((B) eq. 4.33),
+background ratio with the occluder margin, α tempering or the pixel-count regularisation (B) eq.
+4.37), packed into a float64 vector by :func:`pack_params`.
+
+Parallelism: ``prange`` over chunks of hypotheses (hypothesis j goes to chunk j mod C); each chunk
+owns one z-buffer, read and cleared only inside the pixel box of the pose's projected vertices.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+
+# Threads of numba's OpenMP layer sleep while waiting instead of spinning: on a loaded machine a
+# spinning barrier waits for a descheduled thread (measured on the 2-core CI machine, 4 loaded:
+# 2.2 ms per parallel launch spinning, 11 us passive). Read when libgomp loads; set it to override.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numba  # noqa: E402 (after OMP_WAIT_POLICY)
+import numpy as np
+from numba import prange
+
+from app.filter.likelihood_ref import LOG_FLOOR, LikelihoodParams
+
+log = logging.getLogger(__name__)
+
+N_PARAMS = 16
+_INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
+_SQRT1_2 = 1.0 / math.sqrt(2.0)
+
+
+def _njit(parallel: bool = False):
+    """``numba.njit(cache=True, fastmath=False)``; without a writable cache location (a read-only
+    package directory and no usable NUMBA_CACHE_DIR or user cache) the kernel compiles uncached."""
+    def wrap(fn):
+        try:
+            return numba.njit(parallel=parallel, fastmath=False, cache=True)(fn)
+        except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
+            log.warning("numba cannot cache %s (%s); it compiles on every start. Set NUMBA_CACHE_DIR "
+                        "to a writable folder to cache it", fn.__name__, exc)
+            return numba.njit(parallel=parallel, fastmath=False, cache=False)(fn)
+    return wrap
+
+
+def pack_params(p: LikelihoodParams) -> np.ndarray:
+    """The likelihood parameters as the kernels' float64 vector (order fixed by :data:`N_PARAMS`)."""
+    p_u = p.w_u / p.z_max
+    return np.array([p.z_max, p.lam, p.w_u, p.w_e, p.w_n, p.k, p.sigma_base, p.l0_weight, p.pixel_count_reg,
+                     p.pixel_weight, p.occluder_margin, float(p.occlusion == "smooth_exponential"),
+                     float(bool(p.classification)), float(bool(p.background_ratio)),
+                     math.log(p.z_max), math.log(max(p_u, LOG_FLOOR))], dtype=np.float64)
+
+
+# ---------------------------------------------------------------- rasterisation
+
+@_njit()
+def _raster_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, cam, cull, zbuf):
+    """Z-buffer one projected triangle (pixel coordinates u, v and 1 / z of its vertices, all with
+    z >= near); with ``cull`` a triangle of area >= 0 (n · a >= 0: facing away) is skipped."""
+    area = (ub - ua) * (vc - va) - (uc - ua) * (vb - va)
+    if area == 0.0 or (cull and area > 0.0):
+        return
+    h, w = zbuf.shape
+    u_lo = max(math.ceil(min(ua, ub, uc)), 0.0)
+    u_hi = min(math.floor(max(ua, ub, uc)), w - 1.0)
+    if u_lo > u_hi:
+        return
+    v_lo = max(math.ceil(min(va, vb, vc)), 0.0)
+    v_hi = min(math.floor(max(va, vb, vc)), h - 1.0)
+    if v_lo > v_hi:
+        return
+    i_u0, i_u1, i_v0, i_v1 = int(u_lo), int(u_hi), int(v_lo), int(v_hi)
+    # barycentrics as affine functions of the pixel centre: b_k = (C_k + A_k u + B_k v) / area
+    inv_area = 1.0 / area
+    a_a, b_a, c_a = (vb - vc) * inv_area, (uc - ub) * inv_area, (ub * vc - uc * vb) * inv_area
+    a_b, b_b, c_b = (vc - va) * inv_area, (ua - uc) * inv_area, (uc * va - ua * vc) * inv_area
+    a_c, b_c, c_c = (va - vb) * inv_area, (ub - ua) * inv_area, (ua * vb - ub * va) * inv_area
+    near, far = cam[4], cam[5]
+    for v in range(i_v0, i_v1 + 1):
+        fv = float(v)
+        row_a, row_b, row_c = c_a + b_a * fv, c_b + b_b * fv, c_c + b_c * fv
+        for u in range(i_u0, i_u1 + 1):
+            fu = float(u)
+            wa, wb, wc = row_a + a_a * fu, row_b + a_b * fu, row_c + a_c * fu
+            if wa < 0.0 or wb < 0.0 or wc < 0.0:
+                continue
+            z = 1.0 / (wa * iza + wb * izb + wc * izc)
+            if z > far or z < near * (1.0 - 1e-12):
+                continue
+            current = zbuf[v, u]
+            if current <= 0.0 or z < current:
+                zbuf[v, u] = z
+
+
+@_njit()
+def _raster_camera_triangle(x0, y0, z0, x1, y1, z1, x2, y2, z2, cam, cull, zbuf):
+    """Project a triangle given in the camera frame (z >= near) and z-buffer it."""
+    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    _raster_triangle(fx * x0 / z0 + cx, fy * y0 / z0 + cy, 1.0 / z0, fx * x1 / z1 + cx, fy * y1 / z1 + cy, 1.0 / z1,
+                     fx * x2 / z2 + cx, fy * y2 / z2 + cy, 1.0 / z2, cam, cull, zbuf)
+
+
+@_njit()
+def _clip_near(p, i0, i1, i2, near, poly):
+    """Sutherland-Hodgman: the part of triangle (p[i0], p[i1], p[i2]) with z >= near into ``poly``
+    (up to 4 rows); returns the vertex count (0, 3 or 4)."""
+    idx = (i0, i1, i2)
+    n = 0
+    for k in range(3):
+        a, b = idx[k], idx[(k + 1) % 3]
+        a_in, b_in = p[a, 2] >= near, p[b, 2] >= near
+        if a_in:
+            poly[n, 0], poly[n, 1], poly[n, 2] = p[a, 0], p[a, 1], p[a, 2]
+            n += 1
+        if a_in != b_in:
+            t = (near - p[a, 2]) / (p[b, 2] - p[a, 2])
+            for d in range(3):
+                poly[n, d] = p[a, d] + t * (p[b, d] - p[a, d])
+            poly[n, 2] = near
+            n += 1
+    return n
+
+
+@_njit()
+def _render_one(T, vertices, faces, cam, cull, p, poly, zbuf, box):
+    """Z-buffer the mesh at pose T (camera <- bone) into ``zbuf`` (all 0 on entry); ``box`` gets an
+    inclusive pixel box (u0, v0, u1, v1) that holds every written pixel (empty: u1 < u0): the
+    projected vertices' bounding box, or the whole image when a vertex lies before the near plane.
+
+    ``p`` (V, 6) scratch: camera-frame x, y, z and, for z >= near, pixel u, v and 1 / z per vertex.
+    Culling compares the projected area's sign: for vertices in front of the camera
+    sign(area) = sign(det[a, b, c]) = sign(n · a); a clipped triangle uses n · a itself.
+    """
+    fx, fy, cx, cy, near, far = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5]
+    u_min, v_min, u_max, v_max = np.inf, np.inf, -np.inf, -np.inf
+    for i in range(vertices.shape[0]):
+        for r in range(3):
+            p[i, r] = T[r, 0] * vertices[i, 0] + T[r, 1] * vertices[i, 1] + T[r, 2] * vertices[i, 2] + T[r, 3]
+        if p[i, 2] >= near:
+            iz = 1.0 / p[i, 2]
+            p[i, 3], p[i, 4], p[i, 5] = fx * p[i, 0] * iz + cx, fy * p[i, 1] * iz + cy, iz
+            u_min, u_max = min(u_min, p[i, 3]), max(u_max, p[i, 3])
+            v_min, v_max = min(v_min, p[i, 4]), max(v_max, p[i, 4])
+        else:                                   # clipped triangles can reach anywhere
+            u_min, v_min, u_max, v_max = -np.inf, -np.inf, np.inf, np.inf
+    # the box of every pixel centre the projected vertices' hull can cover (conservative)
+    h, w = zbuf.shape
+    # clamp before rounding: numba's ceil/floor return int64, which cannot hold ±inf
+    box[0], box[1] = math.ceil(min(max(u_min, 0.0), w)), math.ceil(min(max(v_min, 0.0), h))
+    box[2], box[3] = math.floor(max(min(u_max, w - 1.0), -1.0)), math.floor(max(min(v_max, h - 1.0), -1.0))
+    for f in range(faces.shape[0]):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        za, zb, zc = p[a, 2], p[b, 2], p[c, 2]
+        if za >= near and zb >= near and zc >= near:
+            if za > far and zb > far and zc > far:
+                continue
+            _raster_triangle(p[a, 3], p[a, 4], p[a, 5], p[b, 3], p[b, 4], p[b, 5], p[c, 3], p[c, 4], p[c, 5],
+                             cam, cull, zbuf)
+        elif za >= near or zb >= near or zc >= near:
+            if cull:
+                e1x, e1y, e1z = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1], p[b, 2] - p[a, 2]
+                e2x, e2y, e2z = p[c, 0] - p[a, 0], p[c, 1] - p[a, 1], p[c, 2] - p[a, 2]
+                nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+                if nx * p[a, 0] + ny * p[a, 1] + nz * p[a, 2] >= 0.0:
+                    continue
+            n = _clip_near(p, a, b, c, near, poly)
+            for k in range(1, n - 1):
+                _raster_camera_triangle(poly[0, 0], poly[0, 1], poly[0, 2], poly[k, 0], poly[k, 1], poly[k, 2],
+                                        poly[k + 1, 0], poly[k + 1, 1], poly[k + 1, 2], cam, False, zbuf)
+
+
+# ---------------------------------------------------------------- the pixel term (likelihood_ref.py)
+
+@_njit()
+def _safe_log(x):
+    return math.log(max(x, LOG_FLOOR))
+
+
+@_njit()
+def _normal_cdf(x):
+    """Φ(x) = ½ erfc(-x / √2)."""
+    return 0.5 * math.erfc(-x * _SQRT1_2)
+
+
+@_njit()
+def _occlusion_density(z, z_star, sigma, prm):
+    """p_e(z | z*): truncated exponential, or with prm[11] the smooth one of (B) eq. 4.33."""
+    lam = prm[1]
+    if prm[11] != 0.0:
+        s2 = lam * sigma * sigma
+        window = _normal_cdf((z_star - z + s2) / sigma) - _normal_cdf((s2 - z) / sigma)
+        return lam / (1.0 - math.exp(-lam * z_star)) * math.exp(-lam * z + 0.5 * lam * s2) * window
+    if z > 0.0 and z < z_star:
+        return lam / (1.0 - math.exp(-lam * z_star)) * math.exp(-lam * z)
+    return 0.0
+
+
+@_njit()
+def pixel_log_likelihood(z, z_star, prm):
+    """l_i of :func:`app.filter.likelihood_ref.pixel_log_likelihood` for one covered pixel (z* > 0).
+
+    Same value, fewer transcendental calls: a pixel the background ratio makes neutral returns 0
+    before any, and exp(-r²/2) is skipped where it is exactly 0.0 in float64 (r²/2 > 746).
+    """
+    z_max, w_u, w_e, w_n, l0 = prm[0], prm[2], prm[3], prm[4], prm[7]
+    classification, ratio = prm[12] != 0.0, prm[13] != 0.0
+    p_u, log_p_u = w_u / z_max, prm[15]
+    if not (z > 0.0 and z <= z_max):       # 0, negative, > z_max, NaN, ±inf: invalid
+        l_invalid = log_p_u - (l0 if classification else 0.0)
+        return l_invalid - log_p_u if ratio else l_invalid
+    if ratio and z < z_star - prm[10]:     # an occluder in front: says nothing about the bone
+        return 0.0
+    sigma = prm[5] * z_star * z_star + prm[6]
+    r = (z - z_star) / sigma
+    half_r2 = 0.5 * r * r
+    p_n = _INV_SQRT_2PI / sigma * math.exp(-half_r2) if half_r2 < 746.0 else 0.0
+    p_e = _occlusion_density(z, z_star, sigma, prm)
+    if classification:
+        l_obj = _safe_log(w_n * p_n)
+        l_bg = _safe_log(p_u + w_e * p_e)
+        l = l_obj if l_obj >= l_bg else l_bg - l0
+    else:
+        l = _safe_log(p_u + w_e * p_e + w_n * p_n)
+    return l + prm[14] if ratio else l
+
+
+@_njit()
+def _score_and_clear(depth_meas, zbuf, box, prm):
+    """α Σ l_i (or c_reg Σ l_i / max(N_px, 1)) over the covered pixels of ``box``; zeroes them."""
+    total, count = 0.0, 0
+    for v in range(box[1], box[3] + 1):
+        for u in range(box[0], box[2] + 1):
+            z_star = zbuf[v, u]
+            if z_star <= 0.0:
+                continue
+            zbuf[v, u] = 0.0
+            total += pixel_log_likelihood(float(depth_meas[v, u]), z_star, prm)
+            count += 1
+    if prm[8] > 0.0:
+        return prm[8] * total / max(count, 1)
+    return prm[9] * total
+
+
+@_njit(parallel=True)
+def batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out_ll, out_depth):
+    """Render every pose; with ``out_depth`` of N images copy its depth there (0 = not covered),
+    otherwise score it into ``out_ll[j]`` = log p(z | x_j) in the same pass (no depth image leaves
+    the chunk's z-buffer). One parallel kernel for both keeps numba's compile time down."""
+    n, chunks = T_camera_bone.shape[0], zbufs.shape[0]
+    render = out_depth.shape[0] == n and n > 0
+    for c in prange(chunks):
+        p = np.empty((vertices.shape[0], 6))
+        poly = np.empty((4, 3))
+        box = np.empty(4, np.int64)
+        zbuf = zbufs[c]
+        for j in range(c, n, chunks):
+            _render_one(T_camera_bone[j], vertices, faces, cam, cull, p, poly, zbuf, box)
+            if not render:
+                out_ll[j] = _score_and_clear(depth_meas, zbuf, box, prm)
+                continue
+            out_depth[j, :, :] = 0.0
+            for v in range(box[1], box[3] + 1):
+                for u in range(box[0], box[2] + 1):
+                    out_depth[j, v, u] = zbuf[v, u]
+                    zbuf[v, u] = 0.0
+
+
+def log_likelihood_batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out):
+    """(N,) log p(z | x_j) into ``out`` (:func:`batch`)."""
+    no_depth = np.zeros((0, 1, 1), dtype=np.float32)
+    batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out, no_depth)
+
+
+def render_batch(T_camera_bone, vertices, faces, cam, cull, zbufs, out):
+    """Rendered linear depth of every pose into ``out`` (N, h, w) float32 (0 = not covered)."""
+    h, w = out.shape[1:]
+    batch(T_camera_bone, vertices, faces, cam, cull, np.zeros((h, w), np.float32), np.zeros(N_PARAMS),
+          zbufs, np.empty(len(out)), out)

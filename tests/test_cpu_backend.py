@@ -1,0 +1,106 @@
+"""The CPU likelihood backend's own parts: the numba pixel term against the numpy reference on random
+inputs, numba's cache fallback, the backend choice (render.backend) and the tracker running on it
+(its accuracy on a 1.5 s trial is a slow test; the likelihood's equality with GL's is the fast one).
+The conformance with the reference and the GL backend: tests/test_backend_conformance.py."""
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from app.filter import likelihood_ref
+from app.filter.likelihood_ref import LikelihoodParams
+from app.render import backends, cpu_raster
+
+OPTIONS = [
+    {},
+    {"occlusion": "smooth_exponential"},
+    {"classification": True, "l0_weight": 2.0},
+    {"background_ratio": True, "pixel_weight": 0.3},
+    {"background_ratio": True, "classification": True, "occlusion": "smooth_exponential", "occluder_margin": 0.005},
+]
+
+
+@pytest.mark.parametrize("option", OPTIONS, ids=lambda o: "-".join(o) or "beam")
+def test_the_pixel_term_equals_the_reference_on_random_inputs(option, rng):
+    params = replace(LikelihoodParams(), **option)
+    z_star = rng.uniform(0.2, 1.2, 400)
+    z = z_star + rng.normal(0, 0.004, 400)                       # hits
+    z[:100] = rng.uniform(0.05, 2.5, 100)                        # anywhere, beyond z_max too
+    z[100:130] = z_star[100:130] - rng.uniform(0.0, 0.05, 30)    # around the occluder margin
+    z[130:140] = [0.0, -0.1, np.nan, np.inf, -np.inf, 2.0, 2.0 + 1e-9, 1e-6, 5.0, 0.3]
+    reference = likelihood_ref.pixel_log_likelihood(z, z_star, params)
+    prm = cpu_raster.pack_params(params)
+    ours = np.array([cpu_raster.pixel_log_likelihood(float(a), float(b), prm) for a, b in zip(z, z_star)])
+    np.testing.assert_allclose(ours, reference, rtol=1e-9, atol=1e-9)
+
+
+def test_without_a_writable_cache_numba_compiles_uncached(monkeypatch, caplog):
+    import numba
+
+    real = numba.njit
+
+    def njit(**kwargs):
+        if kwargs.get("cache"):
+            raise RuntimeError("cannot cache function 'f': no locator available for file 'x.py'")
+        return real(**kwargs)
+
+    monkeypatch.setattr(numba, "njit", njit)
+
+    def twice(x):
+        return 2 * x
+
+    compiled = cpu_raster._njit()(twice)
+    assert compiled(21) == 42 and not compiled._cache.__class__.__name__.endswith("FunctionCache")
+    assert "NUMBA_CACHE_DIR" in caplog.text
+
+
+@pytest.mark.parametrize("software, expected", [(True, "cpu"), (False, "gl")])
+def test_auto_picks_cpu_on_a_software_renderer_and_gl_on_a_gpu(monkeypatch, software, expected):
+    from app.render import context
+
+    monkeypatch.setattr(context, "is_software", lambda ctx: software)
+    name, why = backends.resolve("auto")
+    assert name == expected and why.startswith("auto")
+    assert backends.resolve("cpu") == ("cpu", "configured") and backends.resolve("gl") == ("gl", "configured")
+    with pytest.raises(ValueError, match="auto, gl, cpu"):
+        backends.resolve("vulkan")
+
+
+def test_auto_falls_back_to_cpu_without_any_gl_context(monkeypatch):
+    from app.errors import GLError
+    from app.render import context
+
+    def fail():
+        raise GLError("no EGL")
+
+    monkeypatch.setattr(context, "shared_context", fail)
+    assert backends.resolve("auto") == ("cpu", "auto: no OpenGL context")
+
+
+def _replay_on_cpu(tmp_path, seconds):
+    from app.config import load_config
+    from app.pipeline.replay import replay
+    from app.sim.simulator import simulate
+
+    simulate(tmp_path / "trial", scenario_name="static_clear", seconds=seconds, seed=11)
+    config = replace(load_config(None), backend="cpu")
+    result = replay(tmp_path / "trial", tmp_path / "out", config, rrd=False, projector=False)
+    return result, json.loads((tmp_path / "out" / "summary.json").read_text())
+
+
+def test_the_replay_summary_names_the_cpu_backend(tmp_path):
+    result, summary = _replay_on_cpu(tmp_path, 0.2)
+    assert summary["backend"] == "cpu" and summary["gl"].startswith("cpu backend")
+    assert summary["timings_ms"]["cpu_raster_likelihood"] > 0
+    assert np.all(np.asarray(result.errors["add_mm"]) < 10.0)     # started 5 mm / 3 deg off
+
+
+@pytest.mark.slow
+def test_the_tracker_on_the_cpu_backend_tracks_a_static_bone(tmp_path):
+    """The accuracy bounds of test_tracking_accuracy, with render.backend: cpu."""
+    result, _ = _replay_on_cpu(tmp_path, 1.5)
+    add = np.asarray(result.errors["add_mm"])
+    assert np.median(add[45:]) < 2.5 and np.percentile(add[45:], 95) < 5.0
