@@ -77,6 +77,9 @@ UNCERTAIN_SPEED_M_S = 0.03
 UNCERTAIN_ANGULAR_SPEED_RAD_S = math.radians(20.0)
 MOTION_WINDOW_S = 0.2
 SETTLE_S = 0.3
+MIN_FITNESS = 0.6
+MAX_TEMPLATE_STD_M = 0.001
+COVARIANCE_INFLATION = 10.0
 
 
 class TrackingStatus(enum.StrEnum):
@@ -105,6 +108,9 @@ class StatusThresholds:
     uncertain_angular_speed: float = UNCERTAIN_ANGULAR_SPEED_RAD_S
     motion_window_s: float = MOTION_WINDOW_S
     settle_s: float = SETTLE_S
+    min_fitness: float = MIN_FITNESS
+    max_template_std: float = MAX_TEMPLATE_STD_M
+    covariance_inflation: float = COVARIANCE_INFLATION
 
 
 @dataclass
@@ -177,6 +183,39 @@ def uncertain_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
     elif s.seconds_since_motion < t.settle_s:
         reasons.append(f"bone settling ({s.seconds_since_motion:.2f} s after moving)")
     return reasons
+
+
+@dataclass
+class RefinementEvidence:
+    """The local refinement's evidence (app/filter/refine_track.py) for :func:`with_refinement`.
+
+    fitness : share of the bone's expected visible surface confirmed (NaN when not refined);
+    template_std : m, largest predicted std of the template's points (inf when not refined);
+    competitor : a pose > 5 mm / 5 deg away explains the image about as well.
+    """
+
+    fitness: float
+    template_std: float
+    competitor: bool
+
+
+def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
+    """The refinement's UNCERTAIN rules that fire (module docstring, "With the refinement")."""
+    reasons = []
+    if not r.fitness >= t.min_fitness:
+        reasons.append(f"refined fit {r.fitness:.2f} < {t.min_fitness:.2f} of the visible bone confirmed")
+    if not r.template_std <= t.max_template_std:
+        reasons.append(f"predicted template error {1e3 * r.template_std:.2f} mm")
+    if r.competitor:
+        reasons.append("a competing pose explains the image about as well")
+    return reasons
+
+
+def with_refinement(status: TrackingStatus, r: RefinementEvidence, t: StatusThresholds) -> TrackingStatus:
+    """The filter's status combined with the refinement's: ok only when both say so; never raised."""
+    if status != TrackingStatus.OK:
+        return status
+    return TrackingStatus.UNCERTAIN if refinement_reasons(r, t) else TrackingStatus.OK
 
 
 def classify(s: StatusInputs, t: StatusThresholds | None = None) -> TrackingStatus:
