@@ -8,12 +8,15 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   its last refined pose while that pose's fitness holds (>= ``keep_fitness``, 0.3);
 - it also refines from the filter's estimate when it has no track, when the track's fitness is
   below ``reseed_fitness`` (0.6), or when the filter's estimate lies more than ``reseed_distance``
-  (3 mm, or the same in radians x 0.1 m of lever) from the track, and keeps the better fit;
+  (3 mm, or the same in radians x 0.1 m of lever) from the track, and keeps the better fit (the
+  higher share within 1 σ, ``RefineResult.sharp``: the 3 σ fitness barely separates two fits a few
+  millimetres apart on a crest);
 - when both refinements ran, converged more than ``competitor_distance`` (5 mm / 5 deg) apart and
-  the loser's fitness is within ``competitor_margin`` (0.1) of the winner's, a competing pose
+  the loser's sharp share is within ``competitor_margin`` (0.05) of the winner's, a competing pose
   explains the image about as well: the frame is ambiguous (the status cannot be ok, status.py);
 - the output pose is the refined one when its fitness >= ``keep_fitness``, else the filter's;
-- feedback (``feedback``): when the filter's own status is ok, the kept fit reaches
+- feedback (``feedback``): when the filter's cloud has converged (its status not lost, its spread
+  under status.uncertain_position_spread / uncertain_rotation_spread), the kept fit reaches
   ``feedback_fitness`` and no competitor exists,
   the particle cloud is shifted rigidly so that its mean lands on the refined pose
   (:meth:`app.filter.particle_filter.ParticleFilter.shift_to`): the filter stays inside the
@@ -47,7 +50,7 @@ class RefineConfig:
     reseed_distance: float = 0.003
     competitor_distance: float = 0.005
     competitor_angle: float = math.radians(5.0)
-    competitor_margin: float = 0.1
+    competitor_margin: float = 0.05
     feedback: bool = True
     feedback_fitness: float = 0.6
 
@@ -87,7 +90,7 @@ class RefinedTrack:
     def __init__(self, refiner: Refiner, config: RefineConfig, plan_points: np.ndarray, inflation: float):
         self.refiner = refiner
         self.config = config
-        self.plan_points = np.asarray(plan_points, float).reshape(-1, 3)
+        self.plan_points = np.asarray(plan_points, float).reshape(-1, 3) - refiner.center
         self.inflation = inflation
         self.T_base_bone: np.ndarray | None = None
         self.fitness = float("nan")
@@ -95,8 +98,8 @@ class RefinedTrack:
     def reset(self) -> None:
         self.T_base_bone, self.fitness = None, float("nan")
 
-    def _refine(self, depth, T_camera_base, T_base_bone) -> tuple[np.ndarray, RefineResult]:
-        result = self.refiner.refine(depth, T_camera_base @ T_base_bone)
+    def _refine(self, depth, T_camera_base, T_base_bone, start_width=None) -> tuple[np.ndarray, RefineResult]:
+        result = self.refiner.refine(depth, T_camera_base @ T_base_bone, start_width)
         T_base_camera = se3.inverse(T_camera_base)
         return T_base_camera @ result.T_camera_bone, result
 
@@ -114,21 +117,21 @@ class RefinedTrack:
         T_camera_base = se3.inverse(T_base_camera)
         fits = []
         if self.T_base_bone is not None and self.fitness >= c.keep_fitness:
-            fits.append(("track", *self._refine(depth, T_camera_base, self.T_base_bone)))
+            fits.append(("track", *self._refine(depth, T_camera_base, self.T_base_bone, start_width=0.0)))
         if self._needs_filter(T_base_bone_filter):
             fits.append(("filter", *self._refine(depth, T_camera_base, T_base_bone_filter)))
         fits = [f for f in fits if f[2].converged and np.isfinite(f[2].fitness)]
         if not fits:
             self.reset()
             return RefineOutcome(None, float("nan"), float("inf"), False, float("nan"), "", time.perf_counter() - t0)
-        fits.sort(key=lambda f: -f[2].fitness)
+        fits.sort(key=lambda f: -f[2].sharp)
         source, T_best, best = fits[0]
         competitor, competitor_fitness = False, float("nan")
         if len(fits) > 1:
             competitor_fitness = fits[1][2].fitness
             dist, angle = pose_gap(T_best, fits[1][1])
             apart = dist > c.competitor_distance or angle > c.competitor_angle
-            competitor = apart and competitor_fitness >= best.fitness - c.competitor_margin
+            competitor = apart and fits[1][2].sharp >= best.sharp - c.competitor_margin
         if best.fitness >= c.keep_fitness:
             self.T_base_bone, self.fitness = T_best, best.fitness
         else:

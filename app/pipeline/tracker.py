@@ -114,7 +114,7 @@ class DepthTracker:
 
     def _refine(self, result: FilterOutput, depth_m: np.ndarray, T_base_camera: np.ndarray | None) -> FilterOutput:
         """The local refinement on a weighed frame (app/filter/refine_track.py): the refined pose is
-        the output, the cloud is shifted onto it (feedback, only while the filter's own status is ok:
+        the output, the cloud is shifted onto it (feedback, only once the filter's cloud has converged:
         a refinement started from an unconverged filter can lock onto a wrong fit that is nearly as
         good, and dragging the cloud there keeps it there; measured on crest_left_02, BENCHMARKS.md §6),
         and the status combines the filter's
@@ -123,7 +123,10 @@ class DepthTracker:
             return result
         out = self.refined_track.update(depth_m, T_base_camera, result.T_base_bone)
         c = self.config.refine
-        if (c.feedback and result.status == TrackingStatus.OK and out.T_base_bone is not None
+        st = self.config.status
+        converged = (result.status != TrackingStatus.LOST and result.position_spread <= st.uncertain_position_spread
+                     and result.rotation_spread <= st.uncertain_rotation_spread)
+        if (c.feedback and converged and out.T_base_bone is not None
                 and out.fitness >= c.feedback_fitness and not out.competitor):
             self.filter.shift_to(out.T_base_bone, result.T_base_bone)
         status = with_refinement(result.status, RefinementEvidence(out.fitness, out.template_std, out.competitor),
