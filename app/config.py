@@ -162,7 +162,6 @@ KEYS: dict[str, _Key] = {
     "refine.samples": _i("refine.samples", 1000, 1_000_000),
     "refine.keep_fitness": _f("refine.keep_fitness", 0.0, 1.0),
     "refine.reseed_fitness": _f("refine.reseed_fitness", 0.0, 1.0),
-    "refine.reseed_distance": _f("refine.reseed_distance", 0.0, 1.0),
     "refine.competitor_distance": _f("refine.competitor_distance", 0.0, 1.0),
     "refine.competitor_angle": _f("refine.competitor_angle", 0.0, math.pi),
     "refine.competitor_margin": _f("refine.competitor_margin", 0.0, 1.0),

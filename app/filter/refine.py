@@ -8,7 +8,8 @@ resolution) inside the bone's projected bounding box.
 Model: the mesh sampled once, densely (``samples`` points x_j with normals n_j, bone frame), in a
 cKDTree. Per iteration, at the current pose:
 
-1. Expected visible surface: the samples that face the camera, projected into a z-buffer on the
+1. Expected visible surface (again after any step over ``rerender_step``; the association in
+   step 3 is redone every iteration): the samples that face the camera, projected into a z-buffer on the
    crop's grid (min depth per pixel, one-pixel holes filled by a 3x3 minimum); its pixels are the
    bone's silhouette, z*_i its depth.
 2. Measurements: the silhouette pixels with a valid depth z_i that is not an occluder
@@ -48,6 +49,7 @@ from app.geometry import se3
 from app.geometry.camera import PinholeCamera
 
 TUKEY_C = 4.685   # Tukey's biweight constant (95 % efficiency under Gaussian noise)
+RENDER_LEVER = 0.05   # m, radius at which a rotation step is compared with rerender_step
 
 
 @dataclass
@@ -58,7 +60,9 @@ class RefineParams:
     iteration down to c σ(z)); confirm_sigmas : k of the fitness; k, sigma_base : σ(z) = k z² + σ_base;
     occluder_margin : a measurement this far in front of the model is an occluder; min_points :
     fewer associated points and the refinement declines (returns the input pose, ``converged`` False);
-    stop_translation (m) / stop_rotation (rad) : an increment smaller than both ends the iterations.
+    stop_translation (m) / stop_rotation (rad) : an increment smaller than both ends the iterations;
+    rerender_step (m) : the silhouette and the measurements are taken again only after a step that
+    moved the model more than this (translation, or rotation x 5 cm); re-association is every step.
     """
 
     stride: int = 2
@@ -73,6 +77,7 @@ class RefineParams:
     occluder_margin: float = 0.02
     min_points: int = 50
     stop_translation: float = 1e-4
+    rerender_step: float = 5e-4
     stop_rotation: float = 5e-4
 
 
@@ -151,7 +156,8 @@ class Refiner:
         c0, c1 = max(col.min() - 1, 0), min(col.max() + 2, w_grid)
         r0, r1 = max(row.min() - 1, 0), min(row.max() + 2, h_grid)
         zbuf = np.full((r1 - r0, c1 - c0), np.inf)
-        np.minimum.at(zbuf, (row - r0, col - c0), z)
+        order = np.argsort(-z)                     # far to near: the nearest sample is written last
+        zbuf[row[order] - r0, col[order] - c0] = z[order]
         filled = ndimage.minimum_filter(zbuf, size=3, mode="constant", cval=np.inf)
         zbuf = np.where(np.isfinite(zbuf), zbuf, filled)
         return zbuf, (c0 * s, r0 * s, c1 * s, r1 * s)
@@ -206,8 +212,10 @@ class Refiner:
         start_width = prm.start_width if start_width is None else start_width
         T = np.array(T_camera_bone, dtype=float)
         H, used, rms, ok = np.zeros((6, 6)), 0, float("nan"), False
+        y = None
         for it in range(prm.iterations):
-            y, z_model = self.measurements(depth, T)
+            if y is None:                          # re-render after a step that moved the model visibly
+                y, z_model = self.measurements(depth, T)
             if len(y) < prm.min_points:
                 break
             p, x, n, d = self._associate(y, T)
@@ -217,8 +225,11 @@ class Refiner:
                 break
             ok = True
             T = T @ se3.inverse(self._increment(delta))
-            if np.linalg.norm(delta[:3]) < prm.stop_rotation and np.linalg.norm(delta[3:]) < prm.stop_translation:
+            step_r, step_t = np.linalg.norm(delta[:3]), np.linalg.norm(delta[3:])
+            if step_r < prm.stop_rotation and step_t < prm.stop_translation:
                 break
+            if step_r * RENDER_LEVER > prm.rerender_step or step_t > prm.rerender_step:
+                y = None
         return self._finish(depth, T if ok else np.array(T_camera_bone, float), H, used, rms, ok)
 
     def _increment(self, delta: np.ndarray) -> np.ndarray:
@@ -255,8 +266,10 @@ def template_std(H: np.ndarray, points_bone: np.ndarray, inflation: float = 1.0)
         return float("inf")
     if not np.all(np.isfinite(sigma)) or np.linalg.cond(H) > 1e14:
         return float("inf")
-    worst = 0.0
-    for t in np.asarray(points_bone, float).reshape(-1, 3):
-        A = np.hstack([-_skew(t), np.eye(3)])
-        worst = max(worst, float(np.linalg.eigvalsh(A @ sigma @ A.T).max()))
+    t = np.asarray(points_bone, float).reshape(-1, 3)
+    A = np.zeros((len(t), 3, 6))
+    A[:, :, :3] = -np.stack([_skew(ti) for ti in t])
+    A[:, :, 3:] = np.eye(3)
+    cov = A @ sigma @ np.swapaxes(A, 1, 2)
+    worst = float(np.linalg.eigvalsh(cov).max()) if len(t) else 0.0
     return float(np.sqrt(max(worst, 0.0)))

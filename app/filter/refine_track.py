@@ -7,8 +7,10 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
 - the refinement keeps its own track: each weighed frame it refines (app/filter/refine.py) from
   its last refined pose while that pose's fitness holds (>= ``keep_fitness``, 0.3);
 - it also refines from the filter's estimate when it has no track, when the track's fitness is
-  below ``reseed_fitness`` (0.6), or when the filter's estimate lies more than ``reseed_distance``
-  (3 mm, or the same in radians x 0.1 m of lever) from the track, and keeps the better fit (the
+  below ``reseed_fitness`` (0.6), or when the filter's estimate lies more than
+  ``competitor_distance`` / ``competitor_angle`` (5 mm / 5 deg) from the track (a candidate that
+  could compete; nearer, the filter's 160x120 estimate is only less precise: refining it too, as
+  at 3 mm / 1.7 deg first, doubled the refinement's cost on the CT crests), and keeps the better fit (the
   higher share within 1 σ, ``RefineResult.sharp``: the 3 σ fitness barely separates two fits a few
   millimetres apart on a crest);
 - when both refinements ran, converged more than ``competitor_distance`` (5 mm / 5 deg) apart and
@@ -38,7 +40,7 @@ from app.geometry import se3
 @dataclass
 class RefineConfig:
     """``refine.*`` of the configuration (module docstring). enabled; stride (1 full / 2 half sensor
-    resolution); iterations; samples (model points); keep_fitness; reseed_fitness; reseed_distance (m);
+    resolution); iterations; samples (model points); keep_fitness; reseed_fitness;
     competitor_distance (m) / competitor_angle (rad); competitor_margin; feedback; feedback_fitness."""
 
     enabled: bool = True
@@ -47,7 +49,6 @@ class RefineConfig:
     samples: int = 30_000
     keep_fitness: float = 0.3
     reseed_fitness: float = 0.6
-    reseed_distance: float = 0.003
     competitor_distance: float = 0.005
     competitor_angle: float = math.radians(5.0)
     competitor_margin: float = 0.05
@@ -108,7 +109,7 @@ class RefinedTrack:
         if self.T_base_bone is None or not self.fitness >= c.reseed_fitness:
             return True
         dist, angle = pose_gap(self.T_base_bone, T_filter)
-        return dist > c.reseed_distance or angle * 0.1 > c.reseed_distance
+        return dist > c.competitor_distance or angle > c.competitor_angle
 
     def update(self, depth: np.ndarray, T_base_camera: np.ndarray, T_base_bone_filter: np.ndarray) -> RefineOutcome:
         """Refine on one weighed frame (full-resolution depth, metres) and update the track."""

@@ -23,7 +23,7 @@ UNCERTAIN if
 - the frame had no camera pose or no valid depth (prediction only), or
 - position spread > ``uncertain_position_spread`` = 3 mm, or rotation spread > ``uncertain_rotation_spread`` = 2°, or
 - fewer than ``uncertain_inlier_fraction`` = 70 % inliers, or
-- fewer than ``min_ok_fraction`` = 1.2 % of the image's pixels (58 at 80x60, 230 at 160x120) fit or misfit the
+- (without the refinement only) fewer than ``min_ok_fraction`` = 1.2 % of the image's pixels (58 at 80x60, 230 at 160x120) fit or misfit the
   estimate: too little of the bone is visible to tell a right pose from a wrong one (measured on
   or_fast_reposition: with the crest half out of view, 48 pixels at 80x60, a pose 17 mm off still
   had 83 % inliers; a real CT crest, crest_left_02, shows 260-380 pixels at 160x120 = 1.4-2 %:
@@ -51,6 +51,27 @@ pose, so it is left out of both the inlier fraction and the covered-pixel count 
 of the bone therefore leaves the status to the remaining 20 % (ok if they fit and are enough),
 and a full occlusion leaves too few pixels: uncertain, never ok. Misfits of a wrong pose (soft
 tissue, the table or the bone itself a few millimetres off the rendered surface) stay in.
+
+With the refinement (``refine.enabled``, the default; app/filter/refine.py, refine_track.py,
+combined by :func:`with_refinement` in app/pipeline/tracker.py): the filter's status above is
+computed without ``min_ok_fraction`` (a share of the image, tuned on the synthetic crest) and is
+then lowered to UNCERTAIN, never raised, when
+
+- the refined fit confirms less than ``min_fitness`` = 0.6 of the bone's expected visible surface
+  (the silhouette's pixels, occluders left out, whose measurement lies within 3 σ(z) of the refined
+  model), or the frame was not refined (issue 12: on fifteen held-out scenes a fit below ~0.6
+  flagged two thirds of the frames > 5 mm off without flagging a good frame; on the eight CT
+  crests at 0.42 m the truth confirms 0.83-0.85, BENCHMARKS.md §6); the buried part of the bone
+  is therefore not evidence against a pose, it only lowers what can be confirmed: a crest standing
+  a few millimetres out of the tissue is never ok;
+- the largest predicted standard deviation of the template's points, from the refinement's
+  information matrix (Σ = ``covariance_inflation`` H⁻¹, inflation 10 for correlated pixels and
+  model error), exceeds ``max_template_std`` = 1 mm, the clinical tolerance (DESIGN.md): too
+  little of the bone is seen to place the template. It measures precision, not wrongness (issue
+  12: the smallest eigenvalue of H did not separate wrong from right poses at all);
+- a competing pose explains the image about as well: the refinements from the own track and from
+  the filter's estimate converged > 5 mm / 5 deg apart with their shares within 1 σ less than
+  ``refine.competitor_margin`` = 0.05 apart (tests/test_refine_status.py builds such a frame).
 
 Caveat: with a peaked likelihood (hundreds of pixels, ESS / N near 1/N) the weighted spread of a
 degenerate particle set is near zero even when the estimate is off; the inlier rules are what
