@@ -66,6 +66,8 @@ class DepthTracker:
     def start(self, T_base_bone: np.ndarray) -> None:
         """Spread the particles around a coarse initial pose (the surgeon's alignment)."""
         self.filter.initialise(T_base_bone)
+        if self.refined_track is not None:
+            self.refined_track.seed(T_base_bone)
 
     def start_from_point(self, point_base: np.ndarray) -> None:
         """Start from one point on the bone (base frame, m): the one-point SMC initialiser runs on the
