@@ -43,7 +43,7 @@ def trial_path(cache: Path, crest: Path, scenario: str, seconds: float, seed: in
     from app.sim.simulator import simulate
 
     out = cache / f"{crest.stem}_{scenario}_{seconds:g}s_seed{seed}"
-    if not (out / "groundtruth.txt").is_file():
+    if not (out / "groundtruth.txt").is_file() or (out / ".recording-in-progress").exists():
         simulate(out, mesh_path=crest, scenario_name=scenario, seconds=seconds, seed=seed, overwrite=True)
     return out
 
