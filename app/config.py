@@ -6,7 +6,7 @@ Usage::
     config = load_config("configs/default.yaml")   # or load_config(None) for the defaults
 
 ``configs/default.yaml`` documents every key, its unit and where its value comes from. The YAML
-has six sections; each key maps to one attribute:
+has seven sections; each key maps to one attribute:
 
 - ``filter.*``     -> ``config.particles``, ``sampling``, ``resample_threshold``, ``resampling``,
                       ``first_dt``, ``seed``
@@ -16,6 +16,7 @@ has six sections; each key maps to one attribute:
 - ``motion.*``     -> ``config.motion`` (:class:`app.filter.motion.MotionParams`)
 - ``likelihood.*`` -> ``config.likelihood`` (:class:`app.filter.likelihood_ref.LikelihoodParams`)
 - ``status.*``     -> ``config.status`` (:class:`app.filter.status.StatusThresholds`)
+- ``refine.*``     -> ``config.refine`` (:class:`app.filter.refine_track.RefineConfig`)
 - ``render.*``     -> ``config.resolution`` (width, height), ``near``, ``far``,
                       ``mesh_triangles``, ``cull_back_faces``, ``backend``
 
@@ -39,6 +40,7 @@ from app.filter.likelihood_ref import OCCLUSION_MODELS, LikelihoodParams
 from app.filter.motion import MotionParams
 from app.filter.observation import BACKENDS
 from app.filter.particle_filter import SAMPLING_MODES, FilterConfig
+from app.filter.refine_track import RefineConfig
 from app.filter.resampling import SCHEMES
 
 INIT_METHODS = ("pose", "point")
@@ -62,6 +64,7 @@ class TrackerConfig(FilterConfig):
     init_point_sigma : m, σ_t, how far the pointed point may lie off the bone's surface
     init_restarts, init_budget_s : independent runs of the initialiser (the most likely kept), and
         their total time budget
+    refine : the local refinement and its own track (app/filter/refine_track.py)
 
     The product's defaults differ from the publications' in four measured places (BENCHMARKS.md,
     "Choosing the defaults"): the background-ratio likelihood with tempering α = 0.2 (the plain
@@ -87,6 +90,7 @@ class TrackerConfig(FilterConfig):
     motion: MotionParams = field(default_factory=lambda: MotionParams(sigma_a=2.0, sigma_alpha=20.0))
     likelihood: LikelihoodParams = field(default_factory=lambda: LikelihoodParams(background_ratio=True,
                                                                                   pixel_weight=0.2))
+    refine: RefineConfig = field(default_factory=RefineConfig)
 
 
 @dataclass(frozen=True)
@@ -153,6 +157,20 @@ KEYS: dict[str, _Key] = {
     "status.uncertain_angular_speed": _f("status.uncertain_angular_speed", 0.0, 1000.0, lo_open=True),
     "status.motion_window_s": _f("status.motion_window_s", 0.0, 10.0, lo_open=True),
     "status.settle_s": _f("status.settle_s", 0.0, 60.0),
+    "status.min_fitness": _f("status.min_fitness", 0.0, 1.0),
+    "status.max_template_std": _f("status.max_template_std", 0.0, 1.0, lo_open=True),
+    "status.covariance_inflation": _f("status.covariance_inflation", 1.0, 1e6),
+    "refine.enabled": _Key(("refine", "enabled"), "bool"),
+    "refine.stride": _i("refine.stride", 1, 8),
+    "refine.iterations": _i("refine.iterations", 0, 50),
+    "refine.samples": _i("refine.samples", 1000, 1_000_000),
+    "refine.keep_fitness": _f("refine.keep_fitness", 0.0, 1.0),
+    "refine.reseed_fitness": _f("refine.reseed_fitness", 0.0, 1.0),
+    "refine.competitor_distance": _f("refine.competitor_distance", 0.0, 1.0),
+    "refine.competitor_angle": _f("refine.competitor_angle", 0.0, math.pi),
+    "refine.competitor_margin": _f("refine.competitor_margin", 0.0, 1.0),
+    "refine.feedback": _Key(("refine", "feedback"), "bool"),
+    "refine.feedback_fitness": _f("refine.feedback_fitness", 0.0, 1.0),
     "render.resolution": _Key(("resolution",), "resolution", 8, 4096),
     "render.near": _f("near", 0.0, 10.0, lo_open=True),
     "render.far": _f("far", 0.0, 100.0, lo_open=True),

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -50,6 +50,7 @@ from app.filter.observation import LikelihoodBackend
 from app.filter.likelihood_ref import LikelihoodParams
 from app.filter.motion import MotionParams, ParticleState
 from app.filter.status import StatusInputs, StatusThresholds, TrackingStatus, classify
+from app.geometry import quaternion as quat
 from app.geometry import se3
 
 log = logging.getLogger(__name__)
@@ -89,7 +90,9 @@ class FilterOutput:
     status : TrackingStatus (a str); inlier_fraction : inliers / valid covered pixels of the
     estimate (NaN when none); covered_pixels : that count; n_nan : NaN log-likelihoods this frame;
     resampled : whether any block resampled; dt : s; weighed : whether the depth was used;
-    timings : seconds per stage (STAGES).
+    timings : seconds per stage (STAGES). Set by the tracker's local refinement
+    (app/filter/refine_track.py): refine_fitness (NaN when not refined), template_std (m),
+    refined : T_base_bone is the refined pose; competitor : a competing pose fits about as well.
     """
 
     T_base_bone: np.ndarray
@@ -106,6 +109,10 @@ class FilterOutput:
     dt: float
     weighed: bool
     timings: dict[str, float]
+    refine_fitness: float = float("nan")
+    template_std: float = float("inf")
+    refined: bool = False
+    competitor: bool = False
 
 
 class ParticleFilter:
@@ -149,6 +156,16 @@ class ParticleFilter:
         self._last_pose_stamp = None
         self.motion_gate.reset()
         self._last_estimate = None
+
+    def shift_to(self, T_base_bone_new: np.ndarray, T_base_bone_old: np.ndarray) -> None:
+        """Move the whole cloud rigidly by Δ = T_new T_old⁻¹ (T_j ← Δ T_j): a particle at T_old lands on
+        T_new and the cloud keeps its shape about it (the refinement's feedback, refine_track.py).
+        Velocities and weights are kept; the last estimate becomes T_new."""
+        delta = T_base_bone_new @ se3.inverse(T_base_bone_old)
+        poses = delta @ self.state.poses()
+        self.state = replace(self.state, p=poses[:, :3, 3].copy(), q=quat.from_matrix(poses[:, :3, :3]))
+        if self._last_estimate is not None:
+            self._last_estimate = replace(self._last_estimate, T_base_bone=np.array(T_base_bone_new, float))
 
     # -- stages -----------------------------------------------------------------------------
     def _dt(self, stamp: float) -> float:

@@ -23,7 +23,7 @@ UNCERTAIN if
 - the frame had no camera pose or no valid depth (prediction only), or
 - position spread > ``uncertain_position_spread`` = 3 mm, or rotation spread > ``uncertain_rotation_spread`` = 2°, or
 - fewer than ``uncertain_inlier_fraction`` = 70 % inliers, or
-- fewer than ``min_ok_fraction`` = 1.2 % of the image's pixels (58 at 80x60, 230 at 160x120) fit or misfit the
+- (without the refinement only) fewer than ``min_ok_fraction`` = 1.2 % of the image's pixels (58 at 80x60, 230 at 160x120) fit or misfit the
   estimate: too little of the bone is visible to tell a right pose from a wrong one (measured on
   or_fast_reposition: with the crest half out of view, 48 pixels at 80x60, a pose 17 mm off still
   had 83 % inliers; a real CT crest, crest_left_02, shows 260-380 pixels at 160x120 = 1.4-2 %:
@@ -52,6 +52,30 @@ of the bone therefore leaves the status to the remaining 20 % (ok if they fit an
 and a full occlusion leaves too few pixels: uncertain, never ok. Misfits of a wrong pose (soft
 tissue, the table or the bone itself a few millimetres off the rendered surface) stay in.
 
+With the refinement (``refine.enabled``, the default; app/filter/refine.py, refine_track.py,
+combined by :func:`with_refinement` in app/pipeline/tracker.py): the filter's status above is
+computed without ``min_ok_fraction`` (a share of the image, tuned on the synthetic crest) and is
+then lowered to UNCERTAIN, never raised, when
+
+- the refined fit confirms less than ``min_fitness`` = 0.6 of the bone's expected visible surface
+  (the silhouette's pixels, occluders left out, whose measurement lies within 3 σ(z) of the refined
+  model), or the frame was not refined (issue 12: on fifteen held-out scenes a fit below ~0.6
+  flagged two thirds of the frames > 5 mm off without flagging a good frame; on the eight CT
+  crests at 0.42 m the truth confirms 0.83-0.85, BENCHMARKS.md §6); the buried part of the bone
+  is therefore not evidence against a pose, it only lowers what can be confirmed: a crest standing
+  a few millimetres out of the tissue is never ok;
+- the largest predicted standard deviation of the template's points, from the refinement's
+  information matrix (Σ = ``covariance_inflation`` H⁻¹, inflation 4 for correlated pixels and
+  model error), exceeds ``max_template_std`` = 1 mm, the clinical tolerance (DESIGN.md): too
+  little of the bone is seen to place the template. The points are the mesh's vertices (the
+  tracker is not given the plan), a conservative bound; with inflation 10 it was ~1 mm on a clear
+  view of crest_left_02 whose refined ADD median was 0.46 mm, and the status flickered; 4 is a
+  hint from that one trial, not a calibration (BENCHMARKS.md §6). It measures precision, not wrongness (issue
+  12: the smallest eigenvalue of H did not separate wrong from right poses at all);
+- a competing pose explains the image about as well: the refinements from the own track and from
+  the filter's estimate converged > 5 mm / 5 deg apart with their shares within 1 σ less than
+  ``refine.competitor_margin`` = 0.05 apart (tests/test_refine_status.py builds such a frame).
+
 Caveat: with a peaked likelihood (hundreds of pixels, ESS / N near 1/N) the weighted spread of a
 degenerate particle set is near zero even when the estimate is off; the inlier rules are what
 catches a wrong estimate then. The pixel-count regularisation (likelihood.pixel_count_reg) makes
@@ -77,6 +101,9 @@ UNCERTAIN_SPEED_M_S = 0.03
 UNCERTAIN_ANGULAR_SPEED_RAD_S = math.radians(20.0)
 MOTION_WINDOW_S = 0.2
 SETTLE_S = 0.3
+MIN_FITNESS = 0.6
+MAX_TEMPLATE_STD_M = 0.001
+COVARIANCE_INFLATION = 4.0
 
 
 class TrackingStatus(enum.StrEnum):
@@ -105,6 +132,9 @@ class StatusThresholds:
     uncertain_angular_speed: float = UNCERTAIN_ANGULAR_SPEED_RAD_S
     motion_window_s: float = MOTION_WINDOW_S
     settle_s: float = SETTLE_S
+    min_fitness: float = MIN_FITNESS
+    max_template_std: float = MAX_TEMPLATE_STD_M
+    covariance_inflation: float = COVARIANCE_INFLATION
 
 
 @dataclass
@@ -177,6 +207,39 @@ def uncertain_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
     elif s.seconds_since_motion < t.settle_s:
         reasons.append(f"bone settling ({s.seconds_since_motion:.2f} s after moving)")
     return reasons
+
+
+@dataclass
+class RefinementEvidence:
+    """The local refinement's evidence (app/filter/refine_track.py) for :func:`with_refinement`.
+
+    fitness : share of the bone's expected visible surface confirmed (NaN when not refined);
+    template_std : m, largest predicted std of the template's points (inf when not refined);
+    competitor : a pose > 5 mm / 5 deg away explains the image about as well.
+    """
+
+    fitness: float
+    template_std: float
+    competitor: bool
+
+
+def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
+    """The refinement's UNCERTAIN rules that fire (module docstring, "With the refinement")."""
+    reasons = []
+    if not r.fitness >= t.min_fitness:
+        reasons.append(f"refined fit {r.fitness:.2f} < {t.min_fitness:.2f} of the visible bone confirmed")
+    if not r.template_std <= t.max_template_std:
+        reasons.append(f"predicted template error {1e3 * r.template_std:.2f} mm")
+    if r.competitor:
+        reasons.append("a competing pose explains the image about as well")
+    return reasons
+
+
+def with_refinement(status: TrackingStatus, r: RefinementEvidence, t: StatusThresholds) -> TrackingStatus:
+    """The filter's status combined with the refinement's: ok only when both say so; never raised."""
+    if status != TrackingStatus.OK:
+        return status
+    return TrackingStatus.UNCERTAIN if refinement_reasons(r, t) else TrackingStatus.OK
 
 
 def classify(s: StatusInputs, t: StatusThresholds | None = None) -> TrackingStatus:

@@ -17,7 +17,9 @@ import trimesh
 from app.config import TrackerConfig
 from app.depth_image import downsample_nearest
 from app.filter.particle_filter import FilterOutput, ParticleFilter
-from app.filter.status import TrackingStatus
+from app.filter.refine import Refiner, RefineParams
+from app.filter.refine_track import RefinedTrack
+from app.filter.status import RefinementEvidence, TrackingStatus, with_refinement
 from app.geometry.camera import PinholeCamera
 
 log = logging.getLogger(__name__)
@@ -54,7 +56,8 @@ class DepthTracker:
             config.backend, self.mesh_vertices, self.mesh_faces, self.camera, config.particles, config.likelihood,
             near=config.near, far=config.far, cull_back_faces=cull)
         self.backend_name = self.backend.name
-        self.filter = ParticleFilter(config, self.backend, np.random.default_rng(config.seed))
+        self.filter = ParticleFilter(_filter_config(config), self.backend, np.random.default_rng(config.seed))
+        self.refined_track = _refined_track(config, mesh, camera)
         self._timings: dict[str, float] = defaultdict(float)
         self._frames = 0
         self._pending_point: np.ndarray | None = None
@@ -64,6 +67,8 @@ class DepthTracker:
     def start(self, T_base_bone: np.ndarray) -> None:
         """Spread the particles around a coarse initial pose (the surgeon's alignment)."""
         self.filter.initialise(T_base_bone)
+        if self.refined_track is not None:
+            self.refined_track.seed(T_base_bone)
 
     def start_from_point(self, point_base: np.ndarray) -> None:
         """Start from one point on the bone (base frame, m): the one-point SMC initialiser runs on the
@@ -99,6 +104,8 @@ class DepthTracker:
                 return self._not_started(stamp)
             self._initialise_from_point(depth_small, T_base_camera)
         result = self.filter.step(depth_small, stamp, T_base_camera)
+        if self.refined_track is not None:
+            result = self._refine(result, depth_m, T_base_camera)
         if self._started_from_point and result.status == TrackingStatus.OK:
             result = replace(result, status=TrackingStatus.UNCERTAIN)   # start_from_point: never ok
         for stage, seconds in result.timings.items():
@@ -107,6 +114,30 @@ class DepthTracker:
             self._timings[f"{self.backend_name}_{stage}"] += seconds
         self._frames += 1
         return result
+
+    def _refine(self, result: FilterOutput, depth_m: np.ndarray, T_base_camera: np.ndarray | None) -> FilterOutput:
+        """The local refinement on a weighed frame (app/filter/refine_track.py): the refined pose is
+        the output, the cloud is shifted onto it (feedback, only once the filter's cloud has converged:
+        a refinement started from an unconverged filter can lock onto a wrong fit that is nearly as
+        good, and dragging the cloud there keeps it there; measured on crest_left_02, BENCHMARKS.md §6),
+        and the status combines the filter's
+        with the refinement's evidence (app/filter/status.py)."""
+        if not result.weighed or T_base_camera is None:
+            return result
+        out = self.refined_track.update(depth_m, T_base_camera, result.T_base_bone)
+        c = self.config.refine
+        st = self.config.status
+        converged = (result.status != TrackingStatus.LOST and result.position_spread <= st.uncertain_position_spread
+                     and result.rotation_spread <= st.uncertain_rotation_spread)
+        if (c.feedback and converged and out.T_base_bone is not None
+                and out.fitness >= c.feedback_fitness and not out.competitor):
+            self.filter.shift_to(out.T_base_bone, result.T_base_bone)
+        status = with_refinement(result.status, RefinementEvidence(out.fitness, out.template_std, out.competitor),
+                                 self.config.status)
+        timings = {**result.timings, "refine": out.seconds}
+        T_base_bone = out.T_base_bone if out.T_base_bone is not None else result.T_base_bone
+        return replace(result, T_base_bone=T_base_bone, status=status, timings=timings, refine_fitness=out.fitness,
+                       template_std=out.template_std, refined=out.T_base_bone is not None, competitor=out.competitor)
 
     def _not_started(self, stamp: float) -> FilterOutput:
         """A lost result while the one-point initialiser waits for a frame it can use (the pose: the
@@ -127,3 +158,27 @@ class DepthTracker:
 
     def release(self) -> None:
         self.backend.release()
+
+
+PLAN_POINTS = 300   # mesh vertices standing in for the template's points in the status's error bound
+
+
+def _filter_config(config: TrackerConfig) -> TrackerConfig:
+    """With the refinement on, its fitness and predicted template error replace the filter's share of
+    the image (status.min_ok_fraction, tuned on the synthetic crest; app/filter/status.py)."""
+    if not config.refine.enabled:
+        return config
+    return replace(config, status=replace(config.status, min_ok_fraction=0.0))
+
+
+def _refined_track(config: TrackerConfig, mesh: trimesh.Trimesh, camera: PinholeCamera) -> RefinedTrack | None:
+    """The refinement on the full mesh at the camera's full resolution, or None when disabled."""
+    c, lk = config.refine, config.likelihood
+    if not c.enabled:
+        return None
+    vertices, faces = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
+    params = RefineParams(stride=c.stride, iterations=c.iterations, samples=c.samples, k=lk.k,
+                          sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin)
+    refiner = Refiner(vertices, faces, camera, params, seed=config.seed)
+    step = max(1, len(vertices) // PLAN_POINTS)
+    return RefinedTrack(refiner, c, vertices[::step], config.status.covariance_inflation)

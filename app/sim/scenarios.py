@@ -76,6 +76,9 @@ _register(Scenario("or_fast_reposition", "the pelvis is moved 12 cm at up to 25 
                    seconds=5.0, bone_motion=((1.5, 0.9, (0.12, 0.0, 0.0), (0.0, 0.0, 0.785)),)))
 _register(Scenario("or_coarse_start", "initial alignment off by 15 mm and 12 deg", seconds=6.0,
                    init_error_mm=15.0, init_error_deg=12.0, instrument=False))
+_register(Scenario("or_deep_tissue", "static; the crest stands only ~10 mm out of the soft tissue (world.TISSUE_PROTRUSION_M) "
+                   "and 3 mm of residual tissue lies on a third of the ridge (issue 12)",
+                   seconds=6.0, tissue_patch_m=0.003, instrument=False))
 
 STANDARD = ("static_clear", "static_occluded", "bone_moves", "dropouts")
 DEFAULT_SCENARIO = "static_occluded"

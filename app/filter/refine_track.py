@@ -1,0 +1,153 @@
+"""The refinement's own track beside the particle filter: which pose to refine, which to keep.
+
+Import as ``from app.filter.refine_track import RefinedTrack``. DESIGN.md "Local refinement and the
+estimate's uncertainty"; the policy is issue 12's "fourth variant" (measured there on fifteen
+held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
+
+- the refinement keeps its own track: each weighed frame it refines (app/filter/refine.py) from
+  its last refined pose while that pose's fitness holds (>= ``keep_fitness``, 0.3);
+- it also refines from the filter's estimate when it has no track, when the track's fitness is
+  below ``reseed_fitness`` (0.6), or when the filter's estimate lies more than
+  ``competitor_distance`` / ``competitor_angle`` (5 mm / 5 deg) from the track (a candidate that
+  could compete; nearer, the filter's 160x120 estimate is only less precise: refining it too, as
+  at 3 mm / 1.7 deg first, doubled the refinement's cost on the CT crests), and keeps the better fit (the
+  higher share within 1 σ, ``RefineResult.sharp``: the 3 σ fitness barely separates two fits a few
+  millimetres apart on a crest);
+- when both refinements ran, converged more than ``competitor_distance`` (5 mm / 5 deg) apart and
+  the loser's sharp share is within ``competitor_margin`` (0.05) of the winner's, a competing pose
+  explains the image about as well: the frame is ambiguous (the status cannot be ok, status.py);
+- the track starts at the coarse initial pose (:meth:`RefinedTrack.seed`): the filter's first
+  weighing can jump far (measured on crest_left_03, static_occluded: 17.8 mm off after the first
+  frame from a start 5 mm off, with the filter alone too), and the refinement from the start pose
+  then competes with the one from the filter's estimate;
+- the output pose is the refined one when its fitness >= ``keep_fitness``, else the filter's;
+- feedback (``feedback``): when the filter's cloud has converged (its status not lost, its spread
+  under status.uncertain_position_spread / uncertain_rotation_spread), the kept fit reaches
+  ``feedback_fitness`` and no competitor exists,
+  the particle cloud is shifted rigidly so that its mean lands on the refined pose
+  (:meth:`app.filter.particle_filter.ParticleFilter.shift_to`): the filter stays inside the
+  refinement's capture range (issue 12: seeded 0-3 mm off, 98 % of ICP frames ended under 2 mm,
+  5-7.5 mm off only 16 %). Measured in BENCHMARKS.md §6.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.filter.refine import Refiner, RefineResult, template_std
+from app.geometry import se3
+
+
+@dataclass
+class RefineConfig:
+    """``refine.*`` of the configuration (module docstring). enabled; stride (1 full / 2 half sensor
+    resolution); iterations; samples (model points); keep_fitness; reseed_fitness;
+    competitor_distance (m) / competitor_angle (rad); competitor_margin; feedback; feedback_fitness."""
+
+    enabled: bool = True
+    stride: int = 2
+    iterations: int = 5
+    samples: int = 30_000
+    keep_fitness: float = 0.3
+    reseed_fitness: float = 0.6
+    competitor_distance: float = 0.005
+    competitor_angle: float = math.radians(5.0)
+    competitor_margin: float = 0.05
+    feedback: bool = True
+    feedback_fitness: float = 0.6
+
+
+@dataclass
+class RefineOutcome:
+    """One frame: T_base_bone (the refined pose, or None when no fit was kept); fitness (NaN when not
+    refined); template_std (m, inf when not refined); competitor : a competing pose fits about as
+    well; competitor_fitness; source : 'track' | 'filter' | ''; seconds : time spent."""
+
+    T_base_bone: np.ndarray | None
+    fitness: float
+    template_std: float
+    competitor: bool
+    competitor_fitness: float
+    source: str
+    seconds: float
+
+
+def pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """Translation (m) and rotation (rad) between two poses."""
+    return float(se3.translation_distance(T_a, T_b)), float(se3.rotation_angle(T_a, T_b))
+
+
+class RefinedTrack:
+    """The refinement's own track (module docstring).
+
+    Parameters
+    ----------
+    refiner : Refiner at the depth images' full resolution
+    config : RefineConfig
+    plan_points : (K, 3) bone-frame points whose predicted error the status bounds (the template's;
+        the mesh's vertices, subsampled, when the plan is not known: a conservative bound)
+    inflation : Σ = inflation H⁻¹ (correlated pixels; status.covariance_inflation)
+    """
+
+    def __init__(self, refiner: Refiner, config: RefineConfig, plan_points: np.ndarray, inflation: float):
+        self.refiner = refiner
+        self.config = config
+        self.plan_points = np.asarray(plan_points, float).reshape(-1, 3) - refiner.center
+        self.inflation = inflation
+        self.reset()
+
+    def reset(self) -> None:
+        self.T_base_bone, self.fitness = None, float("nan")
+        self._seeded = False
+
+    def seed(self, T_base_bone: np.ndarray) -> None:
+        """Start the track at a given pose (the coarse initial alignment): the first frame refines from
+        it with the wide first step as well as from the filter's estimate, and keeps the better fit."""
+        self.T_base_bone, self.fitness, self._seeded = np.array(T_base_bone, float), 1.0, True
+
+    def _refine(self, depth, T_camera_base, T_base_bone, start_width=None) -> tuple[np.ndarray, RefineResult]:
+        result = self.refiner.refine(depth, T_camera_base @ T_base_bone, start_width)
+        T_base_camera = se3.inverse(T_camera_base)
+        return T_base_camera @ result.T_camera_bone, result
+
+    def _needs_filter(self, T_filter: np.ndarray) -> bool:
+        c = self.config
+        if self.T_base_bone is None or not self.fitness >= c.reseed_fitness:
+            return True
+        dist, angle = pose_gap(self.T_base_bone, T_filter)
+        return dist > c.competitor_distance or angle > c.competitor_angle
+
+    def update(self, depth: np.ndarray, T_base_camera: np.ndarray, T_base_bone_filter: np.ndarray) -> RefineOutcome:
+        """Refine on one weighed frame (full-resolution depth, metres) and update the track."""
+        t0 = time.perf_counter()
+        c = self.config
+        T_camera_base = se3.inverse(T_base_camera)
+        fits = []
+        if self.T_base_bone is not None and self.fitness >= c.keep_fitness:
+            width = None if self._seeded else 0.0
+            fits.append(("track", *self._refine(depth, T_camera_base, self.T_base_bone, start_width=width)))
+        self._seeded = False
+        if self._needs_filter(T_base_bone_filter):
+            fits.append(("filter", *self._refine(depth, T_camera_base, T_base_bone_filter)))
+        fits = [f for f in fits if f[2].converged and np.isfinite(f[2].fitness)]
+        if not fits:
+            self.reset()
+            return RefineOutcome(None, float("nan"), float("inf"), False, float("nan"), "", time.perf_counter() - t0)
+        fits.sort(key=lambda f: -f[2].sharp)
+        source, T_best, best = fits[0]
+        competitor, competitor_fitness = False, float("nan")
+        if len(fits) > 1:
+            competitor_fitness = fits[1][2].fitness
+            dist, angle = pose_gap(T_best, fits[1][1])
+            apart = dist > c.competitor_distance or angle > c.competitor_angle
+            competitor = apart and fits[1][2].sharp >= best.sharp - c.competitor_margin
+        if best.fitness >= c.keep_fitness:
+            self.T_base_bone, self.fitness = T_best, best.fitness
+        else:
+            self.reset()
+        std = template_std(best.H, self.plan_points, self.inflation)
+        kept = T_best if best.fitness >= c.keep_fitness else None
+        return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0)

@@ -1,0 +1,130 @@
+"""Local refinement (app/filter/refine.py): convergence on a simulated frame, the information
+matrix and the template's predicted error against closed forms."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from app import metrics
+from app.filter.refine import Refiner, RefineParams, exp_se3, template_std
+from app.geometry import se3
+from app.geometry.camera import PinholeCamera
+from app.sim import world
+from app.sim.simulator import D415_640x480, DEFAULT_MESH
+
+
+@pytest.fixture(scope="module")
+def crest_frame(gl_ctx):
+    """The synthetic crest in its soft tissue (10 mm protrusion) at 0.42 m, crest towards the lens,
+    rendered at 640x480 with the D415-like noise σ(z) = 0.0011 z² + 0.0005 m."""
+    from app.render.scene import SceneRenderer
+
+    mesh = trimesh.load(DEFAULT_MESH)
+    vertices = np.asarray(mesh.vertices) - np.asarray(mesh.vertices).mean(axis=0)
+    faces = np.asarray(mesh.faces)
+    tissue = world.soft_tissue_mesh(trimesh.Trimesh(vertices, faces), np.random.default_rng(0))
+    scene = SceneRenderer(gl_ctx, D415_640x480)
+    scene.add_mesh("bone", vertices, faces, label=1)
+    scene.add_mesh("tissue", np.asarray(tissue.vertices), np.asarray(tissue.faces), label=2)
+    T_camera_bone = se3.from_rotvec_trans(np.array([np.pi, 0.1, 0.1]), np.array([0.0, 0.0, 0.42]))
+    depth, labels = scene.render({"bone": T_camera_bone, "tissue": T_camera_bone})
+    scene.release()
+    z = depth.astype(float)
+    rng = np.random.default_rng(1)
+    measured = np.where(z > 0, z + (0.0011 * z ** 2 + 0.0005) * rng.standard_normal(z.shape), 0.0)
+    return vertices, faces, T_camera_bone, measured, labels
+
+
+def _offset(T, rng, mm=5.0, deg=5.0):
+    axis = rng.normal(size=3)
+    shift = rng.normal(size=3)
+    return T @ se3.from_rotvec_trans(axis / np.linalg.norm(axis) * np.radians(deg), shift / np.linalg.norm(shift) * mm / 1e3)
+
+
+def test_converges_from_5mm_5deg_to_under_0_3mm(crest_frame):
+    vertices, faces, T_true, measured, _ = crest_frame
+    refiner = Refiner(vertices, faces, D415_640x480, RefineParams())
+    rng = np.random.default_rng(7)
+    for _ in range(3):
+        T0 = _offset(T_true, rng)
+        assert metrics.add(T0, T_true, vertices) > 0.004
+        result = refiner.refine(measured, T0)
+        assert result.converged
+        assert metrics.add(result.T_camera_bone, T_true, vertices) < 0.0003
+        assert result.fitness > 0.8          # the exposed crest confirmed
+        assert np.all(np.linalg.eigvalsh(result.H) > 0)
+
+
+def test_fitness_drops_for_a_wrong_pose(crest_frame):
+    vertices, faces, T_true, measured, _ = crest_frame
+    refiner = Refiner(vertices, faces, D415_640x480, RefineParams(iterations=0))
+    at_truth = refiner.refine(measured, T_true)
+    shifted = refiner.refine(measured, T_true @ se3.from_rotvec_trans(np.zeros(3), np.array([0.0, 0.0, -0.008])))
+    assert at_truth.fitness > 0.8
+    assert shifted.fitness < 0.3
+
+
+def test_occluders_and_invalid_pixels_are_left_out(crest_frame):
+    vertices, faces, T_true, measured, labels = crest_frame
+    refiner = Refiner(vertices, faces, D415_640x480, RefineParams())
+    hand = measured.copy()
+    rows, cols = np.nonzero(labels == 1)
+    left = cols < np.median(cols)
+    hand[rows[left], cols[left]] = T_true[2, 3] - 0.1          # a hand 10 cm in front of half the bone
+    hand[::7, :] = 0.0                                            # invalid rows
+    result = refiner.refine(hand, _offset(T_true, np.random.default_rng(3), 2.0, 2.0))
+    # half a crest constrains its length less and the tissue's pull shows more: 1.0 mm measured
+    assert metrics.add(result.T_camera_bone, T_true, vertices) < 0.0015
+    assert result.fitness > 0.8                                   # occluded pixels are not misfits
+    assert result.expected < 0.7 * refiner.refine(measured, T_true).expected
+
+
+def test_declines_without_enough_points(crest_frame):
+    vertices, faces, T_true, _, _ = crest_frame
+    refiner = Refiner(vertices, faces, D415_640x480, RefineParams())
+    T0 = _offset(T_true, np.random.default_rng(4))
+    result = refiner.refine(np.zeros((480, 640)), T0)
+    assert not result.converged
+    np.testing.assert_allclose(result.T_camera_bone, T0)
+
+
+def test_information_matrix_of_a_plane_matches_the_closed_form():
+    """A plane z = 0.5 m seen head-on: H = Σ J_iᵀJ_i / σ² with J_i = [(p_i × n)ᵀ, nᵀ]; the in-plane
+    translations and the rotation about the normal are unconstrained (zero eigenvalues)."""
+    camera = PinholeCamera(K=np.array([[100.0, 0, 39.5], [0, 100.0, 29.5], [0, 0, 1]]), width=80, height=60)
+    half = 0.1
+    vertices = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]], float)
+    faces = np.array([[0, 2, 1], [0, 3, 2]])      # normal -z: towards a camera looking down +z at it
+    refiner = Refiner(vertices, faces, camera, RefineParams(stride=1, iterations=1, samples=20000))
+    T = se3.from_rotvec_trans(np.zeros(3), np.array([0, 0, 0.5]))
+    depth = np.full((60, 80), 0.5)
+    result = refiner.refine(depth, T)
+    np.testing.assert_allclose(result.T_camera_bone, T, atol=1e-6)
+    y, _ = refiner.measurements(depth, T)
+    p = y - [0, 0, 0.5]
+    n = np.array([0, 0, -1.0])
+    J = np.column_stack([np.cross(p - refiner.center, n), np.tile(n, (len(p), 1))])
+    sigma = refiner.sigma(y[:, 2])
+    H_ref = (J / sigma[:, None] ** 2).T @ J
+    np.testing.assert_allclose(result.H, H_ref, rtol=1e-6, atol=1e-9 * np.abs(H_ref).max())
+    assert np.sum(np.linalg.eigvalsh(result.H) < 1e-6 * np.abs(H_ref).max()) == 3
+    assert template_std(result.H, vertices - refiner.center) == np.inf
+
+
+def test_template_std_matches_the_closed_form(rng):
+    """Σ = diag: a point t moves by ω × t + v; with σ_ω = 0 the std is σ_v, with σ_v = 0 and t ⊥ the
+    rotation axes it is σ_ω |t|."""
+    H = np.diag([1e12] * 3 + [1 / 0.0004 ** 2] * 3)
+    assert template_std(H, np.array([[0.0, 0.0, 0.0]])) == pytest.approx(0.0004, rel=1e-4)
+    H = np.diag([1 / 0.01 ** 2] * 3 + [1e14] * 3)
+    assert template_std(H, np.array([[0.05, 0.0, 0.0]])) == pytest.approx(0.0005, rel=1e-3)
+    assert template_std(H, np.array([[0.05, 0.0, 0.0]]), inflation=4.0) == pytest.approx(0.001, rel=1e-3)
+
+
+def test_exp_se3_is_rigid_and_first_order(rng):
+    delta = rng.normal(size=6) * 1e-3
+    T = exp_se3(delta)
+    assert se3.is_rigid(T)
+    p = rng.normal(size=(5, 3))
+    np.testing.assert_allclose(se3.transform_points(T, p), p + np.cross(delta[:3], p) + delta[3:], atol=1e-5)

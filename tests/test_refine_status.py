@@ -1,0 +1,96 @@
+"""The refinement's own track and the status rules it feeds (app/filter/refine_track.py,
+app/filter/status.py "With the refinement"): a competing pose that explains the image about as
+well is never ok; the refinement never raises the filter's status."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from app import metrics
+from app.filter.refine import Refiner, RefineParams
+from app.filter.refine_track import RefineConfig, RefinedTrack
+from app.filter.status import (RefinementEvidence, StatusThresholds, TrackingStatus, refinement_reasons,
+                               with_refinement)
+from app.geometry import se3
+from app.sim.simulator import D415_640x480, DEFAULT_MESH
+
+T_BASE_CAMERA = se3.from_rotvec_trans(np.array([0.2, -0.1, 0.3]), np.array([0.4, 0.1, 0.6]))
+
+
+@pytest.fixture(scope="module")
+def twin_frame(gl_ctx):
+    """Two copies of the synthetic crest side by side, 12 cm apart, seen at 0.42 m: two poses that
+    explain the image equally well (built to be ambiguous)."""
+    from app.render.scene import SceneRenderer
+
+    mesh = trimesh.load(DEFAULT_MESH)
+    vertices = np.asarray(mesh.vertices) - np.asarray(mesh.vertices).mean(axis=0)
+    faces = np.asarray(mesh.faces)
+    T_camera_a = se3.from_rotvec_trans(np.array([np.pi, 0.0, 0.0]), np.array([0.0, -0.06, 0.42]))
+    T_camera_b = se3.from_rotvec_trans(np.array([np.pi, 0.0, 0.0]), np.array([0.0, 0.06, 0.42]))
+    scene = SceneRenderer(gl_ctx, D415_640x480)
+    scene.add_mesh("a", vertices, faces, label=1)
+    scene.add_mesh("b", vertices, faces, label=1)
+    depth, _ = scene.render({"a": T_camera_a, "b": T_camera_b})
+    scene.release()
+    T_base_a, T_base_b = T_BASE_CAMERA @ T_camera_a, T_BASE_CAMERA @ T_camera_b
+    return vertices, faces, depth.astype(float), T_base_a, T_base_b
+
+
+def _track(vertices, faces):
+    refiner = Refiner(vertices, faces, D415_640x480, RefineParams())
+    return RefinedTrack(refiner, RefineConfig(), vertices[::20], inflation=10.0)
+
+
+def test_a_competing_pose_within_the_margin_is_never_ok(twin_frame):
+    vertices, faces, depth, T_base_a, T_base_b = twin_frame
+    track = _track(vertices, faces)
+    near_a = T_base_a @ se3.from_rotvec_trans(np.array([0.0, 0.02, 0.0]), np.array([0.001, 0.0, 0.0]))
+    first = track.update(depth, T_BASE_CAMERA, near_a)            # no track yet: from the filter's estimate
+    assert first.source == "filter" and not first.competitor
+    assert metrics.add(first.T_base_bone, T_base_a, vertices) < 0.0003
+    evidence = RefinementEvidence(first.fitness, first.template_std, first.competitor)
+    assert with_refinement(TrackingStatus.OK, evidence, StatusThresholds()) == TrackingStatus.OK
+    # the filter now says the other copy: both refinements converge, 12 cm apart, fits within the margin
+    second = track.update(depth, T_BASE_CAMERA, T_base_b)
+    assert second.competitor
+    assert abs(second.fitness - second.competitor_fitness) <= RefineConfig().competitor_margin
+    evidence = RefinementEvidence(second.fitness, second.template_std, second.competitor)
+    assert with_refinement(TrackingStatus.OK, evidence, StatusThresholds()) == TrackingStatus.UNCERTAIN
+    assert any("competing" in r for r in refinement_reasons(evidence, StatusThresholds()))
+
+
+def test_the_track_is_kept_while_the_filter_agrees(twin_frame):
+    vertices, faces, depth, T_base_a, _ = twin_frame
+    track = _track(vertices, faces)
+    track.update(depth, T_BASE_CAMERA, T_base_a)
+    again = track.update(depth, T_BASE_CAMERA, T_base_a @ se3.from_rotvec_trans(np.zeros(3), np.array([0.001, 0, 0])))
+    assert again.source == "track" and not again.competitor      # one refinement, no second candidate
+
+
+def test_no_fit_breaks_the_track(twin_frame):
+    vertices, faces, _, T_base_a, _ = twin_frame
+    track = _track(vertices, faces)
+    out = track.update(np.zeros((480, 640)), T_BASE_CAMERA, T_base_a)
+    assert out.T_base_bone is None and track.T_base_bone is None and out.template_std == math.inf
+
+
+@pytest.mark.parametrize("fitness, std, competitor, expected", [
+    (0.9, 0.0003, False, TrackingStatus.OK),
+    (0.5, 0.0003, False, TrackingStatus.UNCERTAIN),      # too little of the visible bone confirmed
+    (float("nan"), math.inf, False, TrackingStatus.UNCERTAIN),   # not refined
+    (0.9, 0.002, False, TrackingStatus.UNCERTAIN),       # predicted template error above 1 mm
+    (0.9, 0.0003, True, TrackingStatus.UNCERTAIN),       # ambiguous
+])
+def test_refinement_rules(fitness, std, competitor, expected):
+    evidence = RefinementEvidence(fitness, std, competitor)
+    assert with_refinement(TrackingStatus.OK, evidence, StatusThresholds()) == expected
+
+
+def test_the_refinement_never_raises_the_filters_status():
+    good = RefinementEvidence(0.95, 0.0001, False)
+    for status in (TrackingStatus.UNCERTAIN, TrackingStatus.LOST):
+        assert with_refinement(status, good, StatusThresholds()) == status
