@@ -16,10 +16,11 @@ A session file (YAML, ``format: osteonav-session/1``; examples in ``configs/sess
     out: recordings/today-tracking            # estimate.txt, status.csv, events.csv, summary.json
     loop: {stall_timeout_s: 0.5, duration_s: null}
 
-Inputs given as relative paths (calibration files, ``bone.mesh``, and plugin parameters named
-``trial``, ``recording``, ``mesh``, ``config``) are relative to the session file; outputs (``out``,
-``record``, an output plugin's ``path``/``dir``, a simulated trial's ``trial_dir``) are relative
-to the current directory. A recorded or simulated source
+Every relative path is relative to the session file, as ``config:`` is: inputs (calibration
+files, ``bone.mesh``, plugin parameters named ``trial``, ``recording``, ``mesh``, ``config``) and
+outputs alike (``out``, ``record``, an output plugin's ``path``/``dir``, a simulated trial's
+``trial_dir``); the command line's ``--out``/``--record`` are relative to the current directory.
+A recorded or simulated source
 knows its trial's calibration, robot, mesh and initial pose; keys the file leaves out are taken
 from there. Every error names the key (dotted) and the allowed values.
 
@@ -67,6 +68,7 @@ log = logging.getLogger(__name__)
 FORMAT = "osteonav-session/1"
 TOP_KEYS = ("format", "camera", "robot", "tracker", "calibration", "bone", "outputs", "record", "out", "loop")
 INPUT_PATH_PARAMS = ("trial", "recording", "mesh", "config")
+OUTPUT_PATH_PARAMS = ("trial_dir", "path", "dir")   # resolved against the session file too
 STATUS_RANK = {"ok": 0, "uncertain": 1, "lost": 2}
 
 
@@ -174,7 +176,7 @@ def _plugin(kind: str, value: Any, base: Path, src: str, default: str | None = N
     _allowed(f"{key}.plugin", name, registry.available(kind))
     params = dict(_mapping(f"{key}.params", block.get("params"), src))
     for k, v in params.items():
-        if k in INPUT_PATH_PARAMS and isinstance(v, str):
+        if k in INPUT_PATH_PARAMS + OUTPUT_PATH_PARAMS and isinstance(v, str):
             params[k] = str(_resolve(base, v))
     return PluginSpec(kind, name, params, key)
 
@@ -258,7 +260,7 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
         path=path, camera=camera, robot=robot, tracker=tracker, outputs=outputs, robot_model=robot_model,
         hand_eye=_matrix4("calibration.hand_eye", calib.get("hand_eye"), base, src), intrinsics=intrinsics,
         mesh=mesh, initial_pose=_matrix4("bone.initial_pose", bone.get("initial_pose"), base, src),
-        record=_resolve(Path.cwd(), raw.get("record")), out=_resolve(Path.cwd(), raw.get("out")), loop=loop,
+        record=_resolve(base, raw.get("record")), out=_resolve(base, raw.get("out")), loop=loop,
     )
 
 
@@ -455,6 +457,46 @@ def _summary_stats(values: list[float]) -> dict:
     return {"median": float(np.median(a)), "p99": float(np.percentile(a, 99)), "max": float(a.max()), "n": int(len(a))}
 
 
+class LatencyLog:
+    """Where a frame's time goes, per processed frame (seconds on the session clock).
+
+    capture->arrival (``frame.arrival - frame.stamp``: the source's own delay), queue wait (the
+    loop's pop minus the arrival), tracker (joint interpolation and ``tracker.process``), sinks
+    (every sink's ``on_estimate``). The frame-to-estimate latency is
+    ``capture->arrival + queue wait + tracker``; sinks run after the estimate is made.
+    """
+
+    STAGES = ("capture_to_arrival", "queue_wait", "tracker", "sinks")
+
+    def __init__(self):
+        self.t_estimate: list[float] = []
+        self.latency: list[float] = []
+        self.stages: dict[str, list[float]] = {k: [] for k in self.STAGES}
+
+    def add(self, frame: DepthFrame, t_pop: float, t_estimate: float, t_sinks_done: float) -> None:
+        self.t_estimate.append(t_estimate)
+        self.latency.append(t_estimate - frame.stamp)
+        for key, value in zip(self.STAGES, (frame.arrival - frame.stamp, t_pop - frame.arrival,
+                                             t_estimate - t_pop, t_sinks_done - t_estimate)):
+            self.stages[key].append(value)
+
+    def summary(self, window_s: float = 10.0) -> dict:
+        """Latency (ms) overall, per stage, and over the first and last ``window_s`` of the session."""
+        out = {"latency_ms": _ms(_summary_stats(self.latency)),
+               "latency_stages_ms": {k: _ms(_summary_stats(v)) for k, v in self.stages.items()}}
+        if self.t_estimate:
+            t = np.asarray(self.t_estimate)
+            lat = np.asarray(self.latency)
+            out["latency_first_ms"] = _ms(_summary_stats(list(lat[t <= t[0] + window_s])))
+            out["latency_last_ms"] = _ms(_summary_stats(list(lat[t >= t[-1] - window_s])))
+            out["latency_window_s"] = window_s
+        return out
+
+
+def _ms(stats: dict) -> dict:
+    return {k: (None if v is None else (1e3 * v if k != "n" else v)) for k, v in stats.items()}
+
+
 class _EstimateFiles:
     """estimate.txt (TUM) and status.csv, one row per processed frame, flushed row by row."""
 
@@ -496,15 +538,20 @@ def _resolve_session(config: SessionConfig, camera_model: PinholeCamera, default
             "initial_pose": initial_pose}
 
 
-def run_session(config: SessionConfig, stop: threading.Event | None = None, progress=None) -> SessionResult:
-    """Run the live loop until ``stop`` is set, Ctrl-C, ``loop.duration_s``, or a finite source ends."""
+def run_session(config: SessionConfig, stop: threading.Event | None = None, progress=None,
+                clock: SessionClock | None = None) -> SessionResult:
+    """Run the live loop until ``stop`` is set, Ctrl-C, ``loop.duration_s``, or a finite source ends.
+
+    ``loop.duration_s`` counts from the sources' start (opening them, e.g. simulating a trial, is
+    not part of it). ``clock`` may be injected (tests); by default the host's monotonic clock.
+    """
     import trimesh
 
     from app.geometry.ur import forward_kinematics
 
     stop = stop or threading.Event()
     lc = config.loop
-    clock = SessionClock()
+    clock = clock or SessionClock()
     out = config.out
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
@@ -516,9 +563,9 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
     estimate_files = None
     started: list = []
     statuses: Counter = Counter()
-    latencies: list[float] = []
+    latency = LatencyLog()
     estimates: collections.deque = collections.deque(maxlen=100_000)
-    t_start = time.monotonic()
+    t_start = clock.now()
     interrupted: list[str] = []
     restore_signals = _stop_on_signals(stop, interrupted)
     try:
@@ -558,6 +605,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
             tracker.start(np.asarray(ctx["initial_pose"], float))
         robot.start(bus.push_joints)
         started.append(robot)
+        t_sources = clock.now()
         camera.start(bus.push_frame)
         started.append(camera)
         T_flange_camera = ctx["T_flange_camera"]
@@ -567,7 +615,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
         last_lost_tick = 0.0
         while not stop.is_set():
             now = clock.now()
-            if lc.duration_s is not None and now - clock.t0 >= lc.duration_s:
+            if lc.duration_s is not None and now - t_sources >= lc.duration_s:
                 break
             frame = bus.frames.get_latest(timeout=0.05)
             now = clock.now()
@@ -601,25 +649,28 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
             if tracker is None:
                 est = Estimate(frame.stamp, frame.frame_id, None, "lost", T_base_camera, clock.now() - frame.stamp,
                                ("not tracking",))
+                t_estimate = None
             else:
                 result = tracker.process(frame.depth_m, frame.stamp, T_base_camera)
                 status = result.status
                 if T_base_camera is None:
                     floor = "lost" if now - last_pose_host > lc.robot_lost_s else "uncertain"
                     status = max(status, floor, key=STATUS_RANK.get)
+                t_estimate = clock.now()
                 est = Estimate(frame.stamp, frame.frame_id, np.asarray(result.T_base_bone, float), status, T_base_camera,
-                               clock.now() - frame.stamp, tuple(reasons),
+                               t_estimate - frame.stamp, tuple(reasons),
                                {"ess_ratio": getattr(result, "ess_ratio", None),
                                 "position_spread": getattr(result, "position_spread", None),
                                 "rotation_spread": getattr(result, "rotation_spread", None),
                                 "frame": frame})
-                latencies.append(est.latency_s)
                 if estimate_files is not None:
                     estimate_files.write(est)
             statuses[est.status] += 1
             estimates.append(_light(est))
             for sink in sinks:
                 sink.on_estimate(est)
+            if t_estimate is not None:
+                latency.add(frame, now, t_estimate, clock.now())
             if progress:
                 progress(est)
         if interrupted:
@@ -646,14 +697,14 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
             tracker.release()
         summary = {
             "session": str(config.path) if config.path else None,
-            "seconds": time.monotonic() - t_start,
+            "seconds": clock.now() - t_start,
             "camera": config.camera.name, "robot": config.robot.name,
             "frames": dict(bus.counts) if "bus" in locals() else {},
             "frames_skipped_by_tracker": bus.frames.dropped if "bus" in locals() else 0,
+            "frames_skipped_by_camera": int(getattr(camera, "skipped", 0)),
             "processed": sum(v for k, v in statuses.items() if "(" not in k),
             "status_counts": dict(statuses),
-            "latency_ms": {k: (None if v is None else (1e3 * v if k != "n" else v))
-                           for k, v in _summary_stats(latencies).items()},
+            **latency.summary(),
             "events": dict(events.counts),
             "outputs": sink_reports,
         }

@@ -81,6 +81,8 @@ class RecordedCamera(ThreadedSource):
         self.trial = Path(trial)
         self.loop = loop
         self.reader = None
+        self.skipped = 0      # frames due while the player was behind its schedule, never pushed
+        self.pushed = 0
 
     def open(self, clock: SessionClock, event):
         self._bind(clock, event)
@@ -92,20 +94,39 @@ class RecordedCamera(ThreadedSource):
 
     def _run(self) -> None:
         origin = _trial_origin(self.reader)
-        period = float(self.reader.stamps[-1] - origin) + 0.1
+        stamps = np.asarray(self.reader.stamps, float)
+        period = float(stamps[-1] - origin) + 0.1
         lap = 0
         while not self._stop.is_set():
-            for frame in self.reader.iter_frames():
-                host_t = float(self.clock.replay_to_host(frame.stamp + lap * period, origin))
-                if not self._sleep_until(host_t):
-                    return
-                self._push(DepthFrame(int(frame.frame_id) + lap * 10_000_000, host_t,
-                                      np.asarray(frame.depth_m, np.float32), self.clock.now()))
+            host = np.asarray(self.clock.replay_to_host(stamps + lap * period, origin), float)
+            if not self._play_lap(host, lap):
+                return
             if not self.loop:
                 break
             lap += 1
         self._event("end", f"end of the recorded frames of {self.trial}")
         self.finished.set()
+
+    def _play_lap(self, host: np.ndarray, lap: int) -> bool:
+        """Push the frames of one lap at their host times ``host``; False if stopped.
+
+        Like a real camera, the player never delivers a frame late: when it wakes up behind its
+        schedule (the host was busy), it pushes the newest frame already due and skips the older
+        ones (counted in ``skipped``), so a slow host never builds a backlog of stale frames.
+        """
+        i = 0
+        while i < len(host):
+            if not self._sleep_until(host[i]):
+                return False
+            due = int(np.searchsorted(host, self.clock.now(), side="right")) - 1
+            j = max(i, min(due, len(host) - 1))
+            self.skipped += j - i
+            depth = self.reader.read_depth(j)
+            self._push(DepthFrame(int(self.reader.frame_ids[j]) + lap * 10_000_000, float(host[j]),
+                                  np.asarray(depth, np.float32), self.clock.now()))
+            self.pushed += 1
+            i = j + 1
+        return True
 
 
 class RecordedRobot(ThreadedSource):

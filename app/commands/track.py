@@ -62,9 +62,20 @@ def print_summary(summary: dict) -> None:
     lat = summary.get("latency_ms", {})
     frames = summary.get("frames", {})
     print(f"session: {summary.get('seconds', 0):.1f} s, {frames.get('frames_accepted', 0)} frames accepted, "
-          f"{summary.get('processed', 0)} tracked, {summary.get('frames_skipped_by_tracker', 0)} skipped by the tracker")
+          f"{summary.get('processed', 0)} tracked")
     if lat.get("n"):
         print(f"latency frame->estimate: median {lat['median']:.1f} ms, p99 {lat['p99']:.1f} ms, max {lat['max']:.1f} ms")
+        first, last = summary.get("latency_first_ms") or {}, summary.get("latency_last_ms") or {}
+        if first.get("n") and last.get("n"):
+            window = summary.get("latency_window_s", 10)
+            print(f"latency p99 over the first {window:.0f} s {first['p99']:.1f} ms, over the last {window:.0f} s "
+                  f"{last['p99']:.1f} ms")
+        stages = summary.get("latency_stages_ms") or {}
+        if stages:
+            print("where the time goes (median / p99 ms): " + ", ".join(
+                f"{k.replace('_', ' ')} {v['median']:.1f} / {v['p99']:.1f}" for k, v in stages.items() if v.get("n")))
+        print(f"frames dropped: {summary.get('frames_skipped_by_camera', 0)} by the camera (due while it was behind), "
+              f"{summary.get('frames_skipped_by_tracker', 0)} in the tracker queue (newer frame waiting)")
     if summary.get("status_counts"):
         print("status: " + ", ".join(f"{k} {v}" for k, v in sorted(summary["status_counts"].items())))
     if summary.get("events"):
