@@ -110,22 +110,30 @@ class RecordedCamera(ThreadedSource):
     def _play_lap(self, host: np.ndarray, lap: int) -> bool:
         """Push the frames of one lap at their host times ``host``; False if stopped.
 
-        Like a real camera, the player never delivers a frame late: when it wakes up behind its
-        schedule (the host was busy), it pushes the newest frame already due and skips the older
-        ones (counted in ``skipped``), so a slow host never builds a backlog of stale frames.
+        Like a real camera, the player never delivers a stale frame: the next frame is decoded
+        ahead of its time; when the player wakes up behind its schedule (the host was busy), it
+        pushes the newest frame already due and skips the older ones (counted in ``skipped``), so
+        a slow host never builds a backlog of old frames.
         """
         i = 0
+        end = float(host[-1] + np.median(np.diff(host))) if len(host) > 1 else np.inf  # the last frame's slot ends
+        ready = None
         while i < len(host):
+            if ready is None and self.clock.now() < host[i]:
+                ready = (i, self.reader.read_depth(i))        # decode ahead while there is time
             if not self._sleep_until(host[i]):
                 return False
-            due = int(np.searchsorted(host, self.clock.now(), side="right")) - 1
-            j = max(i, min(due, len(host) - 1))
+            now = self.clock.now()
+            if now >= end:                                    # even the last frame is stale
+                self.skipped += len(host) - i
+                break
+            j = max(i, int(np.searchsorted(host, now, side="right")) - 1)
+            depth = ready[1] if ready is not None and ready[0] == j else self.reader.read_depth(j)
             self.skipped += j - i
-            depth = self.reader.read_depth(j)
             self._push(DepthFrame(int(self.reader.frame_ids[j]) + lap * 10_000_000, float(host[j]),
                                   np.asarray(depth, np.float32), self.clock.now()))
             self.pushed += 1
-            i = j + 1
+            i, ready = j + 1, None
         return True
 
 

@@ -80,7 +80,7 @@ def test_a_player_behind_its_schedule_skips_to_the_newest_due_frame_on_the_sessi
     # then decoded: arrival - stamp <= 1/fps + decode_s, for every frame, first to last
     assert delay.max() <= 1 / fps + decode_s + 1e-9
     # the player kept up by skipping: each decode spans three periods, so about two of three skip
-    assert camera.pushed + camera.skipped == 90 and camera.reader.decoded == camera.pushed
+    assert camera.pushed + camera.skipped == 90 and camera.reader.decoded >= camera.pushed
     assert 25 <= camera.pushed <= 35
     assert np.all(np.diff(stamps) > 0)
 
@@ -94,7 +94,7 @@ def test_a_player_that_keeps_up_pushes_every_frame():
     camera._push = pushed.append
     camera._run()
     assert camera.skipped == 0 and len(pushed) == 90
-    assert max(f.arrival - f.stamp for f in pushed) <= 0.2 / 90.0 + 1e-9
+    assert max(f.arrival - f.stamp for f in pushed) == 0.0   # each decoded ahead of its time
 
 
 # ------------------------------------------------------------------------------------------------

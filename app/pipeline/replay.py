@@ -180,6 +180,7 @@ def _init_summary(init, reader, points: np.ndarray) -> dict:
     """The one-point initialiser's run: time, tempering steps, spread, and its error when ground truth exists."""
     out = {"method": "point", "seconds": init.seconds, "tempering_steps": len(init.phis) - 1,
            "reached_target": bool(init.reached_target), "symmetry_turned": bool(init.symmetry_turned),
+           "evaluations": int(init.evaluations),
            "position_spread_mm": 1e3 * init.estimate.position_spread,
            "rotation_spread_deg": float(np.degrees(init.estimate.rotation_spread))}
     if reader.groundtruth is not None:
