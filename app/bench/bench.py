@@ -60,7 +60,27 @@ BUILTIN_ORDER = ("osteonav_default", "A_cpu", "A_cadaver", "thesis_blockwise", "
 PELVIS_DIR = REPO.parent / "shared" / "data" / "pelvis"
 DEFAULT_CACHE = Path("recordings") / "bench"
 QUICK_SCENARIOS = ("static_clear", "bone_moves")
-QUICK_SECONDS = 1.5
+QUICK_CONFIGS = ("osteonav_default", "A_cpu", "icp")   # ours, publication A's, the ICP baseline
+QUICK_STATIC_S = 1.5
+
+
+def quick_seconds(scenarios=QUICK_SCENARIOS) -> dict[str, float]:
+    """``--quick`` trial lengths: 1.5 s, or until the scenario's last bone move has ended (bone_moves:
+    1.5 + 2.0 = 3.5 s), so that a moving trial really moves within the quick run."""
+    from app.sim.scenarios import get_scenario
+
+    out = {}
+    for name in scenarios:
+        moves = get_scenario(name).bone_motion
+        out[name] = max([QUICK_STATIC_S] + [start + duration for start, duration, *_ in moves])
+    return out
+
+
+def _seconds_for(seconds: float | dict | None, scenario: str | None = None) -> float | None:
+    """A trial length from ``seconds``: a number for every trial, or a mapping by scenario name."""
+    if isinstance(seconds, dict):
+        return float(seconds[scenario]) if scenario in seconds else (max(seconds.values()) if scenario is None else None)
+    return None if seconds is None else float(seconds)
 TRACKERS = ("particle_filter", "icp")
 VSD_RESOLUTION = (160, 120)
 JITTER_SETTLE_S = 0.5
@@ -246,7 +266,7 @@ def _simulate_task(task: dict) -> dict:
     return {"out": task["out"], "frames": summary.frames}
 
 
-def standard_trials(cache: str | Path = DEFAULT_CACHE, scenarios=None, seconds: float | None = None,
+def standard_trials(cache: str | Path = DEFAULT_CACHE, scenarios=None, seconds: float | dict | None = None,
                     meshes=None, seed: int = 0, jobs: int = 1, progress: bool = True) -> list[TrialSpec]:
     """Simulate (or reuse from ``cache``) the standard scenarios for each mesh.
 
@@ -254,7 +274,7 @@ def standard_trials(cache: str | Path = DEFAULT_CACHE, scenarios=None, seconds: 
     ----------
     cache : folder of the cached trials, ``<cache>/<mesh stem>/<scenario>``
     scenarios : scenario names, default :data:`app.sim.scenarios.STANDARD`
-    seconds : duration of each trial, default each scenario's own
+    seconds : duration of each trial (or a mapping scenario -> duration), default each scenario's own
     meshes : mesh paths, default the project's mesh and the pelvis crest meshes found
     """
     from app.sim.scenarios import STANDARD, get_scenario
@@ -273,7 +293,7 @@ def standard_trials(cache: str | Path = DEFAULT_CACHE, scenarios=None, seconds: 
     specs, todo = [], []
     for mesh in meshes:
         for name in scenarios:
-            duration = float(seconds) if seconds else get_scenario(name).seconds
+            duration = _seconds_for(seconds, name) or get_scenario(name).seconds
             out = Path(cache) / mesh.stem / name
             specs.append(TrialSpec(str(out), mesh.stem, name))
             if not _cache_valid(out, name, duration, seed, mesh):
@@ -289,7 +309,7 @@ def standard_trials(cache: str | Path = DEFAULT_CACHE, scenarios=None, seconds: 
     return specs
 
 
-def recorded_trials(dirs, seconds: float | None = None) -> list[TrialSpec]:
+def recorded_trials(dirs, seconds: float | dict | None = None) -> list[TrialSpec]:
     """TrialSpecs of existing trial directories (each needs ``groundtruth.txt`` and ``initial_pose``)."""
     from app.errors import TrialFormatError
     from app.trial.reader import open_trial
@@ -307,8 +327,10 @@ def recorded_trials(dirs, seconds: float | None = None) -> list[TrialSpec]:
             except yaml.YAMLError:
                 pass
         n = len(reader)
-        if seconds:
-            n = int(np.searchsorted(reader.stamps, reader.stamps[0] + seconds, side="left"))
+        length = _seconds_for(seconds, scenario) if isinstance(seconds, dict) and scenario in seconds \
+            else _seconds_for(seconds)
+        if length:
+            n = int(np.searchsorted(reader.stamps, reader.stamps[0] + length, side="left"))
         specs.append(TrialSpec(str(d), Path(reader.meta.mesh).stem, scenario, frames=n,
                                max_frames=n if n < len(reader) else None))
     names = [s.name for s in specs]
