@@ -95,14 +95,16 @@ class SessionClock:
     replayed, and their stamps are on the session's clock however long the sources took to open
     (a simulated trial may be simulated first).
 
-    ``now`` may be injected (tests drive the loop with a manual clock); by default it is
-    ``time.monotonic``.
+    ``replay_rate`` < 1 plays recorded time slower than real time (0.25: a quarter of the speed),
+    for a loop that must see most frames on a slow machine; ``now`` may be injected (tests drive
+    the loop with a manual clock); by default it is ``time.monotonic``.
     """
 
-    def __init__(self, lead_in_s: float = 0.2, now: Callable[[], float] | None = None):
+    def __init__(self, lead_in_s: float = 0.2, now: Callable[[], float] | None = None, replay_rate: float = 1.0):
         self._now = now or time.monotonic
         self.t0 = self._now()
         self.lead_in_s = lead_in_s
+        self.replay_rate = float(replay_rate)
         self._origin: float | None = None
         self._host_anchor: float | None = None
         self._lock = threading.Lock()
@@ -129,7 +131,7 @@ class SessionClock:
 
     def replay_to_host(self, t: np.ndarray | float, t_first: float | None = None) -> np.ndarray | float:
         origin = self.replay_origin(t if t_first is None else t_first) if self._origin is None else self._origin
-        return self._host_anchor + (np.asarray(t, dtype=float) - origin)
+        return self._host_anchor + (np.asarray(t, dtype=float) - origin) / self.replay_rate
 
 
 EventSink = Callable[[str, str, str], None]  # (source, kind, message)

@@ -14,7 +14,7 @@ A session file (YAML, ``format: osteonav-session/1``; examples in ``configs/sess
     outputs: [{plugin: rerun, params: {path: session.rrd}}]
     record: recordings/today                  # optional: record the sensors as a trial
     out: recordings/today-tracking            # estimate.txt, status.csv, events.csv, summary.json
-    loop: {stall_timeout_s: 0.5, duration_s: null}
+    loop: {stall_timeout_s: 0.5, duration_s: null}   # replay_rate: 0.25 plays a recorded source slower
 
 Every relative path is relative to the session file, as ``config:`` is: inputs (calibration
 files, ``bone.mesh``, plugin parameters named ``trial``, ``recording``, ``mesh``, ``config``) and
@@ -95,6 +95,7 @@ class LoopConfig:
     tracker_queue: int = 2            # frames waiting for the tracker (newest kept)
     joint_buffer_s: float = 10.0      # joint history kept for interpolation
     event_repeat_s: float = 1.0       # the same event from the same source is logged once per this
+    replay_rate: float = 1.0          # recorded/simulated sources play at this speed (0.25: a quarter)
 
 
 @dataclass
@@ -551,7 +552,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
 
     stop = stop or threading.Event()
     lc = config.loop
-    clock = clock or SessionClock()
+    clock = clock or SessionClock(replay_rate=lc.replay_rate)
     out = config.out
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
