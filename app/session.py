@@ -62,6 +62,7 @@ from app import plugins_registry as registry
 from app.errors import ConfigError
 from app.geometry.camera import PinholeCamera
 from app.interfaces import DepthFrame, DropOldestQueue, Estimate, JointSamples, SessionClock, SessionEvent
+from app.metrics import STATUS_CODE as STATUS_RANK
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +70,6 @@ FORMAT = "osteonav-session/1"
 TOP_KEYS = ("format", "camera", "robot", "tracker", "calibration", "bone", "outputs", "record", "out", "loop")
 INPUT_PATH_PARAMS = ("trial", "recording", "mesh", "config")
 OUTPUT_PATH_PARAMS = ("trial_dir", "path", "dir")   # resolved against the session file too
-STATUS_RANK = {"ok": 0, "uncertain": 1, "lost": 2}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -488,10 +488,26 @@ class LatencyLog:
         if self.t_estimate:
             t = np.asarray(self.t_estimate)
             lat = np.asarray(self.latency)
-            out["latency_first_ms"] = _ms(_summary_stats(list(lat[t <= t[0] + window_s])))
-            out["latency_last_ms"] = _ms(_summary_stats(list(lat[t >= t[-1] - window_s])))
+            first, last = t <= t[0] + window_s, t >= t[-1] - window_s
+            out["latency_first_ms"] = _ms(_summary_stats(list(lat[first])))
+            out["latency_last_ms"] = _ms(_summary_stats(list(lat[last])))
             out["latency_window_s"] = window_s
+            span = max(t[-1] - t[0], 1e-9)
+            out["rate_hz"] = {"all": (len(t) - 1) / span if len(t) > 1 else None,
+                              "first": int(first.sum()) / min(window_s, span), "last": int(last.sum()) / min(window_s, span)}
         return out
+
+
+def rss_mb() -> float | None:
+    """This process's resident memory now (MB; Linux /proc, else None)."""
+    try:
+        with open("/proc/self/statm") as f:
+            pages = int(f.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    import os
+
+    return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
 def _ms(stats: dict) -> dict:
@@ -607,6 +623,8 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
         robot.start(bus.push_joints)
         started.append(robot)
         t_sources = clock.now()
+        rss = {"start": rss_mb(), "every_10s": []}
+        next_rss = t_sources + 10.0
         camera.start(bus.push_frame)
         started.append(camera)
         T_flange_camera = ctx["T_flange_camera"]
@@ -618,6 +636,9 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
             now = clock.now()
             if lc.duration_s is not None and now - t_sources >= lc.duration_s:
                 break
+            if now >= next_rss:
+                rss["every_10s"].append(rss_mb())
+                next_rss += 10.0
             frame = bus.frames.get_latest(timeout=0.05)
             now = clock.now()
             if frame is None:
@@ -707,6 +728,7 @@ def run_session(config: SessionConfig, stop: threading.Event | None = None, prog
             "status_counts": dict(statuses),
             **latency.summary(),
             "events": dict(events.counts),
+            "rss_mb": {**(rss if "rss" in locals() else {}), "end": rss_mb()},
             "outputs": sink_reports,
         }
         if out is not None:

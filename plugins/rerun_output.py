@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from app.interfaces import DepthFrame, Estimate, JointSamples, SessionEvent
+from app.metrics import STATUS_CODE
 
-STATUS_CODE = {"ok": 0, "uncertain": 1, "lost": 2}
 
 
 def fresh_path(path: Path) -> Path:

@@ -214,5 +214,10 @@ def test_latency_stays_flat_and_near_one_tracker_step_over_a_30_s_session(tmp_pa
     assert abs(processed - seconds / work_s) <= 2
     accepted = summary["frames"]["frames_accepted"]
     assert accepted == world.frames
+    # the rate: one estimate per work_s, steady from the first ten seconds to the last
+    assert summary["rate_hz"]["all"] == pytest.approx(1 / work_s)
+    assert summary["rate_hz"]["first"] == pytest.approx(1 / work_s, abs=0.2)
+    assert summary["rate_hz"]["last"] == pytest.approx(1 / work_s, abs=0.2)
+    assert summary["rss_mb"]["start"] > 0 and summary["rss_mb"]["end"] > 0
     # every accepted frame was processed, dropped for a newer one, or still queued at the end (<= 2)
     assert 0 <= accepted - processed - summary["frames_skipped_by_tracker"] <= 2

@@ -51,6 +51,7 @@ import numpy as np
 import yaml
 
 from app.errors import ConfigError
+from app.metrics import DANGEROUS_ADD_MM, LOST_ADD_MM
 
 log = logging.getLogger(__name__)
 
@@ -86,8 +87,6 @@ VSD_RESOLUTION = (160, 120)
 JITTER_SETTLE_S = 0.5
 STATIC_TRANSLATION_M = 1e-6
 STATIC_ROTATION_RAD = 1e-5
-LOST_ADD_MM = 10.0
-DANGEROUS_ADD_MM = 5.0
 
 
 # --------------------------------------------------------------------------- configurations
