@@ -180,38 +180,47 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
     calib = _mapping("calibration", raw.get("calibration"), src)
     for k in calib:
         _allowed(f"calibration.{k}", k, ("hand_eye", "intrinsics"))
-    intrinsics = None
-    if calib.get("intrinsics") is not None:
-        value = calib["intrinsics"]
-        if isinstance(value, str):
-            p = _resolve(base, value)
-            if not p.is_file():
-                raise ConfigError("calibration.intrinsics", f"file not found: {p}", src)
-            value = yaml.safe_load(p.read_text())
-            value = value.get("camera", value) if isinstance(value, dict) else value
-        try:
-            intrinsics = PinholeCamera.from_dict(value)
-        except (TypeError, ValueError, KeyError) as exc:
-            raise ConfigError("calibration.intrinsics", f"expected width, height and K (3x3): {exc}", src) from None
+    intrinsics = _intrinsics(calib.get("intrinsics"), base, src)
     bone = _mapping("bone", raw.get("bone"), src)
     for k in bone:
         _allowed(f"bone.{k}", k, ("mesh", "initial_pose"))
     mesh = _resolve(base, bone.get("mesh"))
     if mesh is not None and not mesh.is_file():
         raise ConfigError("bone.mesh", f"file not found: {mesh}", src)
-    loop_raw = _mapping("loop", raw.get("loop"), src)
-    loop = LoopConfig()
-    for k, v in loop_raw.items():
-        _allowed(f"loop.{k}", k, tuple(LoopConfig.__dataclass_fields__))
-        if v is not None and (not isinstance(v, (int, float)) or isinstance(v, bool) or v <= 0):
-            raise ConfigError(f"loop.{k}", f"expected a positive number, got {v!r}", src)
-        setattr(loop, k, v)
+    loop = _loop_config(_mapping("loop", raw.get("loop"), src), src)
     return SessionConfig(
         path=path, camera=camera, robot=robot, tracker=tracker, outputs=outputs, robot_model=robot_model,
         hand_eye=_matrix4("calibration.hand_eye", calib.get("hand_eye"), base, src), intrinsics=intrinsics,
         mesh=mesh, initial_pose=_matrix4("bone.initial_pose", bone.get("initial_pose"), base, src),
         record=_resolve(base, raw.get("record")), out=_resolve(base, raw.get("out")), loop=loop,
     )
+
+
+def _intrinsics(value: Any, base: Path, src: str) -> PinholeCamera | None:
+    """``calibration.intrinsics``: inline (width, height, K) or a YAML file (its ``camera`` block)."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        p = _resolve(base, value)
+        if not p.is_file():
+            raise ConfigError("calibration.intrinsics", f"file not found: {p}", src)
+        value = yaml.safe_load(p.read_text())
+        value = value.get("camera", value) if isinstance(value, dict) else value
+    try:
+        return PinholeCamera.from_dict(value)
+    except (TypeError, ValueError, KeyError) as exc:
+        raise ConfigError("calibration.intrinsics", f"expected width, height and K (3x3): {exc}", src) from None
+
+
+def _loop_config(loop_raw: dict, src: str) -> LoopConfig:
+    """``loop``: LoopConfig's fields, each a positive number (or null)."""
+    loop = LoopConfig()
+    for k, v in loop_raw.items():
+        _allowed(f"loop.{k}", k, tuple(LoopConfig.__dataclass_fields__))
+        if v is not None and (not isinstance(v, (int, float)) or isinstance(v, bool) or v <= 0):
+            raise ConfigError(f"loop.{k}", f"expected a positive number, got {v!r}", src)
+        setattr(loop, k, v)
+    return loop
 
 
 def resolve_session(config: SessionConfig, camera_model: PinholeCamera, defaults: dict) -> dict:
