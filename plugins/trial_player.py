@@ -3,7 +3,11 @@
 ``camera: recorded`` / ``robot: recorded`` play a trial directory (RECORDING_FORMAT.md): each frame
 is pushed when the host clock reaches its stamp, and the joint samples stream alongside. Stamps
 go through the session's replay anchor (:meth:`app.interfaces.SessionClock.replay_to_host`) with
-the trial's earliest stamp as origin, so camera and robot stay on one clock as they were recorded.
+the trial's earliest stamp as origin, so camera and robot stay on one clock as they were recorded,
+and that clock is the session's: the anchor is fixed when the sources start, however long opening
+them took. Like a real camera the player never delivers a stale frame: behind its schedule (a busy
+host), it pushes the newest frame due and skips the older ones (``skipped``, in the summary).
+``loop: true`` plays the trial again and again (a soak, or a session as long as asked).
 
 ``camera: simulated`` / ``robot: simulated`` first simulate a trial (``app.sim.simulate``) into a
 cache directory named by scenario, seed and duration (reused when already there), then play it the
