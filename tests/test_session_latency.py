@@ -226,3 +226,14 @@ def test_latency_stays_flat_and_near_one_tracker_step_over_a_30_s_session(tmp_pa
     assert summary["rss_mb"]["start"] > 0 and summary["rss_mb"]["end"] > 0
     # every accepted frame was processed, dropped for a newer one, or still queued at the end (<= 2)
     assert 0 <= accepted - processed - summary["frames_skipped_by_tracker"] <= 2
+
+
+def test_replay_anchor_is_fixed_by_the_first_mapping_and_scaled_by_the_replay_rate():
+    """host = anchor + (t - origin) / rate, anchor = the clock at the first mapping + lead_in: two
+    sources mapping the same recorded time get the same host time, whatever their own origin."""
+    clock = ManualClock(start=10.0, lead_in_s=0.2)
+    clock.replay_rate = 0.5
+    clock.advance(30.0)                                          # the sources took 30 s to open
+    assert clock.replay_to_host(100.0, 100.0) == pytest.approx(40.2)
+    clock.advance(5.0)
+    assert clock.replay_to_host(101.0, 99.0) == pytest.approx(42.2)   # origin kept: 1 s recorded = 2 s host
