@@ -63,7 +63,7 @@ class TrackerConfig(FilterConfig):
         initialiser of DESIGN.md on the first frame, from a point on the bone, app/filter/smc_init.py)
     init_point_sigma : m, σ_t, how far the pointed point may lie off the bone's surface
     init_restarts, init_budget_s : independent runs of the initialiser (the most likely kept), and
-        their total time budget
+        a wall-time safety net only (s; the budget is counted in likelihood evaluations, smc_init.py)
     refine : the local refinement and its own track (app/filter/refine_track.py)
 
     The product's defaults differ from the publications' in four measured places (BENCHMARKS.md,
@@ -86,7 +86,7 @@ class TrackerConfig(FilterConfig):
     init_method: str = "pose"
     init_point_sigma: float = 0.005
     init_restarts: int = 3
-    init_budget_s: float = 30.0
+    init_budget_s: float = 600.0
     motion: MotionParams = field(default_factory=lambda: MotionParams(sigma_a=2.0, sigma_alpha=20.0))
     likelihood: LikelihoodParams = field(default_factory=lambda: LikelihoodParams(background_ratio=True,
                                                                                   pixel_weight=0.2))

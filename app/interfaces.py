@@ -95,30 +95,49 @@ class Estimate:
 class SessionClock:
     """The host clock and the anchor that maps replayed (recorded) time onto it.
 
-    ``replay_to_host(t)`` maps a recorded stamp to ``t0 + lead_in + (t - origin)``, where the
-    origin is fixed by the first call (from any source): recorded sources that shared one clock
-    when recorded stay aligned when replayed.
+    ``replay_to_host(t)`` maps a recorded stamp to ``host_anchor + (t - origin)``: the origin and the
+    host anchor (the host time of that first call plus ``lead_in_s``) are fixed by the first call
+    from any source, so recorded sources that shared one clock when recorded stay aligned when
+    replayed, and their stamps are on the session's clock however long the sources took to open
+    (a simulated trial may be simulated first).
+
+    ``replay_rate`` < 1 plays recorded time slower than real time (0.25: a quarter of the speed),
+    for a loop that must see most frames on a slow machine; ``now`` may be injected (tests drive
+    the loop with a manual clock); by default it is ``time.monotonic``.
     """
 
-    def __init__(self, lead_in_s: float = 0.2):
-        self.t0 = time.monotonic()
+    def __init__(self, lead_in_s: float = 0.2, now: Callable[[], float] | None = None, replay_rate: float = 1.0):
+        self._now = now or time.monotonic
+        self.t0 = self._now()
         self.lead_in_s = lead_in_s
+        self.replay_rate = float(replay_rate)
         self._origin: float | None = None
+        self._host_anchor: float | None = None
         self._lock = threading.Lock()
 
-    @staticmethod
-    def now() -> float:
-        return time.monotonic()
+    def now(self) -> float:
+        return self._now()
+
+    def wait_until(self, t: float, stop: threading.Event) -> bool:
+        """Block until this clock reads ``t`` (True) or ``stop`` is set (False); sources sleep here,
+        so a test's clock can make their time pass without waiting."""
+        while not stop.is_set():
+            delay = t - self.now()
+            if delay <= 0:
+                return True
+            stop.wait(min(delay, 0.05))
+        return False
 
     def replay_origin(self, t_first: float) -> float:
         with self._lock:
             if self._origin is None:
                 self._origin = float(t_first)
+                self._host_anchor = self._now() + self.lead_in_s
             return self._origin
 
     def replay_to_host(self, t: np.ndarray | float, t_first: float | None = None) -> np.ndarray | float:
         origin = self.replay_origin(t if t_first is None else t_first) if self._origin is None else self._origin
-        return self.t0 + self.lead_in_s + (np.asarray(t, dtype=float) - origin)
+        return self._host_anchor + (np.asarray(t, dtype=float) - origin) / self.replay_rate
 
 
 EventSink = Callable[[str, str, str], None]  # (source, kind, message)

@@ -37,6 +37,9 @@ from app.geometry import se3
 VSD_TAU = 0.020        # m, misalignment tolerance of VSD ((B) 6.1)
 VSD_DELTA = 0.015      # m, visibility tolerance (BOP)
 VSD_THRESHOLD = 0.3    # e_VSD below this: the pose counts as correct ((B) 6.1)
+LOST_ADD_MM = 10.0     # a frame whose ADD exceeds this is lost (issue 3's definition), whatever its status
+DANGEROUS_ADD_MM = 5.0  # status ok while ADD exceeds this: the confident wrong pose, which must never happen
+STATUS_CODE = {"ok": 0, "uncertain": 1, "lost": 2}   # a status as a number (rerun scalars; ranking: worse is higher)
 
 
 def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -66,10 +66,5 @@ class ThreadedSource:
         return {}
 
     def _sleep_until(self, host_t: float) -> bool:
-        """Sleep until host time ``host_t``; False if stopped meanwhile."""
-        while not self._stop.is_set():
-            delay = host_t - self.clock.now()
-            if delay <= 0:
-                return True
-            self._stop.wait(min(delay, 0.05))
-        return False
+        """Sleep until host time ``host_t`` (on the session clock); False if stopped meanwhile."""
+        return self.clock.wait_until(host_t, self._stop)

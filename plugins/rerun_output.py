@@ -4,15 +4,33 @@ Logs, per estimate: the flange and camera poses, every ``depth_every``-th depth 
 the estimate (cleared when the status is not ok: what the projector would show), the status,
 the frame-to-estimate latency (``latency_ms``) and the filter's spreads; events go to a text log.
 Without ``path`` (or with ``spawn: true``) it opens a live viewer. Rerun's SDK queues and sends
-from its own thread, so these calls return at once.
+from its own thread, so these calls return at once. A run never overwrites an earlier session's
+log: when ``path`` exists, this run writes ``<stem>-<YYYYmmdd-HHMMSS><suffix>`` beside it (the
+summary's ``outputs.RerunOutput.path`` names the file written).
 """
 from __future__ import annotations
+
+import time
+from pathlib import Path
 
 import numpy as np
 
 from app.interfaces import DepthFrame, Estimate, JointSamples, SessionEvent
+from app.metrics import STATUS_CODE
 
-STATUS_CODE = {"ok": 0, "uncertain": 1, "lost": 2}
+
+
+def fresh_path(path: Path) -> Path:
+    """``path`` if free, else ``<stem>-<local time YYYYmmdd-HHMMSS>[-n]<suffix>`` beside it."""
+    if not path.exists():
+        return path
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    candidate = path.with_name(f"{path.stem}-{stamp}{path.suffix}")
+    n = 1
+    while candidate.exists():
+        candidate = path.with_name(f"{path.stem}-{stamp}-{n}{path.suffix}")
+        n += 1
+    return candidate
 
 
 class RerunOutput:
@@ -30,6 +48,8 @@ class RerunOutput:
 
         import rerun as rr
 
+        if self.path and not self.spawn:
+            self.path = str(fresh_path(Path(self.path)))
         self.log = RerunLog.spawn() if (self.spawn or not self.path) else RerunLog.to_file(self.path)
         # the session's recording is the process's default: plugins that log extra entities
         # (the marker tracker's image and angles) find it with rr.get_data_recording()

@@ -3,7 +3,11 @@
 ``camera: recorded`` / ``robot: recorded`` play a trial directory (RECORDING_FORMAT.md): each frame
 is pushed when the host clock reaches its stamp, and the joint samples stream alongside. Stamps
 go through the session's replay anchor (:meth:`app.interfaces.SessionClock.replay_to_host`) with
-the trial's earliest stamp as origin, so camera and robot stay on one clock as they were recorded.
+the trial's earliest stamp as origin, so camera and robot stay on one clock as they were recorded,
+and that clock is the session's: the anchor is fixed when the sources start, however long opening
+them took. Like a real camera the player never delivers a stale frame: behind its schedule (a busy
+host), it pushes the newest frame due and skips the older ones (``skipped``, in the summary).
+``loop: true`` plays the trial again and again (a soak, or a session as long as asked).
 
 ``camera: simulated`` / ``robot: simulated`` first simulate a trial (``app.sim.simulate``) into a
 cache directory named by scenario, seed and duration (reused when already there), then play it the
@@ -86,6 +90,8 @@ class RecordedCamera(ThreadedSource):
         self.trial = Path(trial)
         self.loop = loop
         self.reader = None
+        self.skipped = 0      # frames due while the player was behind its schedule, never pushed
+        self.pushed = 0
 
     def open(self, clock: SessionClock, event):
         self._bind(clock, event)
@@ -97,21 +103,48 @@ class RecordedCamera(ThreadedSource):
 
     def _run(self) -> None:
         origin = _trial_origin(self.reader)
-        period = float(self.reader.stamps[-1] - origin) + 0.1
+        stamps = np.asarray(self.reader.stamps, float)
+        period = float(stamps[-1] - origin) + 0.1
         lap = 0
         while not self._stop.is_set():
-            for frame in self.reader.iter_frames():
-                host_t = float(self.clock.replay_to_host(frame.stamp + lap * period, origin))
-                if not self._sleep_until(host_t):
-                    return
-                self._push(DepthFrame(int(frame.frame_id) + lap * 10_000_000, host_t,
-                                      np.asarray(frame.depth_m, np.float32), self.clock.now(),
-                                      infrared=frame.infrared, color=frame.color))
+            host = np.asarray(self.clock.replay_to_host(stamps + lap * period, origin), float)
+            if not self._play_lap(host, lap):
+                return
             if not self.loop:
                 break
             lap += 1
         self._event("end", f"end of the recorded frames of {self.trial}")
         self.finished.set()
+
+    def _play_lap(self, host: np.ndarray, lap: int) -> bool:
+        """Push the frames of one lap at their host times ``host``; False if stopped.
+
+        Like a real camera, the player never delivers a stale frame: the next frame is decoded
+        ahead of its time; when the player wakes up behind its schedule (the host was busy), it
+        pushes the newest frame already due and skips the older ones (counted in ``skipped``), so
+        a slow host never builds a backlog of old frames.
+        """
+        i = 0
+        end = float(host[-1] + np.median(np.diff(host))) if len(host) > 1 else np.inf  # the last frame's slot ends
+        ready = None
+        while i < len(host):
+            if ready is None and self.clock.now() < host[i]:
+                ready = (i, self.reader.read_depth(i))        # decode ahead while there is time
+            if not self._sleep_until(host[i]):
+                return False
+            now = self.clock.now()
+            if now >= end:                                    # even the last frame is stale
+                self.skipped += len(host) - i
+                break
+            j = max(i, int(np.searchsorted(host, now, side="right")) - 1)
+            depth = ready[1] if ready is not None and ready[0] == j else self.reader.read_depth(j)
+            self.skipped += j - i
+            self._push(DepthFrame(int(self.reader.frame_ids[j]) + lap * 10_000_000, float(host[j]),
+                                  np.asarray(depth, np.float32), self.clock.now(),
+                                  infrared=self.reader.read_infrared(j), color=self.reader.read_color(j)))
+            self.pushed += 1
+            i, ready = j + 1, None
+        return True
 
 
 class RecordedRobot(ThreadedSource):

@@ -33,7 +33,7 @@ def fixture_frames() -> np.ndarray:
     return np.stack([5000 + 10 * u + 20 * v + 100 * k for k in range(6)]).astype(np.uint16)
 
 
-def play(path: Path, timeout: float = 10.0):
+def play(path: Path, timeout: float = 60.0):   # a safety net: playback ends on its own
     frames, events = [], []
     cam = RealSenseCamera(recording=str(path))
     clock = SessionClock(lead_in_s=0.0)

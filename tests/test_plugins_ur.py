@@ -74,16 +74,17 @@ def test_streams_at_controller_rate_reconnects_and_reports_faults(server):
     try:
         assert _wait(lambda: sum(len(b.stamps) for b in batches) > 200, 15.0), "no RTDE stream"
         n0 = sum(len(b.stamps) for b in batches)
-        t_rate0 = time.monotonic()
-        time.sleep(1.0)
-        n1 = sum(len(b.stamps) for b in batches)
-        rate = (n1 - n0) / (time.monotonic() - t_rate0)
+        assert _wait(lambda: sum(len(b.stamps) for b in batches) > n0 + 500, 15.0)
         stamps = np.concatenate([b.stamps for b in batches])
         q = np.concatenate([b.q for b in batches])
-        # host-clock stamps: increasing, just behind now, joints as the server sent them
+        # host-clock stamps: increasing, near now (the controller's own clock is elsewhere; 1 s is a
+        # safety margin for a loaded machine), joints as the server sent them
         assert np.all(np.diff(stamps) > 0)
-        assert -0.05 < time.monotonic() - stamps[-1] < 0.1
+        assert -0.05 < time.monotonic() - stamps[-1] < 1.0
         np.testing.assert_allclose(q[-1], demo_joints(0.0), atol=0.25)
+        # the rate in the controller's time, mapped: samples over the span of their stamps
+        last = stamps[n0:]
+        rate = (len(last) - 1) / (last[-1] - last[0])
         assert rate > 300, f"{rate:.0f} samples/s; the e-Series controller streams 500 Hz"
         # sample spacing at the controller's period (2 ms) in the median
         assert abs(np.median(np.diff(stamps[-200:])) - 0.002) < 0.0005
@@ -91,28 +92,28 @@ def test_streams_at_controller_rate_reconnects_and_reports_faults(server):
         # disconnect in the middle: the plugin notices and reconnects on its own
         t_drop = time.monotonic()
         server.drop_clients(0.4)
-        assert _wait(lambda: any(k == "disconnected" for _, k, _ in events), 3.0)
+        assert _wait(lambda: any(k == "disconnected" for _, k, _ in events), 10.0)
         assert _wait(lambda: sum(k == "connected" for _, k, _ in events) >= 2, 10.0), events
         n2 = sum(len(b.stamps) for b in batches)
-        assert _wait(lambda: sum(len(b.stamps) for b in batches) > n2 + 200, 5.0)
+        assert _wait(lambda: sum(len(b.stamps) for b in batches) > n2 + 200, 10.0)
         stamps = np.concatenate([b.stamps for b in batches])
         gap = np.diff(stamps).max()
         assert 0.3 < gap < 5.0 and np.all(np.diff(stamps) > 0)
-        assert time.monotonic() - t_drop < 10.0
+        assert time.monotonic() - t_drop < 30.0      # safety only
 
         # NaN joints are passed on (the session drops and logs them)
         server.set_nan(True)
-        assert _wait(lambda: np.isnan(batches[-1].q).all(), 3.0)
+        assert _wait(lambda: np.isnan(batches[-1].q).all(), 10.0)
         server.set_nan(False)
-        assert _wait(lambda: np.isfinite(batches[-1].q).all(), 3.0)
+        assert _wait(lambda: np.isfinite(batches[-1].q).all(), 10.0)
 
         # a controller clock jump is detected and the host stamps stay continuous
         server.jump_clock(5.0)
-        assert _wait(lambda: any(k == "clock_jump" for _, k, _ in events), 3.0), events
+        assert _wait(lambda: any(k == "clock_jump" for _, k, _ in events), 10.0), events
         n3 = sum(len(b.stamps) for b in batches)
-        assert _wait(lambda: sum(len(b.stamps) for b in batches) > n3 + 50, 3.0)
+        assert _wait(lambda: sum(len(b.stamps) for b in batches) > n3 + 50, 10.0)
         stamps = np.concatenate([b.stamps for b in batches])
-        assert np.all(np.diff(stamps) > 0) and -0.05 < time.monotonic() - stamps[-1] < 0.1
+        assert np.all(np.diff(stamps) > 0) and -0.05 < time.monotonic() - stamps[-1] < 1.0
     finally:
         robot.stop()
     assert _accepted(others) == 0, "the plugin opened a port other than RTDE's"
@@ -141,7 +142,12 @@ def test_unreachable_robot_does_not_block_the_caller():
     robot.open(SessionClock(), lambda s, k, m: events.append(k))
     t = time.monotonic()
     robot.start(lambda b: None)
-    time.sleep(0.5)
-    robot.stop()
-    assert time.monotonic() - t < 5.0
-    assert "connect_failed" in events
+    started_in = time.monotonic() - t
+    try:
+        # the worker reports its failed attempt (event-driven; 30 s is a safety net only)
+        assert _wait(lambda: "connect_failed" in events, 30.0), events
+    finally:
+        robot.stop()
+    # start() returned without waiting for the connection (a blocking connect would take the
+    # attempt's own timeout, seconds); 5 s is a safety margin for a loaded machine
+    assert started_in < 5.0

@@ -177,22 +177,41 @@ def test_template_error_is_zero_at_the_truth_and_grows_with_the_pose_error(bone,
 
 
 def test_png_writer_and_rerun_helper(tmp_path, projector):
+    """The PNG is lossless: read back, it is the image, pixel for pixel (RGB written as PNG's BGR
+    order by OpenCV and read back the same way). The rerun helpers log the projector's pose, its
+    pinhole (the display size: DISPLAY_WIDTH wide, the projector's aspect) and the image at that
+    size (a 2x-brightened area resize, JPEG), under the documented entity paths."""
+    import cv2
     import rerun as rr
 
     from app.projector.output import PngWriter
-    from app.projector.rerun_log import PROJECTOR_IMAGE, log_projector_image, log_projector_static
+    from app.projector.rerun_log import (DISPLAY_WIDTH, PROJECTOR, PROJECTOR_IMAGE, log_projector_image,
+                                         log_projector_static)
 
     image = warning_pattern(projector.width, projector.height, "TRACKING LOST")
     path = PngWriter(tmp_path / "png").write(7, image)
-    assert path.name == "projector_000007.png" and path.stat().st_size > 0
-    rec = rr.RecordingStream("osteonav-test")
-    rec.save(str(tmp_path / "p.rrd"))
+    assert path.name == "projector_000007.png"
+    back = cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(back, image)
+
+    class Capture:
+        def __init__(self):
+            self.logged = []
+
+        def log(self, entity, archetype, static=False):
+            self.logged.append((entity, archetype, static))
+
+    rec = Capture()
     log_projector_static(rec, projector)
-    rec.set_time("frame", sequence=0)
     log_projector_image(rec, image)
-    rec.flush()
-    assert PROJECTOR_IMAGE == "world/camera/projector/image"
-    assert (tmp_path / "p.rrd").stat().st_size > 1000
+    (e_pose, _, s_pose), (e_pin, pinhole, s_pin), (e_img, img, s_img) = rec.logged
+    assert (e_pose, e_pin, e_img) == (PROJECTOR, PROJECTOR_IMAGE, PROJECTOR_IMAGE) and s_pose and s_pin and not s_img
+    height = int(round(projector.height * DISPLAY_WIDTH / projector.width))
+    assert isinstance(img, rr.EncodedImage) and isinstance(pinhole, rr.Pinhole)
+    decoded = cv2.imdecode(np.frombuffer(img.blob.as_arrow_array()[0].values.to_numpy(), np.uint8), cv2.IMREAD_COLOR)
+    assert decoded.shape == (height, DISPLAY_WIDTH, 3)
+    # the border of the warning pattern is red (RGB), also after the resize and JPEG
+    assert decoded[2, DISPLAY_WIDTH // 2, 2] > 150 and decoded[2, DISPLAY_WIDTH // 2, :2].max() < 100
 
 
 def test_window_without_pyglet_fails_with_the_install_command(monkeypatch):
@@ -233,4 +252,11 @@ def test_sink_scores_only_shown_frames_and_writes_pngs(ctx, bone, tmp_path):
     assert not b.shown and b.error is None and b.reason == "TRACKING LOST"
     s = sink.summary()
     assert s["frames"] == 2 and s["template_shown"] == 1 and s["scored_frames"] == 1
-    assert len(list((tmp_path / "png").glob("projector_*.png"))) == 2
+    import cv2
+
+    pngs = sorted((tmp_path / "png").glob("projector_*.png"))
+    assert [p.name for p in pngs] == ["projector_000000.png", "projector_000001.png"]
+    shown, warning = (cv2.imread(str(p), cv2.IMREAD_COLOR) for p in pngs)
+    # frame 0: the template (lit lines on black, no red border); frame 1: the red warning border
+    assert shown.max() > 0 and shown[0, :, 2].max() == 0
+    assert np.all(warning[0, :, 2] > 150) and np.all(warning[0, :, :2] < 100)

@@ -78,12 +78,15 @@ def test_matrices_and_paths_resolve_against_the_session_file(tmp_path):
     session = tmp_path / "s.yaml"
     session.write_text(yaml.safe_dump(minimal(
         camera={"plugin": "recorded", "params": {"trial": "trials/t1"}},
-        calibration={"hand_eye": "calib/hand_eye.yaml"}, bone={"mesh": "bone.ply"}, out="out-dir")))
+        calibration={"hand_eye": "calib/hand_eye.yaml"}, bone={"mesh": "bone.ply"}, out="out-dir", record="rec",
+        outputs=[{"plugin": "rerun", "params": {"path": "logs/log.rrd"}}])))
     config = load_session(session)
     np.testing.assert_allclose(config.hand_eye, T)
     assert config.mesh == tmp_path / "bone.ply"
     assert config.camera.params["trial"] == str(tmp_path / "trials" / "t1")
-    assert config.out == Path.cwd() / "out-dir"
+    # outputs resolve against the session file too (issue 15 item 2), like its inputs
+    assert config.out == tmp_path / "out-dir" and config.record == tmp_path / "rec"
+    assert config.outputs[0].params["path"] == str(tmp_path / "logs" / "log.rrd")
 
 
 def test_robot_model_is_checked(tmp_path):

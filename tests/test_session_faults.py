@@ -31,6 +31,7 @@ W, H = 64, 48
 CAMERA = PinholeCamera(np.array([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]]), W, H)
 HOME_Q = [0.0, -1.6, 1.6, -1.57, -1.57, 0.0]
 FPS = 30.0
+LATE_S = 1.0   # how late a loaded machine may log a fault: a safety margin, no correct run needs it
 
 
 @dataclass
@@ -187,6 +188,19 @@ class CollectingOutput:
         return {"frames": len(self.frames)}
 
 
+class StopAfter(CollectingOutput):
+    """Sets ``stop`` when it has seen ``n`` estimates of frames (an event, not a timer)."""
+
+    def __init__(self, n, stop):
+        super().__init__()
+        self.n, self.stop = n, stop
+
+    def on_estimate(self, est):
+        super().on_estimate(est)
+        if sum(e.frame_id is not None for e in self.estimates) >= self.n:
+            self.stop.set()
+
+
 @pytest.fixture
 def fake_plugins():
     cameras, robots = [], []
@@ -245,16 +259,17 @@ def test_loop_survives_every_fault_and_recovers(tmp_path, fake_plugins):
     t0 = camera.clock.t0
     kinds = {(e.source, e.kind): e.stamp - t0 for e in result.events}
 
-    # each fault is logged once, at its time (the sources start right after t0)
-    assert 0.4 < kinds[("camera", "corrupt_frame")] < 0.7
-    assert 0.5 < kinds[("camera", "wrong_size_frame")] < 0.8
-    assert 0.6 < kinds[("camera", "clock")] < 0.9
-    assert 1.1 < kinds[("session", "camera_stall")] < 1.5
-    assert 1.5 < kinds[("session", "camera_recovered")] < 1.9
-    assert 1.7 < kinds[("camera.scripted", "disconnected")] < 2.0
-    assert 2.0 < kinds[("camera.scripted", "clock_jump")] < 2.6
-    assert 2.5 < kinds[("robot", "nan_joints")] < 2.9
-    assert 2.9 < kinds[("robot.scripted", "disconnected")] < 3.2
+    # each fault is logged once, never before its scripted time (the sources start right after
+    # t0) and in the scripted order; a loaded machine may log it late, so the upper bound is the
+    # next fault's time plus a generous LATE_S
+    expected = [(("camera", "corrupt_frame"), 0.5), (("camera", "wrong_size_frame"), 0.6), (("camera", "clock"), 0.7),
+                (("session", "camera_stall"), 0.9 + 0.3), (("session", "camera_recovered"), 1.6),
+                (("camera.scripted", "disconnected"), 1.8), (("camera.scripted", "clock_jump"), 2.1),
+                (("robot", "nan_joints"), 2.6), (("robot.scripted", "disconnected"), 3.0)]
+    logged = [kinds[key] for key, _ in expected]
+    assert logged == sorted(logged)
+    for (key, t_fault), t_next in zip(expected, [t for _, t in expected[1:]] + [4.3]):
+        assert t_fault - 0.05 < kinds[key] < t_next + LATE_S, key
     assert ("session", "no_camera_pose") in kinds
     assert (tmp_path / "out" / "events.csv").read_text().count("\n") >= 10
 
@@ -280,7 +295,12 @@ def test_loop_survives_every_fault_and_recovers(tmp_path, fake_plugins):
     assert np.all(np.diff(sink.joint_stamps) > 0)
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["latency_ms"]["n"] == len(est)
-    assert summary["latency_ms"]["median"] is not None and summary["latency_ms"]["p99"] >= summary["latency_ms"]["median"]
+    # per frame, latency = capture->arrival + queue wait + tracker, each >= 0; the scripted camera
+    # hands frames over as it stamps them (arrival == host time of the mapped stamp, or later)
+    lat, stages = summary["latency_ms"], summary["latency_stages_ms"]
+    assert all(v["n"] == len(est) for v in stages.values())
+    assert lat["median"] >= stages["tracker"]["median"] and lat["max"] >= stages["queue_wait"]["max"]
+    assert stages["capture_to_arrival"]["median"] >= -1e-6
     status_lines = (tmp_path / "out" / "status.csv").read_text().splitlines()
     assert status_lines[0] == "stamp,status" and len(status_lines) == 1 + len(est)
 
@@ -295,9 +315,14 @@ def test_stop_event_ends_the_loop_cleanly(tmp_path, fake_plugins):
     config = session(tmp_path, faults=False, seconds=30.0)
     config.mesh = mesh_path
     stop = threading.Event()
-    threading.Timer(0.8, stop.set).start()
-    t = time.monotonic()
-    result = run_session(config, stop=stop)
-    assert time.monotonic() - t < 3.0
-    assert result.summary["processed"] > 5
+    config.outputs = [type(config.outputs[0])("output", "stop_after", {"n": 10, "stop": stop})]
+    registry.register("output", "stop_after", StopAfter)
+    try:
+        t = time.monotonic()
+        result = run_session(config, stop=stop)
+        assert time.monotonic() - t < 20.0      # safety only: the 30 s session ended when stopped
+    finally:
+        registry.unregister("output", "stop_after")
+    # stopped right after the 10th estimate: the loop checks the flag before every frame
+    assert result.summary["processed"] == 10
     assert (tmp_path / "out" / "summary.json").is_file()

@@ -10,7 +10,7 @@ import trimesh
 
 from app.filter import weights as lw_ops
 from app.filter import resampling as rs
-from app.filter.smc_init import SurfacePrior, measured_normal, next_phi, rotate_about, rotation_between
+from app.filter.smc_init import SMCInitConfig, SurfacePrior, measured_normal, next_phi, rotate_about, rotation_between
 from app.geometry import quaternion as quat
 from app.geometry import se3
 from app.geometry.camera import PinholeCamera
@@ -103,7 +103,9 @@ def point_start(tmp_path_factory):
 
     base = tmp_path_factory.mktemp("smc")
     simulate(base / "trial", scenario_name="static_clear", seconds=1.5, seed=11)
-    config = replace(load_config(None), init_method="point")
+    # the initialiser's budget counts likelihood evaluations; its wall-time safety net is pinned out
+    # of reach so that a loaded machine runs exactly the same restarts as a free one
+    config = replace(load_config(None), init_method="point", init_budget_s=3600.0)
     return base, replay(base / "trial", base / "out", config, rrd=False, projector=False)
 
 
@@ -117,6 +119,7 @@ def test_a_point_on_the_bone_can_start_tracking_but_never_reports_ok(point_start
     init = json.loads((base / "out" / "summary.json").read_text())["init"]
     assert init["add_mm"] < 5.0 and init["rotation_deg"] < 5.0
     assert init["tempering_steps"] >= 1 and init["seconds"] > 0
+    assert 0 < init["evaluations"] <= SMCInitConfig.max_evaluations
     add = result.errors["add_mm"]
     assert np.median(add[30:]) < 2.5
     assert "ok" not in result.statuses and "uncertain" in result.statuses
@@ -189,3 +192,45 @@ def test_symmetry_check_turns_a_cloud_stuck_on_the_turned_bone_back_to_the_likel
     assert np.degrees(se3.rotation_angle(turned.estimate.T_base_bone, T_true)) < 3.0
     kept = initialiser._symmetry_check(cloud_at(T_true), prior, log_lik)
     assert not kept.symmetry_turned
+
+
+class CountingBackend:
+    """A closed-form likelihood: -|t_camera_bone - t_true|^2 / (2 (2 mm)^2), counting the poses scored."""
+
+    def __init__(self, T_camera_bone_true: np.ndarray):
+        self.t_true = T_camera_bone_true[:3, 3]
+        self.scored = 0
+
+    def log_likelihood(self, T_camera_bone, depth):
+        self.scored += len(T_camera_bone)
+        return -np.sum((T_camera_bone[:, :3, 3] - self.t_true) ** 2, axis=1) / (2 * 0.002 ** 2)
+
+
+@pytest.mark.parametrize("max_evaluations", [12_000, 40_000])
+def test_the_initialiser_budget_counts_evaluations_not_seconds(max_evaluations):
+    """The budget is a count of scored poses: a run stops at it, overshooting by at most the step that
+    crosses it and the final sweeps at φ = 1 (2 x mh_moves x particles = 1,600 poses; the symmetry
+    check, which scores more, is off here), and the same seed
+    gives the same cloud however long each evaluation takes (nothing reads the clock but the 600 s
+    safety net, which these runs of a few hundred ms never approach)."""
+    from app.filter.smc_init import OnePointInitialiser
+
+    box = trimesh.creation.box((0.06, 0.02, 0.01))
+    T_base_camera = np.eye(4)
+    T_base_bone = se3.make_pose(np.eye(3), np.array([0.0, 0.0, 0.3]))
+    point = T_base_bone[:3, 3] + np.array([0.0, 0.0, 0.005])          # the top face's centre
+    config = replace(SMCInitConfig(), restarts=3, max_evaluations=max_evaluations, prior_draws=2000,
+                     sigma_n=0.0, symmetry_check=False, surface_samples=500)
+    camera = PinholeCamera(np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]]), 64, 48)
+    results = []
+    for _ in range(2):
+        backend = CountingBackend(se3.inverse(T_base_camera) @ T_base_bone)
+        init = OnePointInitialiser(backend, camera, box.vertices, box.faces, config, np.random.default_rng(5))
+        result = init.run(np.zeros((48, 64), np.float32), T_base_camera, point)
+        assert result.evaluations == backend.scored
+        assert backend.scored <= max_evaluations + 2 * config.mh_moves * config.particles
+        results.append(result)
+    np.testing.assert_array_equal(results[0].p, results[1].p)
+    if max_evaluations == 12_000:
+        # 12,000 / 3 runs = 4,000 each: 2,000 prior draws, then 3 steps of 800: every run uses its share
+        assert results[0].evaluations >= max_evaluations

@@ -18,7 +18,8 @@ def register(subparsers) -> None:
     p.add_argument("--plots", metavar="DIR", help="write PNG plots (error over time per trial, rate per configuration)")
     p.add_argument("--seconds", type=float, help="seconds per trial (simulated: duration; recorded: the first S seconds)")
     p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1: frames/s are then not shared)")
-    p.add_argument("--quick", action="store_true", help=f"a short run: 2 scenarios of 1.5 s, the default mesh only")
+    p.add_argument("--quick", action="store_true", help="a short run (minutes): 3 configurations (osteonav_default, A_cpu, "
+                   "icp) on static_clear (1.5 s) and bone_moves (3.5 s, until its move ends), the default mesh only")
     p.add_argument("--scenarios", nargs="+", help="simulated scenarios (default: the standard four)")
     p.add_argument("--meshes", nargs="+", help="meshes to simulate (default: the project's and the pelvis crests)")
     p.add_argument("--cache", default="recordings/bench", help="where simulated trials are cached (default: %(default)s)")
@@ -41,12 +42,12 @@ def run(args) -> int:
         raise ConfigError("--jobs", f"expected an integer >= 1, got {args.jobs}")
     if args.seconds is not None and args.seconds <= 0:
         raise ConfigError("--seconds", f"expected a duration > 0 s, got {args.seconds}")
-    configs = bench.resolve_configs(args.configs)
+    configs = bench.resolve_configs(args.configs or (bench.QUICK_CONFIGS if args.quick else None))
     if args.plots:
         prepare_dir(args.plots, args.overwrite, PLOTS, "--plots")
     if args.out:
         prepare_dir(args.out, args.overwrite, tuple(c.name for c in configs), "--out")
-    seconds = args.seconds or (bench.QUICK_SECONDS if args.quick else None)
+    seconds = args.seconds or (bench.quick_seconds() if args.quick else None)
     if args.trials:
         trials = bench.recorded_trials(args.trials, seconds)
     else:

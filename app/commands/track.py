@@ -13,6 +13,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("track", help="run a tracking session (camera + robot + tracker) until stopped")
     add_session_arguments(p)
     p.add_argument("--record", metavar="DIR", help="also record the sensors as a trial in DIR")
+    p.add_argument("--soak", action="store_true", help="a soak run of the loop itself: no outputs and no recording "
+                   "(disk), recorded/simulated sources loop; the summary gives memory (RSS) and rate at start and end")
     p.set_defaults(func=run)
 
 
@@ -40,6 +42,11 @@ def run(args) -> int:
     config = load_session(args.config, overrides_from(args))
     if args.duration:
         config.loop.duration_s = args.duration
+    if getattr(args, "soak", False):
+        config.outputs, config.record = [], None
+        for spec in (config.camera, config.robot):
+            if spec.name in ("simulated", "recorded"):
+                spec.params["loop"] = True
     prepare_session_dirs(config, args.overwrite)
     with naming_the_session_file(args.config):
         result = run_session(config, progress=_progress_printer())
@@ -109,9 +116,29 @@ def print_summary(summary: dict, tracked: bool = True) -> None:
     print(f"session: {summary.get('seconds', 0):.1f} s, {frames.get('frames_accepted', 0)} frames accepted{counts}")
     if lat.get("n"):
         print(f"latency frame->estimate: median {lat['median']:.1f} ms, p99 {lat['p99']:.1f} ms, max {lat['max']:.1f} ms")
+        first, last = summary.get("latency_first_ms") or {}, summary.get("latency_last_ms") or {}
+        if first.get("n") and last.get("n"):
+            window = summary.get("latency_window_s", 10)
+            print(f"latency p99 over the first {window:.0f} s {first['p99']:.1f} ms, over the last {window:.0f} s "
+                  f"{last['p99']:.1f} ms")
+        stages = summary.get("latency_stages_ms") or {}
+        if stages:
+            print("where the time goes (median / p99 ms): " + ", ".join(
+                f"{k.replace('_', ' ')} {v['median']:.1f} / {v['p99']:.1f}" for k, v in stages.items() if v.get("n")))
+        print(f"frames dropped: {summary.get('frames_skipped_by_camera', 0)} by the camera (due while it was behind), "
+              f"{summary.get('frames_skipped_by_tracker', 0)} in the tracker queue (newer frame waiting)")
     if tracked and summary.get("status_counts"):
         print("status: " + ", ".join(f"{k} {v}" for k, v in sorted(summary["status_counts"].items())))
     if summary.get("events"):
         print("events: " + ", ".join(f"{k} x{v}" for k, v in sorted(summary["events"].items())))
+    rss, rate = summary.get("rss_mb") or {}, summary.get("rate_hz") or {}
+    if rss.get("start") is not None and rss.get("end") is not None:
+        samples = [v for v in rss.get("every_10s") or [] if v is not None]
+        half = samples[len(samples) // 2:]
+        slope = f", {6 * (half[-1] - half[0]) / (len(half) - 1):+.1f} MB/min over the second half" if len(half) > 2 else ""
+        print(f"memory (RSS): {rss['start']:.0f} MB when the sources started, {rss['end']:.0f} MB at the end{slope}")
+    if rate.get("all"):
+        print(f"tracked frames/s: {rate['all']:.1f} overall, {rate['first']:.1f} in the first and {rate['last']:.1f} "
+              f"in the last {summary.get('latency_window_s', 10):.0f} s")
     for name, report in (summary.get("outputs") or {}).items():
         print(f"{name}: {report}")

@@ -82,8 +82,11 @@ class SMCInitConfig:
     particles : N of the sampler ((B): ~100); sigma_t : m, how far the pointed point may lie off the
     surface (pointing error); sigma_r : rad, local orientation move; p_global : share of uniform
     orientation moves; mh_moves : MH sweeps per tempering step; target_ess : ESS / N kept by each
-    tempering step; max_steps : tempering steps before φ jumps to 1; budget_s : s, the same
-    (DESIGN.md: ~0.5 s on a GPU; llvmpipe needs several); surface_samples : points on the mesh for
+    tempering step; max_steps : tempering steps before φ jumps to 1; max_evaluations : pose
+    likelihood evaluations shared by the restarts (each run gets an equal share of what is left;
+    past it φ jumps to 1): the budget, counted in work, so a run does the same on a loaded machine
+    and a free one; budget_s : s, only a safety net against a stuck backend (a run past it jumps
+    to φ = 1 and says so in the log); a correct run stays far below it; surface_samples : points on the mesh for
     the prior's distance; prior_draws : poses drawn from the prior and scored before the first
     tempering step, of which ``particles`` go on (a wider first look at SO(3): with 100-200 draws
     the cloud often settles in a wrong basin); sigma_n : rad, the normal prior (below; 0 = off,
@@ -100,7 +103,8 @@ class SMCInitConfig:
     mh_moves: int = 4
     target_ess: float = 0.5
     max_steps: int = 40
-    budget_s: float = 30.0
+    max_evaluations: int = 150_000
+    budget_s: float = 600.0
     surface_samples: int = 4000
     prior_draws: int = 10000
     sigma_n: float = 0.35
@@ -128,8 +132,9 @@ class SMCResult:
     p, q : (N, 3), (N, 4) the final cloud (equally weighted); log_likelihood : (N,) its p(z | x);
     estimate : weighted-mean pose and spread; phis : the tempering schedule reached; acceptance :
     mean MH acceptance per step; seconds : wall time; reached_target : φ got to 1 within the
-    step and time budgets by tempering (not by the final jump); symmetry_turned : the symmetry
-    check replaced the sampler's cloud.
+    step and evaluation budgets by tempering (not by the final jump); symmetry_turned : the symmetry
+    check replaced the sampler's cloud; evaluations : pose likelihood evaluations of the whole
+    initialisation.
     """
 
     p: np.ndarray
@@ -141,6 +146,7 @@ class SMCResult:
     seconds: float = 0.0
     reached_target: bool = True
     symmetry_turned: bool = False
+    evaluations: int = 0
 
 
 class SurfacePrior:
@@ -321,21 +327,24 @@ class OnePointInitialiser:
 
         ``restarts`` independent runs; the one whose cloud has the highest mean log-likelihood wins
         (a run that settled in a wrong basin, e.g. the crest turned end for end, scores hundreds of
-        nats lower). ``budget_s`` is shared by the runs.
+        nats lower). ``max_evaluations`` is shared by the runs (``budget_s``: the wall-time safety net).
         """
         t_start = time.perf_counter()
         prior, log_lik = self._target(depth, T_base_camera, point_base, sigma_t)
         best: SMCResult | None = None
-        for k in range(max(1, self.config.restarts)):
-            left = self.config.budget_s - (time.perf_counter() - t_start)
-            if best is not None and left <= 0:
+        restarts = max(1, self.config.restarts)
+        for k in range(restarts):
+            left = self.config.max_evaluations - log_lik.evaluations
+            if best is not None and (left <= 0 or time.perf_counter() - t_start > self.config.budget_s):
                 break
-            result = self._run_once(prior, log_lik, time.perf_counter() + left / (self.config.restarts - k))
+            limit = log_lik.evaluations + left // (restarts - k)
+            result = self._run_once(prior, log_lik, limit, t_start + self.config.budget_s)
             if best is None or np.mean(result.log_likelihood) > np.mean(best.log_likelihood):
                 best = result
         if self.config.symmetry_check:
             best = self._symmetry_check(best, prior, log_lik)
         best.seconds = time.perf_counter() - t_start
+        best.evaluations = log_lik.evaluations
         return best
 
     def _target(self, depth, T_base_camera, point_base, sigma_t):
@@ -352,9 +361,11 @@ class OnePointInitialiser:
         T_camera_base = se3.inverse(np.asarray(T_base_camera, float))
 
         def log_lik(p, q):
+            log_lik.evaluations += len(p)
             ll = np.asarray(self.backend.log_likelihood(T_camera_base @ se3.from_quat_trans(q, p), depth), float)
             return np.where(np.isfinite(ll), ll, -1e12)
 
+        log_lik.evaluations = 0
         return prior, log_lik
 
     def _symmetry_check(self, result: SMCResult, prior: SurfacePrior, log_lik) -> SMCResult:
@@ -386,7 +397,7 @@ class OnePointInitialiser:
                 idx = rs.systematic(phi * ll, rng.random())
                 p, q, ll = p[idx], q[idx], ll[idx]
                 p, q, ll, lp, _, _, reached = self._temper(p, q, ll, prior.log_density(p, q), phi, prior, log_lik,
-                                                           deadline=None, local=True)
+                                                           None, None, local=True)
                 log.debug("symmetry check: candidate %.0f vs result %.0f (mean log-likelihood)", np.mean(ll),
                           np.mean(best.log_likelihood))
                 if reached and np.mean(ll) > np.mean(best.log_likelihood):
@@ -397,8 +408,9 @@ class OnePointInitialiser:
                                      result.acceptance, result.seconds, result.reached_target, symmetry_turned=True)
         return best
 
-    def _run_once(self, prior: SurfacePrior, log_lik, deadline: float) -> SMCResult:
-        """One run of the sampler (module docstring, steps 1-3), tempering until ``deadline`` (perf_counter s)."""
+    def _run_once(self, prior: SurfacePrior, log_lik, limit: int, deadline: float) -> SMCResult:
+        """One run of the sampler (module docstring, steps 1-3), tempering until ``log_lik`` has made
+        ``limit`` evaluations (or, as a safety net, until ``deadline``, perf_counter s)."""
         c, rng = self.config, self.rng
         t_start = time.perf_counter()
         # step 1 on a wider draw: score prior_draws poses, keep `particles` of them at the first φ
@@ -408,7 +420,7 @@ class OnePointInitialiser:
         idx = rs.systematic(phi * ll, rng.random(), c.particles)
         p, q, ll = p[idx], q[idx], ll[idx]
         p, q, ll, _, phis, acceptance, reached = self._temper(p, q, ll, prior.log_density(p, q), phi, prior, log_lik,
-                                                              deadline)
+                                                              limit, deadline)
         seconds = time.perf_counter() - t_start
         pose = estimate(p, q, lw_ops.uniform_log_weights(len(p)))
         log.info("one-point initialisation: %d tempering steps, %.2f s, spread %.1f mm / %.1f deg%s", len(phis) - 1,
@@ -416,9 +428,10 @@ class OnePointInitialiser:
                  "" if reached else " (budget reached: φ jumped to 1)")
         return SMCResult(p, q, ll, pose, phis, acceptance, seconds, reached)
 
-    def _temper(self, p, q, ll, lp, phi, prior, log_lik, deadline: float | None, local: bool = False):
-        """MH sweeps at φ, then (step 2) the next φ, resampling, sweeps, until φ = 1; past ``max_steps``
-        or ``deadline`` φ jumps to 1. Returns the cloud, the φ schedule (from 0), the acceptance per
+    def _temper(self, p, q, ll, lp, phi, prior, log_lik, limit: int | None, deadline: float | None,
+                local: bool = False):
+        """MH sweeps at φ, then (step 2) the next φ, resampling, sweeps, until φ = 1; past ``max_steps``,
+        ``limit`` evaluations of ``log_lik`` or (safety net) ``deadline``, φ jumps to 1. Returns the cloud, the φ schedule (from 0), the acceptance per
         step and whether φ = 1 was reached by tempering."""
         c, rng = self.config, self.rng
         phis, acceptance, scale, scale_r, reached = [0.0, phi] if phi > 0 else [0.0], [], 1.0, 1.0, True
@@ -428,7 +441,10 @@ class OnePointInitialiser:
             acceptance.append(accepted)
             if phi >= 1.0:
                 return p, q, ll, lp, phis, acceptance, reached
-            out_of_budget = len(phis) > c.max_steps or (deadline is not None and time.perf_counter() > deadline)
+            late = deadline is not None and time.perf_counter() > deadline
+            if late:
+                log.warning("one-point initialisation: the %.0f s safety net was reached (init.budget_s): stopping", c.budget_s)
+            out_of_budget = len(phis) > c.max_steps or late or (limit is not None and log_lik.evaluations >= limit)
             new_phi = 1.0 if out_of_budget else next_phi(phi, ll, c.target_ess)
             reached &= not out_of_budget
             idx = rs.resample("systematic", lw_ops.normalise_log_weights((new_phi - phi) * ll), rng)

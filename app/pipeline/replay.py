@@ -38,8 +38,8 @@ from app.pipeline.tracker import DepthTracker
 
 log = logging.getLogger(__name__)
 
-LOST_ADD_M = 0.010       # a frame whose ADD exceeds 10 mm counts as lost (issue 3's definition)
-DANGEROUS_ADD_M = 0.005  # status ok while ADD > 5 mm: the dangerous case
+LOST_ADD_M = 1e-3 * metrics.LOST_ADD_MM            # app/metrics.py: defined once
+DANGEROUS_ADD_M = 1e-3 * metrics.DANGEROUS_ADD_MM
 
 
 @dataclass
@@ -166,7 +166,7 @@ def _log_frame(sink, frame, T_base_camera, result, tracker, T_gt, add_mm, rot_de
     sink.log_scalar("log_likelihood_max", result.log_likelihood_max)
     sink.log_scalar("spread/position_mm", 1e3 * result.position_spread)
     sink.log_scalar("spread/rotation_deg", np.rad2deg(result.rotation_spread))
-    sink.log_scalar("status", {"ok": 0, "uncertain": 1, "lost": 2}.get(result.status, 2))
+    sink.log_scalar("status", metrics.STATUS_CODE.get(result.status, 2))
     if add_mm is not None:
         sink.log_scalar("error/add_mm", add_mm)
         sink.log_scalar("error/rotation_deg", rot_deg)
@@ -188,6 +188,7 @@ def _init_summary(init, reader, points: np.ndarray) -> dict:
     """The one-point initialiser's run: time, tempering steps, spread, and its error when ground truth exists."""
     out = {"method": "point", "seconds": init.seconds, "tempering_steps": len(init.phis) - 1,
            "reached_target": bool(init.reached_target), "symmetry_turned": bool(init.symmetry_turned),
+           "evaluations": int(init.evaluations),
            "position_spread_mm": 1e3 * init.estimate.position_spread,
            "rotation_spread_deg": float(np.degrees(init.estimate.rotation_spread))}
     if reader.groundtruth is not None:

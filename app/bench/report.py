@@ -1,0 +1,116 @@
+"""The bench's outputs: the table, the JSON and the plots."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from app.metrics import DANGEROUS_ADD_MM, LOST_ADD_MM
+
+
+COLUMNS = ("config", "scenario", "fps", "ADD med", "ADD p95", "rot med", "rot p95", "VSD rec",
+           "lost %", "ok %", "danger", "jit mm", "jit deg")
+
+
+def _row_cells(r: dict) -> list[str]:
+    def f(x, digits=2):
+        return "-" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
+
+    return [r["config"], r["trial"], f(r["fps"], 1), f(r["add_mm"]["median"]), f(r["add_mm"]["p95"]),
+            f(r["rotation_deg"]["median"]), f(r["rotation_deg"]["p95"]), f(r["vsd_recall"]),
+            f(r["lost_pct"], 1), f(r["status_pct"]["ok"], 1), str(r["dangerous_frames"]),
+            f(r["jitter"]["translation_mm"], 3), f(r["jitter"]["rotation_deg"], 3)]
+
+
+def table(rows: list[dict], markdown: bool = False) -> str:
+    """The results table: one row per configuration x trial (ADD mm, rotation deg)."""
+    cells = [_row_cells(r) for r in rows]
+    header = list(COLUMNS)
+    if markdown:
+        lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+        lines += ["| " + " | ".join(c) + " |" for c in cells]
+        return "\n".join(lines)
+    widths = [max(len(h), *(len(c[i]) for c in cells)) if cells else len(h) for i, h in enumerate(header)]
+    fmt = lambda cs: "  ".join(c.ljust(w) if i < 2 else c.rjust(w) for i, (c, w) in enumerate(zip(cs, widths)))  # noqa: E731
+    lines = [fmt(header), "-" * len(fmt(header))]
+    previous = None
+    for r, c in zip(rows, cells):
+        if previous is not None and r["trial"] != previous:
+            lines.append("")
+        previous = r["trial"]
+        lines.append(fmt(c))
+    return "\n".join(lines)
+
+
+def write_json(rows: list[dict], path: str | Path, meta: dict | None = None) -> None:
+    """The rows (with per-frame series) and run information as JSON."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+    def clean(x):
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [clean(v) for v in x]
+        return x
+
+    path.write_text(json.dumps(clean({"meta": meta or {}, "columns": {
+        "fps": "processed frames per second of the replay loop (wall time) on this machine",
+        "add_mm": "ADD, mm", "rotation_deg": "rotation error, deg", "vsd_recall": "fraction of frames with e_VSD < 0.3 (tau 20 mm)",
+        "lost_pct": f"% frames with ADD > {LOST_ADD_MM} mm", "dangerous_frames": f"frames with status ok and ADD > {DANGEROUS_ADD_MM} mm",
+        "jitter": "RMS frame-to-frame change of the estimate while the ground truth is static (after settling)",
+    }, "rows": rows}), indent=1))
+
+
+def plot(rows: list[dict], folder: str | Path) -> list[Path]:
+    """PNGs: ADD over time per configuration for each trial, and frames/s per configuration."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    configs = list(dict.fromkeys(r["config"] for r in rows))
+    colours = {c: plt.get_cmap("tab10")(k % 10) for k, c in enumerate(configs)}
+    for trial in dict.fromkeys(r["trial"] for r in rows):
+        fig, (ax_add, ax_rot) = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+        for r in (r for r in rows if r["trial"] == trial):
+            s = r["series"]
+            ax_add.plot(s["t"], s["add_mm"], label=r["config"], color=colours[r["config"]], lw=1)
+            danger = [(t, a) for t, a, st in zip(s["t"], s["add_mm"], s["status"]) if st == "ok" and a > DANGEROUS_ADD_MM]
+            if danger:
+                ax_add.plot(*zip(*danger), "x", color=colours[r["config"]], ms=5)
+            ax_rot.plot(s["t"], s["rot_deg"], color=colours[r["config"]], lw=1)
+        ax_add.axhline(DANGEROUS_ADD_MM, color="grey", ls="--", lw=0.8)   # x: status ok above this line
+        ax_add.set_yscale("log")
+        ax_add.set_ylabel("ADD (mm)")
+        ax_rot.set_yscale("log")
+        ax_rot.set_ylabel("rotation error (deg)")
+        ax_rot.set_xlabel("time (s)")
+        ax_add.set_title(f"error over time: {trial}")
+        ax_add.legend(fontsize=8, ncol=3)
+        fig.tight_layout()
+        path = folder / f"error_{trial.replace('/', '__')}.png"
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        written.append(path)
+    fig, ax = plt.subplots(figsize=(max(6, 1.2 * len(configs)), 4))
+    fps = [[r["fps"] for r in rows if r["config"] == c] for c in configs]
+    ax.bar(range(len(configs)), [np.mean(v) for v in fps], color=[colours[c] for c in configs])
+    for k, v in enumerate(fps):
+        ax.plot([k] * len(v), v, "k.", ms=4)
+    ax.set_xticks(range(len(configs)), configs, rotation=20, ha="right")
+    ax.set_ylabel("frames / s (mean over trials; dots: each trial)")
+    ax.set_title("processing rate per configuration")
+    fig.tight_layout()
+    path = folder / "rate.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    written.append(path)
+    return written

@@ -1,0 +1,162 @@
+"""Bench trials: the standard scenarios simulated per mesh (cached), or recorded trial directories."""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from app.bench.configs import REPO
+from app.bench.parallel import pmap
+from app.errors import ConfigError
+
+log = logging.getLogger("app.bench.bench")
+
+PELVIS_DIR = REPO.parent / "shared" / "data" / "pelvis"
+DEFAULT_CACHE = Path("recordings") / "bench"
+QUICK_SCENARIOS = ("static_clear", "bone_moves")
+QUICK_CONFIGS = ("osteonav_default", "A_cpu", "icp")   # ours, publication A's, the ICP baseline
+QUICK_STATIC_S = 1.5
+
+
+def quick_seconds(scenarios=QUICK_SCENARIOS) -> dict[str, float]:
+    """``--quick`` trial lengths: 1.5 s, or until the scenario's last bone move has ended (bone_moves:
+    1.5 + 2.0 = 3.5 s), so that a moving trial really moves within the quick run."""
+    from app.sim.scenarios import get_scenario
+
+    out = {}
+    for name in scenarios:
+        moves = get_scenario(name).bone_motion
+        out[name] = max([QUICK_STATIC_S] + [start + duration for start, duration, *_ in moves])
+    return out
+
+
+def _seconds_for(seconds: float | dict | None, scenario: str | None = None) -> float | None:
+    """A trial length from ``seconds``: a number for every trial, or a mapping by scenario name."""
+    if isinstance(seconds, dict):
+        return float(seconds[scenario]) if scenario in seconds else (max(seconds.values()) if scenario is None else None)
+    return None if seconds is None else float(seconds)
+
+
+@dataclass
+class TrialSpec:
+    """A trial to run: its directory and how to name it in the table."""
+
+    path: str
+    mesh: str
+    scenario: str
+    frames: int = 0
+    max_frames: int | None = None
+
+    @property
+    def name(self) -> str:
+        return f"{self.mesh}/{self.scenario}"
+
+
+def pelvis_crest_meshes(folder: Path = PELVIS_DIR) -> list[Path]:
+    """The ``crest_*.ply`` meshes of the shared pelvis folder; empty (with a log line) when absent."""
+    if not folder.is_dir():
+        log.info("no pelvis meshes at %s: benchmarking the default mesh only", folder)
+        return []
+    return sorted(folder.glob("crest_*.ply"))
+
+
+def _cache_valid(trial: Path, scenario: str, seconds: float, seed: int, mesh_path: Path) -> bool:
+    info_path = trial / "simulation.yaml"
+    if not (trial / "trial.yaml").is_file() or not info_path.is_file() or not (trial / "groundtruth.txt").is_file():
+        return False
+    try:
+        info = yaml.safe_load(info_path.read_text())
+        from app.trial.reader import open_trial
+
+        reader = open_trial(trial)
+    except Exception:  # noqa: BLE001 -- any unreadable cache entry is simply re-simulated
+        return False
+    return (not reader.interrupted and info.get("seed") == seed
+            and info.get("scenario", {}).get("name") == scenario
+            and abs(float(info.get("scenario", {}).get("seconds", -1)) - seconds) < 1e-9
+            and Path(info.get("mesh_source", "")).resolve() == mesh_path.resolve())
+
+
+def _simulate_task(task: dict) -> dict:
+    from app.sim.simulator import simulate
+
+    summary = simulate(task["out"], mesh_path=task["mesh"], scenario_name=task["scenario"], seconds=task["seconds"],
+                       seed=task["seed"], overwrite=True)
+    return {"out": task["out"], "frames": summary.frames}
+
+
+def standard_trials(cache: str | Path = DEFAULT_CACHE, scenarios=None, seconds: float | dict | None = None,
+                    meshes=None, seed: int = 0, jobs: int = 1, progress: bool = True) -> list[TrialSpec]:
+    """Simulate (or reuse from ``cache``) the standard scenarios for each mesh.
+
+    Parameters
+    ----------
+    cache : folder of the cached trials, ``<cache>/<mesh stem>/<scenario>``
+    scenarios : scenario names, default :data:`app.sim.scenarios.STANDARD`
+    seconds : duration of each trial (or a mapping scenario -> duration), default each scenario's own
+    meshes : mesh paths, default the project's mesh and the pelvis crest meshes found
+    """
+    from app.sim.scenarios import STANDARD, get_scenario
+    from app.sim.simulator import DEFAULT_MESH
+
+    scenarios = list(scenarios or STANDARD)
+    for name in scenarios:
+        try:
+            get_scenario(name)
+        except ValueError as exc:
+            raise ConfigError("--scenarios", str(exc)) from None
+    meshes = [Path(m) for m in meshes] if meshes else [DEFAULT_MESH, *pelvis_crest_meshes()]
+    for m in meshes:
+        if not m.is_file():
+            raise ConfigError("--meshes", f"no such mesh file: {m}")
+    specs, todo = [], []
+    for mesh in meshes:
+        for name in scenarios:
+            duration = _seconds_for(seconds, name) or get_scenario(name).seconds
+            out = Path(cache) / mesh.stem / name
+            specs.append(TrialSpec(str(out), mesh.stem, name))
+            if not _cache_valid(out, name, duration, seed, mesh):
+                todo.append({"out": str(out), "mesh": str(mesh), "scenario": name, "seconds": duration, "seed": seed})
+    if todo:
+        log.info("simulating %d trials into %s", len(todo), cache)
+        for _ in pmap(_simulate_task, todo, jobs, desc="simulating", unit="trial", progress=progress):
+            pass
+    from app.trial.reader import open_trial
+
+    for spec in specs:
+        spec.frames = len(open_trial(spec.path))
+    return specs
+
+
+def recorded_trials(dirs, seconds: float | dict | None = None) -> list[TrialSpec]:
+    """TrialSpecs of existing trial directories (each needs ``groundtruth.txt`` and ``initial_pose``)."""
+    from app.errors import TrialFormatError
+    from app.trial.reader import open_trial
+
+    specs = []
+    for d in dirs:
+        reader = open_trial(d)
+        if reader.groundtruth is None:
+            raise TrialFormatError(Path(d) / "groundtruth.txt", "bench needs ground truth to score a trial (none found)")
+        scenario = Path(d).name
+        info = Path(d) / "simulation.yaml"
+        if info.is_file():
+            try:
+                scenario = (yaml.safe_load(info.read_text()) or {}).get("scenario", {}).get("name", scenario)
+            except yaml.YAMLError:
+                pass
+        n = len(reader)
+        length = _seconds_for(seconds, scenario) if isinstance(seconds, dict) and scenario in seconds \
+            else _seconds_for(seconds)
+        if length:
+            n = int(np.searchsorted(reader.stamps, reader.stamps[0] + length, side="left"))
+        specs.append(TrialSpec(str(d), Path(reader.meta.mesh).stem, scenario, frames=n,
+                               max_frames=n if n < len(reader) else None))
+    names = [s.name for s in specs]
+    for spec in specs:   # two trials of one mesh and scenario: name them by their folder
+        if names.count(spec.name) > 1:
+            spec.scenario = f"{spec.scenario}@{Path(spec.path).name}"
+    return specs

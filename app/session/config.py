@@ -1,0 +1,240 @@
+"""The session file: parsing, validation, and what the sources fill in (see :mod:`app.session`).
+
+:func:`load_session` / :func:`parse_session` turn a session file into a :class:`SessionConfig`;
+every error names the dotted key and the allowed values. Relative paths resolve against the
+session file. :func:`resolve_session` completes a config with what the sources offer
+(calibration, robot model, mesh, initial pose of a recorded or simulated trial).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from app import plugins_registry as registry
+from app.errors import ConfigError
+from app.geometry.camera import PinholeCamera
+
+FORMAT = "osteonav-session/1"
+TOP_KEYS = ("format", "camera", "robot", "tracker", "calibration", "bone", "outputs", "record", "out", "loop")
+INPUT_PATH_PARAMS = ("trial", "recording", "mesh", "config")
+OUTPUT_PATH_PARAMS = ("trial_dir", "path", "dir")   # resolved against the session file too
+
+
+@dataclass
+class PluginSpec:
+    kind: str
+    name: str
+    params: dict = field(default_factory=dict)
+    key: str = ""
+
+
+@dataclass
+class LoopConfig:
+    """Loop timing (seconds) and queue sizes."""
+
+    stall_timeout_s: float = 0.5      # no frame for this long: the camera is stalled (status lost)
+    robot_wait_s: float = 0.05        # wait this long for joints covering a frame's stamp
+    max_joint_gap_s: float = 0.05     # joint samples further apart than this do not interpolate
+    robot_lost_s: float = 1.0         # no camera pose for this long: status lost
+    duration_s: float | None = None   # stop after this long (None: until stopped)
+    tracker_queue: int = 2            # frames waiting for the tracker (newest kept)
+    joint_buffer_s: float = 10.0      # joint history kept for interpolation
+    event_repeat_s: float = 1.0       # the same event from the same source is logged once per this
+    replay_rate: float = 1.0          # recorded/simulated sources play at this speed (0.25: a quarter)
+
+
+@dataclass
+class SessionConfig:
+    path: Path | None
+    camera: PluginSpec
+    robot: PluginSpec
+    tracker: PluginSpec | None
+    outputs: list[PluginSpec]
+    robot_model: dict | None = None
+    hand_eye: np.ndarray | None = None
+    intrinsics: PinholeCamera | None = None
+    mesh: Path | None = None
+    initial_pose: np.ndarray | None = None
+    record: Path | None = None
+    out: Path | None = None
+    loop: LoopConfig = field(default_factory=LoopConfig)
+
+
+def _allowed(key: str, value: Any, allowed, src: str | None = None) -> None:
+    if value not in allowed:
+        raise ConfigError(key, f"got {value!r}; allowed: {', '.join(map(str, allowed))}", src)
+
+
+def _mapping(key: str, value: Any, src: str) -> dict:
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise ConfigError(key, f"expected a mapping, got {type(value).__name__} {value!r}", src)
+    return value
+
+
+def _resolve(base: Path, value: str | Path | None) -> Path | None:
+    if value is None:
+        return None
+    p = Path(str(value)).expanduser()
+    return p if p.is_absolute() else (base / p)
+
+
+def _matrix4(key: str, value: Any, base: Path, src: str) -> np.ndarray | None:
+    """A 4x4 rigid transform given inline or as a file (YAML: a 4x4, or a mapping with ``key``'s name)."""
+    if value is None:
+        return None
+    if isinstance(value, (str, Path)):
+        path = _resolve(base, value)
+        if not path.is_file():
+            raise ConfigError(key, f"file not found: {path}", src)
+        if path.suffix in (".txt", ".csv"):
+            value = np.loadtxt(path, delimiter="," if path.suffix == ".csv" else None).tolist()
+        else:
+            loaded = yaml.safe_load(path.read_text())
+            if isinstance(loaded, dict):
+                names = [key.split(".")[-1], "hand_eye", "T_flange_camera", "initial_pose", "T_base_bone", "T"]
+                found = next((loaded[n] for n in names if n in loaded), None)
+                if found is None:
+                    raise ConfigError(key, f"{path} holds none of the keys {', '.join(names)}", src)
+                loaded = found
+            value = loaded
+    try:
+        T = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ConfigError(key, f"expected a 4x4 matrix of numbers, got {value!r}", src) from None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ConfigError(key, f"expected a finite 4x4 matrix, got shape {T.shape}", src)
+    R = T[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or not np.allclose(T[3], [0, 0, 0, 1]) or np.linalg.det(R) < 0:
+        raise ConfigError(key, "not a rigid transform (rotation not orthonormal, or last row not 0 0 0 1)", src)
+    return T
+
+
+def _plugin(kind: str, value: Any, base: Path, src: str, default: str | None = None) -> PluginSpec:
+    key = kind
+    block = {"plugin": default} if value is None and default else _mapping(key, value, src)
+    for k in block:
+        _allowed(f"{key}.{k}", k, ("plugin", "params", "model", "dh") if kind == "robot" else ("plugin", "params"), src)
+    name = block.get("plugin")
+    if name is None:
+        raise ConfigError(f"{key}.plugin", f"missing; allowed: {', '.join(registry.available(kind))}", src)
+    _allowed(f"{key}.plugin", name, registry.available(kind), src)
+    params = dict(_mapping(f"{key}.params", block.get("params"), src))
+    for k, v in params.items():
+        if k in INPUT_PATH_PARAMS + OUTPUT_PATH_PARAMS and isinstance(v, str):
+            params[k] = str(_resolve(base, v))
+    return PluginSpec(kind, name, params, key)
+
+
+def load_session(path: str | Path, overrides: dict | None = None) -> SessionConfig:
+    """Read and validate a session file; ``overrides`` (top-level keys) replace the file's values."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError("--config", f"session file not found: {path}")
+    src = str(path)
+    try:
+        raw = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError("(file)", f"not valid YAML: {exc}", src) from None
+    if not isinstance(raw, dict):
+        raise ConfigError("(file)", "expected a mapping at the top level", src)
+    raw.update(overrides or {})
+    return parse_session(raw, path.parent, src, path)
+
+
+def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | None = None) -> SessionConfig:
+    for k in raw:
+        _allowed(k, k, TOP_KEYS, src)
+    if raw.get("format", FORMAT) != FORMAT:
+        raise ConfigError("format", f"got {raw['format']!r}; allowed: {FORMAT}", src)
+    for k in ("camera", "robot"):
+        if k not in raw:
+            raise ConfigError(k, f"missing; a session names its {k} plugin ({', '.join(registry.available(k))})", src)
+    camera = _plugin("camera", raw["camera"], base, src)
+    robot = _plugin("robot", raw["robot"], base, src)
+    robot_block = raw["robot"] or {}
+    robot_model = None
+    if "model" in robot_block or "dh" in robot_block:
+        from app.geometry.ur import dh_from_config
+
+        robot_model = {k: robot_block[k] for k in ("model", "dh") if k in robot_block}
+        try:
+            dh_from_config(robot_model)
+        except (ValueError, KeyError) as exc:
+            raise ConfigError("robot.model", str(exc), src) from None
+    tracker_raw = raw.get("tracker")
+    tracker = None if tracker_raw is False else _plugin("tracker", tracker_raw, base, src, "particle_filter")
+    outputs_raw = raw.get("outputs") or []
+    if not isinstance(outputs_raw, list):
+        raise ConfigError("outputs", "expected a list of {plugin, params}", src)
+    outputs = []
+    for i, o in enumerate(outputs_raw):
+        spec = _plugin("output", o, base, src)
+        spec.key = f"outputs[{i}]"
+        outputs.append(spec)
+    calib = _mapping("calibration", raw.get("calibration"), src)
+    for k in calib:
+        _allowed(f"calibration.{k}", k, ("hand_eye", "intrinsics"), src)
+    intrinsics = _intrinsics(calib.get("intrinsics"), base, src)
+    bone = _mapping("bone", raw.get("bone"), src)
+    for k in bone:
+        _allowed(f"bone.{k}", k, ("mesh", "initial_pose"), src)
+    mesh = _resolve(base, bone.get("mesh"))
+    if mesh is not None and not mesh.is_file():
+        raise ConfigError("bone.mesh", f"file not found: {mesh}", src)
+    loop = _loop_config(_mapping("loop", raw.get("loop"), src), src)
+    return SessionConfig(
+        path=path, camera=camera, robot=robot, tracker=tracker, outputs=outputs, robot_model=robot_model,
+        hand_eye=_matrix4("calibration.hand_eye", calib.get("hand_eye"), base, src), intrinsics=intrinsics,
+        mesh=mesh, initial_pose=_matrix4("bone.initial_pose", bone.get("initial_pose"), base, src),
+        record=_resolve(base, raw.get("record")), out=_resolve(base, raw.get("out")), loop=loop,
+    )
+
+
+def _intrinsics(value: Any, base: Path, src: str) -> PinholeCamera | None:
+    """``calibration.intrinsics``: inline (width, height, K) or a YAML file (its ``camera`` block)."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        p = _resolve(base, value)
+        if not p.is_file():
+            raise ConfigError("calibration.intrinsics", f"file not found: {p}", src)
+        value = yaml.safe_load(p.read_text())
+        value = value.get("camera", value) if isinstance(value, dict) else value
+    try:
+        return PinholeCamera.from_dict(value)
+    except (TypeError, ValueError, KeyError) as exc:
+        raise ConfigError("calibration.intrinsics", f"expected width, height and K (3x3): {exc}", src) from None
+
+
+def _loop_config(loop_raw: dict, src: str) -> LoopConfig:
+    """``loop``: LoopConfig's fields, each a positive number (or null)."""
+    loop = LoopConfig()
+    for k, v in loop_raw.items():
+        _allowed(f"loop.{k}", k, tuple(LoopConfig.__dataclass_fields__), src)
+        if v is not None and (not isinstance(v, (int, float)) or isinstance(v, bool) or v <= 0):
+            raise ConfigError(f"loop.{k}", f"expected a positive number, got {v!r}", src)
+        setattr(loop, k, v)
+    return loop
+
+
+def resolve_session(config: SessionConfig, camera_model: PinholeCamera, defaults: dict) -> dict:
+    """Calibration, robot model, mesh and initial pose: the file's, else the sources'."""
+    from app.geometry.ur import dh_from_config
+
+    robot = config.robot_model or defaults.get("robot")
+    if robot is None:
+        raise ConfigError("robot.model", "missing: name the robot model (ur3e, ur5e, ur10e, ur16e, ...) or give dh")
+    T_flange_camera = config.hand_eye if config.hand_eye is not None else defaults.get("T_flange_camera")
+    if T_flange_camera is None:
+        raise ConfigError("calibration.hand_eye", "missing: the 4x4 camera pose in the flange frame (a file or inline)")
+    mesh = config.mesh or defaults.get("mesh")
+    initial_pose = config.initial_pose if config.initial_pose is not None else defaults.get("initial_pose")
+    return {"camera": config.intrinsics or camera_model, "robot": robot, "dh": dh_from_config(robot),
+            "T_flange_camera": np.asarray(T_flange_camera, float), "mesh_path": Path(mesh) if mesh else None,
+            "initial_pose": initial_pose}

@@ -1,0 +1,65 @@
+"""Tracking on the real CT crest meshes of ../shared/data/pelvis (not the default synthetic crest).
+
+Each crest is simulated (app/sim, scenario ``static_clear``: a static bone, a moving camera) and
+replayed with the product's default configuration; the errors are against the simulated ground
+truth. The safety rule holds on every frame of every crest: no frame ``ok`` while ADD > 5 mm.
+The accuracy bound, ADD median < 3 mm and no frame lost (ADD > 10 mm) after the first 0.5 s,
+leaves the filter half a second to converge from the 5 mm / 3 deg initial error (the first frames
+reach 10-12 mm ADD on some crests) and is above the medians measured on 15 of the 16 runs
+(0.8-2.9 mm, printed with -s). Measured 2026-11-24 (4 s, seeds 0 and 1): crest_right_02 seed 0
+fails, ADD median 4.4 mm with 35 frames ok while > 5 mm off: a real finding for the tracker's
+status rules, kept failing here on purpose.
+
+The full run (every crest, 4 s each) is slow (``-m slow``); CI runs one crest for 1 s.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.metrics import DANGEROUS_ADD_MM, LOST_ADD_MM
+
+PELVIS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "pelvis"
+CRESTS = sorted(PELVIS.glob("crest_*.ply")) if PELVIS.is_dir() else []
+SETTLE_S = 0.5
+MEDIAN_ADD_MM = 3.0
+
+
+def _track(mesh: Path, tmp_path: Path, seconds: float, seed: int):
+    from app.config import load_config
+    from app.pipeline.replay import replay
+    from app.sim.simulator import simulate
+
+    simulate(tmp_path / "trial", mesh_path=mesh, scenario_name="static_clear", seconds=seconds, seed=seed)
+    result = replay(tmp_path / "trial", tmp_path / "out", load_config(None), rrd=False, projector=False)
+    add = np.asarray(result.errors["add_mm"])
+    statuses = np.asarray(result.statuses)
+    t = np.asarray(result.stamps) - result.stamps[0]
+    print(f"\n{mesh.stem} seed {seed}: {len(add)} frames, ADD median {np.median(add):.2f} mm, p95 "
+          f"{np.percentile(add, 95):.2f}, max {add.max():.2f}; ok {np.mean(statuses == 'ok'):.0%}; "
+          f"dangerous {int(np.sum((statuses == 'ok') & (add > DANGEROUS_ADD_MM)))}")
+    return add, statuses, t
+
+
+def _check(add: np.ndarray, statuses: np.ndarray, t: np.ndarray) -> None:
+    dangerous = (statuses == "ok") & (add > DANGEROUS_ADD_MM)
+    assert not dangerous.any(), f"{dangerous.sum()} frames ok while > 5 mm off: {add[dangerous].round(2)}"
+    assert np.median(add) < MEDIAN_ADD_MM
+    settled = t >= SETTLE_S
+    assert not np.any(add[settled] > LOST_ADD_MM), f"lost after {SETTLE_S} s: max ADD {add[settled].max():.1f} mm"
+
+
+@pytest.mark.skipif(not CRESTS, reason=f"no CT crest meshes at {PELVIS}")
+def test_one_ct_crest_is_tracked_safely(tmp_path):
+    """CI's short version: the first crest, 1 s."""
+    _check(*_track(CRESTS[0], tmp_path, seconds=1.0, seed=0))
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not CRESTS, reason=f"no CT crest meshes at {PELVIS}")
+@pytest.mark.parametrize("mesh", CRESTS, ids=[m.stem for m in CRESTS])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_every_ct_crest_is_tracked_safely(mesh, seed, tmp_path):
+    _check(*_track(mesh, tmp_path, seconds=4.0, seed=seed))
