@@ -58,6 +58,12 @@ class SlowReader:
         self.decoded += 1
         return np.ones((H, W), np.float32)
 
+    def read_infrared(self, index: int) -> None:   # a depth-only trial (TrialReader's contract)
+        return None
+
+    def read_color(self, index: int) -> None:
+        return None
+
 
 def test_a_player_behind_its_schedule_skips_to_the_newest_due_frame_on_the_session_clock():
     fps, decode_s = 90.0, 3 / 90.0           # the host needs three frame periods per frame

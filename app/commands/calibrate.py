@@ -284,7 +284,7 @@ def _session_rig(path: Path, config: dict):
     """
     import numpy as np
 
-    from app.session import _matrix4
+    from app.session.config import _matrix4
     from app.sim import world
     from app.sim.simulator import D415_640x480
     from calibration.simulator import SimulationConfig
