@@ -100,21 +100,20 @@ def _raster_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, cam, cull, zbuf):
     a_a, b_a, c_a = (vb - vc) * inv_area, (uc - ub) * inv_area, (ub * vc - uc * vb) * inv_area
     a_b, b_b, c_b = (vc - va) * inv_area, (ua - uc) * inv_area, (uc * va - ua * vc) * inv_area
     a_c, b_c, c_c = (va - vb) * inv_area, (ub - ua) * inv_area, (ua * vb - ub * va) * inv_area
-    near, far = cam[4], cam[5]
+    near_lo, far = cam[4] * (1.0 - 1e-12), cam[5]
     for v in range(i_v0, i_v1 + 1):
         fv = float(v)
         row_a, row_b, row_c = c_a + b_a * fv, c_b + b_b * fv, c_c + b_c * fv
         for u in range(i_u0, i_u1 + 1):
             fu = float(u)
             wa, wb, wc = row_a + a_a * fu, row_b + a_b * fu, row_c + a_c * fu
-            if wa < 0.0 or wb < 0.0 or wc < 0.0:
-                continue
+            # branch-free (the branches of ~1-pixel triangles mispredict): the tests of
+            # "skip if wa < 0 or wb < 0 or wc < 0 or z > far or z < near', keep the nearer" as one mask
             z = 1.0 / (wa * iza + wb * izb + wc * izc)
-            if z > far or z < near * (1.0 - 1e-12):
-                continue
             current = zbuf[v, u]
-            if current <= 0.0 or z < current:
-                zbuf[v, u] = z
+            keep = ((not wa < 0.0) & (not wb < 0.0) & (not wc < 0.0) & (not z > far) & (not z < near_lo)
+                    & ((current <= 0.0) | (z < current)))
+            zbuf[v, u] = z if keep else current
 
 
 @_njit()
