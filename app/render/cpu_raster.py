@@ -79,6 +79,18 @@ def pack_params(p: LikelihoodParams) -> np.ndarray:
 # ---------------------------------------------------------------- rasterisation
 
 @_njit()
+def _min3(a, b, c):
+    m = a if a < b else b
+    return m if m < c else c
+
+
+@_njit()
+def _max3(a, b, c):
+    m = a if a > b else b
+    return m if m > c else c
+
+
+@_njit()
 def _raster_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, cam, cull, zbuf):
     """Z-buffer one projected triangle (pixel coordinates u, v and 1 / z of its vertices, all with
     z >= near); with ``cull`` a triangle of area >= 0 (n · a >= 0: facing away) is skipped."""
@@ -86,15 +98,10 @@ def _raster_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, cam, cull, zbuf):
     if area == 0.0 or (cull and area > 0.0):
         return
     h, w = zbuf.shape
-    u_lo = max(math.ceil(min(ua, ub, uc)), 0.0)
-    u_hi = min(math.floor(max(ua, ub, uc)), w - 1.0)
-    if u_lo > u_hi:
+    i_u0, i_u1 = max(math.ceil(_min3(ua, ub, uc)), 0), min(math.floor(_max3(ua, ub, uc)), w - 1)
+    i_v0, i_v1 = max(math.ceil(_min3(va, vb, vc)), 0), min(math.floor(_max3(va, vb, vc)), h - 1)
+    if i_u0 > i_u1 or i_v0 > i_v1:
         return
-    v_lo = max(math.ceil(min(va, vb, vc)), 0.0)
-    v_hi = min(math.floor(max(va, vb, vc)), h - 1.0)
-    if v_lo > v_hi:
-        return
-    i_u0, i_u1, i_v0, i_v1 = int(u_lo), int(u_hi), int(v_lo), int(v_hi)
     # barycentrics as affine functions of the pixel centre: b_k = (C_k + A_k u + B_k v) / area
     inv_area = 1.0 / area
     a_a, b_a, c_a = (vb - vc) * inv_area, (uc - ub) * inv_area, (ub * vc - uc * vb) * inv_area
