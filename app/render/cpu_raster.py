@@ -214,21 +214,28 @@ def _normal_cdf(x):
 
 
 @_njit()
-def _occlusion_density(z, z_star, sigma, prm):
-    """p_e(z | z*): truncated exponential, or with prm[11] the smooth one of (B) eq. 4.33."""
+def _occlusion_density(z, exp_lam_z, z_star, sigma, prm):
+    """p_e(z | z*): truncated exponential, or with prm[11] the smooth one of (B) eq. 4.33;
+    ``exp_lam_z`` = exp(-λ z), a term of the measured pixel alone (unused by the smooth one)."""
     lam = prm[1]
     if prm[11] != 0.0:
         s2 = lam * sigma * sigma
         window = _normal_cdf((z_star - z + s2) / sigma) - _normal_cdf((s2 - z) / sigma)
         return lam / (1.0 - math.exp(-lam * z_star)) * math.exp(-lam * z + 0.5 * lam * s2) * window
     if z > 0.0 and z < z_star:
-        return lam / (1.0 - math.exp(-lam * z_star)) * math.exp(-lam * z)
+        return lam / (1.0 - math.exp(-lam * z_star)) * exp_lam_z
     return 0.0
 
 
 @_njit()
 def pixel_log_likelihood(z, z_star, prm):
-    """l_i of :func:`app.filter.likelihood_ref.pixel_log_likelihood` for one covered pixel (z* > 0).
+    """l_i of :func:`app.filter.likelihood_ref.pixel_log_likelihood` for one covered pixel (z* > 0)."""
+    return _pixel_log_likelihood(z, math.exp(-prm[1] * z), z_star, prm)
+
+
+@_njit()
+def _pixel_log_likelihood(z, exp_lam_z, z_star, prm):
+    """:func:`pixel_log_likelihood` given exp(-λ z), which :func:`batch` computes once per measured pixel.
 
     Same value, fewer transcendental calls: a pixel the background ratio makes neutral returns 0
     before any, and exp(-r²/2) is skipped where it is exactly 0.0 in float64 (r²/2 > 746).
@@ -245,7 +252,7 @@ def pixel_log_likelihood(z, z_star, prm):
     r = (z - z_star) / sigma
     half_r2 = 0.5 * r * r
     p_n = _INV_SQRT_2PI / sigma * math.exp(-half_r2) if half_r2 < 746.0 else 0.0
-    p_e = _occlusion_density(z, z_star, sigma, prm)
+    p_e = _occlusion_density(z, exp_lam_z, z_star, sigma, prm)
     if classification:
         l_obj = _safe_log(w_n * p_n)
         l_bg = _safe_log(p_u + w_e * p_e)
@@ -256,7 +263,7 @@ def pixel_log_likelihood(z, z_star, prm):
 
 
 @_njit()
-def _score_and_clear(depth_meas, zbuf, box, prm):
+def _score_and_clear(depth_meas, exp_lam_z, zbuf, box, prm):
     """α Σ l_i (or c_reg Σ l_i / max(N_px, 1)) over the covered pixels of ``box``; zeroes them."""
     total, count = 0.0, 0
     for v in range(box[1], box[3] + 1):
@@ -265,7 +272,7 @@ def _score_and_clear(depth_meas, zbuf, box, prm):
             if z_star <= 0.0:
                 continue
             zbuf[v, u] = 0.0
-            total += pixel_log_likelihood(float(depth_meas[v, u]), z_star, prm)
+            total += _pixel_log_likelihood(float(depth_meas[v, u]), exp_lam_z[v, u], z_star, prm)
             count += 1
     if prm[8] > 0.0:
         return prm[8] * total / max(count, 1)
@@ -279,6 +286,12 @@ def batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out
     the chunk's z-buffer). One parallel kernel for both keeps numba's compile time down."""
     n, chunks = T_camera_bone.shape[0], zbufs.shape[0]
     render = out_depth.shape[0] == n and n > 0
+    h, w = depth_meas.shape
+    exp_lam_z = np.empty((h, w))            # exp(-λ z) per measured pixel, once per call
+    if not render and prm[11] == 0.0:
+        for v in prange(h):
+            for u in range(w):
+                exp_lam_z[v, u] = math.exp(-prm[1] * float(depth_meas[v, u]))
     for c in prange(chunks):
         p = np.empty((vertices.shape[0], 6))
         poly = np.empty((4, 3))
@@ -287,7 +300,7 @@ def batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out
         for j in range(c, n, chunks):
             _render_one(T_camera_bone[j], vertices, faces, cam, cull, p, poly, zbuf, box)
             if not render:
-                out_ll[j] = _score_and_clear(depth_meas, zbuf, box, prm)
+                out_ll[j] = _score_and_clear(depth_meas, exp_lam_z, zbuf, box, prm)
                 continue
             out_depth[j, :, :] = 0.0
             for v in range(box[1], box[3] + 1):
