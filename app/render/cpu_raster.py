@@ -80,12 +80,14 @@ def pack_params(p: LikelihoodParams) -> np.ndarray:
 
 @_njit()
 def _min3(a, b, c):
+    """min(a, b, c) for finite floats, written out: numba's 3-argument builtin is slower here."""
     m = a if a < b else b
     return m if m < c else c
 
 
 @_njit()
 def _max3(a, b, c):
+    """max(a, b, c) for finite floats, written out (see :func:`_min3`)."""
     m = a if a > b else b
     return m if m > c else c
 
