@@ -79,6 +79,20 @@ def pack_params(p: LikelihoodParams) -> np.ndarray:
 # ---------------------------------------------------------------- rasterisation
 
 @_njit()
+def _min3(a, b, c):
+    """min(a, b, c) for finite floats, written out: numba's 3-argument builtin is slower here."""
+    m = a if a < b else b
+    return m if m < c else c
+
+
+@_njit()
+def _max3(a, b, c):
+    """max(a, b, c) for finite floats, written out (see :func:`_min3`)."""
+    m = a if a > b else b
+    return m if m > c else c
+
+
+@_njit()
 def _raster_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, cam, cull, zbuf):
     """Z-buffer one projected triangle (pixel coordinates u, v and 1 / z of its vertices, all with
     z >= near); with ``cull`` a triangle of area >= 0 (n · a >= 0: facing away) is skipped."""
@@ -86,35 +100,29 @@ def _raster_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, cam, cull, zbuf):
     if area == 0.0 or (cull and area > 0.0):
         return
     h, w = zbuf.shape
-    u_lo = max(math.ceil(min(ua, ub, uc)), 0.0)
-    u_hi = min(math.floor(max(ua, ub, uc)), w - 1.0)
-    if u_lo > u_hi:
+    i_u0, i_u1 = max(math.ceil(_min3(ua, ub, uc)), 0), min(math.floor(_max3(ua, ub, uc)), w - 1)
+    i_v0, i_v1 = max(math.ceil(_min3(va, vb, vc)), 0), min(math.floor(_max3(va, vb, vc)), h - 1)
+    if i_u0 > i_u1 or i_v0 > i_v1:
         return
-    v_lo = max(math.ceil(min(va, vb, vc)), 0.0)
-    v_hi = min(math.floor(max(va, vb, vc)), h - 1.0)
-    if v_lo > v_hi:
-        return
-    i_u0, i_u1, i_v0, i_v1 = int(u_lo), int(u_hi), int(v_lo), int(v_hi)
     # barycentrics as affine functions of the pixel centre: b_k = (C_k + A_k u + B_k v) / area
     inv_area = 1.0 / area
     a_a, b_a, c_a = (vb - vc) * inv_area, (uc - ub) * inv_area, (ub * vc - uc * vb) * inv_area
     a_b, b_b, c_b = (vc - va) * inv_area, (ua - uc) * inv_area, (uc * va - ua * vc) * inv_area
     a_c, b_c, c_c = (va - vb) * inv_area, (ub - ua) * inv_area, (ua * vb - ub * va) * inv_area
-    near, far = cam[4], cam[5]
+    near_lo, far = cam[4] * (1.0 - 1e-12), cam[5]
     for v in range(i_v0, i_v1 + 1):
         fv = float(v)
         row_a, row_b, row_c = c_a + b_a * fv, c_b + b_b * fv, c_c + b_c * fv
         for u in range(i_u0, i_u1 + 1):
             fu = float(u)
             wa, wb, wc = row_a + a_a * fu, row_b + a_b * fu, row_c + a_c * fu
-            if wa < 0.0 or wb < 0.0 or wc < 0.0:
-                continue
+            # branch-free (the branches of ~1-pixel triangles mispredict): the tests of
+            # "skip if wa < 0 or wb < 0 or wc < 0 or z > far or z < near', keep the nearer" as one mask
             z = 1.0 / (wa * iza + wb * izb + wc * izc)
-            if z > far or z < near * (1.0 - 1e-12):
-                continue
             current = zbuf[v, u]
-            if current <= 0.0 or z < current:
-                zbuf[v, u] = z
+            keep = ((not wa < 0.0) & (not wb < 0.0) & (not wc < 0.0) & (not z > far) & (not z < near_lo)
+                    & ((current <= 0.0) | (z < current)))
+            zbuf[v, u] = z if keep else current
 
 
 @_njit()
@@ -208,21 +216,28 @@ def _normal_cdf(x):
 
 
 @_njit()
-def _occlusion_density(z, z_star, sigma, prm):
-    """p_e(z | z*): truncated exponential, or with prm[11] the smooth one of (B) eq. 4.33."""
+def _occlusion_density(z, exp_lam_z, z_star, sigma, prm):
+    """p_e(z | z*): truncated exponential, or with prm[11] the smooth one of (B) eq. 4.33;
+    ``exp_lam_z`` = exp(-λ z), a term of the measured pixel alone (unused by the smooth one)."""
     lam = prm[1]
     if prm[11] != 0.0:
         s2 = lam * sigma * sigma
         window = _normal_cdf((z_star - z + s2) / sigma) - _normal_cdf((s2 - z) / sigma)
         return lam / (1.0 - math.exp(-lam * z_star)) * math.exp(-lam * z + 0.5 * lam * s2) * window
     if z > 0.0 and z < z_star:
-        return lam / (1.0 - math.exp(-lam * z_star)) * math.exp(-lam * z)
+        return lam / (1.0 - math.exp(-lam * z_star)) * exp_lam_z
     return 0.0
 
 
 @_njit()
 def pixel_log_likelihood(z, z_star, prm):
-    """l_i of :func:`app.filter.likelihood_ref.pixel_log_likelihood` for one covered pixel (z* > 0).
+    """l_i of :func:`app.filter.likelihood_ref.pixel_log_likelihood` for one covered pixel (z* > 0)."""
+    return _pixel_log_likelihood(z, math.exp(-prm[1] * z), z_star, prm)
+
+
+@_njit()
+def _pixel_log_likelihood(z, exp_lam_z, z_star, prm):
+    """:func:`pixel_log_likelihood` given exp(-λ z), which :func:`batch` computes once per measured pixel.
 
     Same value, fewer transcendental calls: a pixel the background ratio makes neutral returns 0
     before any, and exp(-r²/2) is skipped where it is exactly 0.0 in float64 (r²/2 > 746).
@@ -239,7 +254,7 @@ def pixel_log_likelihood(z, z_star, prm):
     r = (z - z_star) / sigma
     half_r2 = 0.5 * r * r
     p_n = _INV_SQRT_2PI / sigma * math.exp(-half_r2) if half_r2 < 746.0 else 0.0
-    p_e = _occlusion_density(z, z_star, sigma, prm)
+    p_e = _occlusion_density(z, exp_lam_z, z_star, sigma, prm)
     if classification:
         l_obj = _safe_log(w_n * p_n)
         l_bg = _safe_log(p_u + w_e * p_e)
@@ -250,7 +265,7 @@ def pixel_log_likelihood(z, z_star, prm):
 
 
 @_njit()
-def _score_and_clear(depth_meas, zbuf, box, prm):
+def _score_and_clear(depth_meas, exp_lam_z, zbuf, box, prm):
     """α Σ l_i (or c_reg Σ l_i / max(N_px, 1)) over the covered pixels of ``box``; zeroes them."""
     total, count = 0.0, 0
     for v in range(box[1], box[3] + 1):
@@ -259,7 +274,7 @@ def _score_and_clear(depth_meas, zbuf, box, prm):
             if z_star <= 0.0:
                 continue
             zbuf[v, u] = 0.0
-            total += pixel_log_likelihood(float(depth_meas[v, u]), z_star, prm)
+            total += _pixel_log_likelihood(float(depth_meas[v, u]), exp_lam_z[v, u], z_star, prm)
             count += 1
     if prm[8] > 0.0:
         return prm[8] * total / max(count, 1)
@@ -273,6 +288,12 @@ def batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out
     the chunk's z-buffer). One parallel kernel for both keeps numba's compile time down."""
     n, chunks = T_camera_bone.shape[0], zbufs.shape[0]
     render = out_depth.shape[0] == n and n > 0
+    h, w = depth_meas.shape
+    exp_lam_z = np.empty((h, w))            # exp(-λ z) per measured pixel, once per call
+    if not render and prm[11] == 0.0:
+        for v in prange(h):
+            for u in range(w):
+                exp_lam_z[v, u] = math.exp(-prm[1] * float(depth_meas[v, u]))
     for c in prange(chunks):
         p = np.empty((vertices.shape[0], 6))
         poly = np.empty((4, 3))
@@ -281,7 +302,7 @@ def batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out
         for j in range(c, n, chunks):
             _render_one(T_camera_bone[j], vertices, faces, cam, cull, p, poly, zbuf, box)
             if not render:
-                out_ll[j] = _score_and_clear(depth_meas, zbuf, box, prm)
+                out_ll[j] = _score_and_clear(depth_meas, exp_lam_z, zbuf, box, prm)
                 continue
             out_depth[j, :, :] = 0.0
             for v in range(box[1], box[3] + 1):
