@@ -199,7 +199,11 @@ def test_simulated_session_with_images_records_a_trial_that_view_and_replay_acce
     assert yaml.safe_load((rec / "trial.yaml").read_text())["format"] == "osteonav-trial/1.1"
     assert recorded.meta.streams.color.camera == played.meta.streams.color.camera
     np.testing.assert_allclose(recorded.meta.streams.color.T_depth_color, played.meta.streams.color.T_depth_color)
-    assert len(recorded) >= len(played) - 1
+    # The simulated camera, like a real one, drops the frames it could not deliver on time (it skips to
+    # the newest due frame: issue 15 item 11), so a loaded machine records fewer than all 5; every frame
+    # it recorded must be one of the played frames with its own images, bit for bit.
+    assert 2 <= len(recorded) <= len(played)
+    assert set(recorded.frame_ids) <= set(played.frame_ids)
     by_id = {f.frame_id: f for f in played.iter_frames()}
     for f in recorded.iter_frames():
         np.testing.assert_array_equal(f.infrared, by_id[f.frame_id].infrared)
