@@ -38,6 +38,7 @@ BUILTIN: dict[str, str] = {
     "robot.ur": "plugins.ur:URRobot",
     "tracker.particle_filter": "plugins.tracker_pf:ParticleFilterTracker",
     "tracker.marker_imu": "plugins.marker_imu:MarkerImuTracker",
+    "tracker.icp": "plugins.tracker_icp:ICPTrackerPlugin",
     "output.rerun": "plugins.rerun_output:RerunOutput",
     "output.recorder": "plugins.recorder:Recorder",
     "output.projector": "plugins.projector_output:ProjectorOutput",
