@@ -42,7 +42,7 @@ def test_hardware_example_names_the_robot_address_and_calibration():
 @pytest.mark.parametrize("raw, key, allowed", [
     (minimal(camera={"plugin": "kinect"}), "camera.plugin", "realsense"),
     (minimal(robot={"plugin": "kuka"}), "robot.plugin", "ur"),
-    (minimal(tracker={"plugin": "icp"}), "tracker.plugin", "particle_filter"),
+    (minimal(tracker={"plugin": "kalman"}), "tracker.plugin", "particle_filter"),
     (minimal(outputs=[{"plugin": "projector9"}]), "output.plugin", "rerun"),
     (minimal(camra={}), "camra", "camera"),
     (minimal(calibration={"handeye": []}), "calibration.handeye", "hand_eye"),
