@@ -14,10 +14,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
+from plugins._tracker_adapter import TrackerAdapter
 
 
-class ICPTrackerPlugin:
+class ICPTrackerPlugin(TrackerAdapter):
     kind, name = "tracker", "icp"
 
     def __init__(self, mesh, camera, T_flange_camera=None, config: str | None = None, icp: dict | None = None):
@@ -25,18 +25,6 @@ class ICPTrackerPlugin:
 
         self.tracker = ICPTracker(_params(config, icp), mesh, camera)
         self.tracker.T_flange_camera = T_flange_camera
-
-    def start(self, T_base_bone: np.ndarray) -> None:
-        self.tracker.start(T_base_bone)
-
-    def process(self, depth_m: np.ndarray, stamp: float, T_base_camera: np.ndarray | None):
-        return self.tracker.process(depth_m, stamp, T_base_camera)
-
-    def particle_positions(self) -> np.ndarray:
-        return self.tracker.particle_positions()
-
-    def release(self) -> None:
-        self.tracker.release()
 
 
 def _params(config: str | None, overrides: dict | None):

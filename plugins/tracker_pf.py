@@ -6,10 +6,10 @@ its GL context.
 """
 from __future__ import annotations
 
-import numpy as np
+from plugins._tracker_adapter import TrackerAdapter
 
 
-class ParticleFilterTracker:
+class ParticleFilterTracker(TrackerAdapter):
     kind, name = "tracker", "particle_filter"
 
     def __init__(self, mesh, camera, T_flange_camera=None, config: str | None = None):
@@ -18,14 +18,3 @@ class ParticleFilterTracker:
 
         self.tracker = DepthTracker(load_config(config), mesh, camera, T_flange_camera)
 
-    def start(self, T_base_bone: np.ndarray) -> None:
-        self.tracker.start(T_base_bone)
-
-    def process(self, depth_m: np.ndarray, stamp: float, T_base_camera: np.ndarray | None):
-        return self.tracker.process(depth_m, stamp, T_base_camera)
-
-    def particle_positions(self) -> np.ndarray:
-        return self.tracker.particle_positions()
-
-    def release(self) -> None:
-        self.tracker.release()
