@@ -75,6 +75,16 @@ then lowered to UNCERTAIN, never raised, when
 - a competing pose explains the image about as well: the refinements from the own track and from
   the filter's estimate converged > 5 mm / 5 deg apart with their shares within 1 σ less than
   ``refine.competitor_margin`` = 0.05 apart (tests/test_refine_status.py builds such a frame).
+- more than ``max_behind_share`` = 2 % of the refined fit's measurements lie more than 1 σ
+  *inside* the model (signed point-to-plane residual < −σ, app/filter/refine.py step 7). Tissue,
+  blood and instruments only ever lie in front of the bone, so a right pose leaves only the noise's
+  tail behind it; a fit pulled part-way onto residual tissue, or slid along the crest under a hand,
+  passes through the seen surface elsewhere. Measured (BENCHMARKS.md §6): or_deep_tissue on the
+  eight CT crests, fits 1.2-2.1 mm off: 89-93 of 134 frames per crest were ok while > 1 mm off
+  without this rule, 0-14 with it; crest_left_03 static_occluded (hand at 40-45 %): the fit sliding
+  5-10 mm off had 2.8-6.7 % behind (19 frames ok while > 5 mm off without the rule); clear views of
+  the crests: 0.3-0.7 % at 0.42 m, 0.9-1.7 % at 0.65 m (the simulator's noise is a larger part of σ
+  there: the rule's margin is smallest at a distance).
 
 Caveat: with a peaked likelihood (hundreds of pixels, ESS / N near 1/N) the weighted spread of a
 degenerate particle set is near zero even when the estimate is off; the inlier rules are what
