@@ -93,7 +93,12 @@ def main() -> None:
     runs = {}
     for trial in args.trials:
         name = f"{trial.parent.name}/{trial.name}"
+        if not (trial / "groundtruth.txt").is_file():
+            print(f"{trial}: skipped (not a simulated trial with groundtruth.txt)")
+            continue
         runs[name] = frames_of(trial, args.settle)
+        if args.out:
+            args.out.write_text(json.dumps({"runs": runs}))
         r = runs[name]
         print(f"{name}: {len(r['std1_m'])} frames, predicted (inflation 1) median "
               f"{1e3 * np.median(r['std1_m']):.3f} mm, measured median {1e3 * np.median(r['error_m']):.3f} mm", flush=True)
