@@ -182,14 +182,14 @@ class DepthTracker:
 
     def _reinitialise(self, depth_small: np.ndarray, T_base_camera: np.ndarray, stamp: float) -> None:
         """The recovery's due attempt (app/filter/recovery.py): a wide re-spread around the last
-        confident pose and the current estimate, or the one-point SMC initialiser on this frame."""
+        confident pose, or the one-point SMC initialiser on this frame."""
         policy = self.recovery
         T_now = self._T_base_bone_last if self._T_base_bone_last is not None else policy.T_base_bone_confident
         if policy.T_base_bone_confident is None:
             policy.set_start(T_now)
         kind = policy.next_kind()
         if kind == RESPREAD:
-            self.filter.set_state(policy.respread_state(T_now, self.config.particles, self.filter.rng))
+            self.filter.set_state(policy.respread_state(self.config.particles, self.filter.rng))
             if self.refined_track is not None:
                 self.refined_track.seed(policy.T_base_bone_confident)
         else:
