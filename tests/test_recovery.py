@@ -185,3 +185,17 @@ def test_default_yaml_documents_every_recovery_key():
     text = DEFAULT_CONFIG_PATH.read_text()
     for key in (k for k in KEYS if k.startswith("recovery.")):
         assert f"  {key.split('.', 1)[1]}:" in text
+
+
+@pytest.mark.slow
+def test_a_knocked_off_track_is_found_again_on_a_ct_crest(tmp_path, crest_mesh_path):
+    """The same knock on a shared CT crest (static_clear): found again within 2 s, never ok while off."""
+    from app.sim.simulator import simulate
+
+    simulate(tmp_path / "trial", mesh_path=crest_mesh_path, scenario_name="static_clear", seconds=3.4, seed=5)
+    stamps, add, statuses, reinit, report = _track(tmp_path / "trial", load_config(None))
+    after = stamps >= KNOCK_S
+    found = np.nonzero(after & (add < 2.0))[0]
+    assert add[after][0] > 10.0 and report["recovery"]["reinitialisations"] >= 1
+    assert found.size and stamps[found[0]] - KNOCK_S <= 2.0
+    assert not np.any((statuses == "ok") & (add > 5.0))
