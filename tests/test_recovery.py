@@ -117,16 +117,16 @@ def test_policy_counts_bad_frames_waits_while_hidden_and_holds_after():
     policy = _policy(after_lost_frames=3, hold_frames=2, cooldown_frames=1)
     lost, unc = TrackingStatus.LOST, TrackingStatus.UNCERTAIN
     for _ in range(2):
-        policy.update(lost, True, False, 0.9, np.eye(4))
-    policy.update(unc, False, False, 0.9, np.eye(4))             # hidden: neither counts nor resets
+        policy.update(lost, True, False, 0.9, np.eye(4), 0.0)
+    policy.update(unc, False, False, 0.9, np.eye(4), 0.0)             # hidden: neither counts nor resets
     assert policy.pending is None
-    policy.update(unc, True, False, 0.9, np.eye(4))              # weighed, not refined: the track broken
+    policy.update(unc, True, False, 0.9, np.eye(4), 0.0)              # weighed, not refined: the track broken
     assert policy.pending is not None and policy.next_kind() == "respread"
     policy.done(1.0, "respread")
-    assert policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4)) == unc       # held
-    assert policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4)) == unc
-    assert policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4)) == TrackingStatus.OK
-    policy.update(unc, True, True, 0.9, np.eye(4))               # a weighed, refined frame resets the count
+    assert policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0) == unc       # held
+    assert policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0) == unc
+    assert policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0) == TrackingStatus.OK
+    policy.update(unc, True, True, 0.9, np.eye(4), 0.0)               # a weighed, refined frame resets the count
     assert policy._bad == 0
 
 
@@ -139,7 +139,7 @@ def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
     np.testing.assert_allclose(policy.smc_point(), [1.0, 2.0, 3.0])
     kinds, frames = [], 0
     while len(kinds) < 4 and frames < 400:
-        policy.update(TrackingStatus.LOST, True, False, float("nan"), T)
+        policy.update(TrackingStatus.LOST, True, False, float("nan"), T, 0.01 * frames)
         frames += 1
         if policy.pending:
             kinds.append(policy.next_kind())
@@ -147,6 +147,19 @@ def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
     assert kinds == ["respread", "respread", "smc", "respread"]
     gaps = np.diff([e.stamp for e in policy.events])
     assert gaps[1] > gaps[0]                                # the cooldown doubles
+
+
+def test_a_moving_estimate_is_not_reinitialised_for_being_uncertain():
+    """The slow trigger (not ok for after_uncertain_frames) counts only while the estimate is still:
+    a bone being repositioned is uncertain for seconds."""
+    unc = TrackingStatus.UNCERTAIN
+    policy = _policy(after_uncertain_frames=20)
+    for k in range(100):                                    # 5 cm/s, 90 frames/s, refined at a good fit
+        policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.05 * k / 90, 0, 0])), k / 90)
+    assert policy.pending is None
+    for k in range(100, 160):                               # at rest (after the 0.2 s window), still not ok
+        policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.05 * 99 / 90, 0, 0])), k / 90)
+    assert policy.pending is not None and "not ok" in policy.pending
 
 
 def test_respread_is_about_the_bone_centroid_with_the_configured_spread(rng):

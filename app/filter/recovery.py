@@ -12,10 +12,13 @@ a lower fit, uncertain, never lost). A weighed frame that is neither resets the 
 was not weighed and not lost (the bone hidden by a hand, no camera pose) neither counts nor resets:
 the particles are held there (particle_filter.py), and the recovery waits for the bone to be
 visible. After ``after_lost_frames`` bad frames in a row a re-initialisation is due. A second,
-slower trigger: ``after_uncertain_frames`` weighed frames in a row that are not ok (0 = off): on
-the CT crests under a rising hand the filter and the refinement slid together along the crest to
-47 mm off with a fit of 0.65-0.9, uncertain (the predicted template error), never lost
-(BENCHMARKS.md §6b). The re-initialisation runs on the next frame that has a camera pose and valid
+slower trigger: ``after_uncertain_frames`` weighed frames in a row that are not ok while the
+estimate is still (0 = off): on the CT crests under a rising hand the filter and the refinement slid
+together along the crest to 47 mm off with a fit of 0.65-0.9, uncertain (the predicted template
+error), never lost (BENCHMARKS.md §6b). The estimate is still when it moved less than
+``status.uncertain_speed`` / ``uncertain_angular_speed`` over ``status.motion_window_s``; a moving
+estimate restarts that count: a bone being repositioned is uncertain for seconds (status.py's motion
+rule), and a re-spread around its pose before the move would lose it. The re-initialisation runs on the next frame that has a camera pose and valid
 depth.
 
 **What.** Attempts since the last ok frame are numbered k = 0, 1, ...; attempt k is
@@ -47,6 +50,7 @@ them for the summaries.
 """
 from __future__ import annotations
 
+import collections
 import math
 from dataclasses import dataclass
 
@@ -99,15 +103,20 @@ class RecoveryPolicy:
     surface_point_bone : (3,) m, a point on the bone surface near the centroid (bone frame)
     refine_enabled : whether an unrefined weighed frame counts as bad
     min_fitness : a refined fit below this counts as bad (status.min_fitness)
+    still : (speed m/s, angular speed rad/s, window s) below which the estimate is still
+        (status.uncertain_speed, uncertain_angular_speed, motion_window_s)
     """
 
     def __init__(self, config: RecoveryConfig, centroid_bone: np.ndarray, surface_point_bone: np.ndarray,
-                 refine_enabled: bool, min_fitness: float = 0.6):
+                 refine_enabled: bool, min_fitness: float = 0.6,
+                 still: tuple[float, float, float] = (0.03, math.radians(20.0), 0.2)):
         self.config = config
         self.centroid_bone = np.asarray(centroid_bone, float).reshape(3)
         self.surface_point_bone = np.asarray(surface_point_bone, float).reshape(3)
         self.refine_enabled = refine_enabled
         self.min_fitness = min_fitness
+        self.still = still
+        self._recent: collections.deque = collections.deque()   # (stamp, T_base_bone) over the window
         self.point_prior: np.ndarray | None = None
         self.T_base_bone_confident: np.ndarray | None = None
         self.events: list[Reinitialisation] = []
@@ -129,7 +138,7 @@ class RecoveryPolicy:
 
     # -- per frame ---------------------------------------------------------------------------
     def update(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float,
-               T_base_bone: np.ndarray) -> TrackingStatus:
+               T_base_bone: np.ndarray, stamp: float) -> TrackingStatus:
         """One frame's final status in, the status to report out (capped at uncertain while holding);
         remembers the confident pose and decides whether a re-initialisation is due (``pending``)."""
         self._since += 1
@@ -141,7 +150,8 @@ class RecoveryPolicy:
             self.T_base_bone_confident = np.array(T_base_bone, float)
             self._attempts, self._bad, self._not_ok = 0, 0, 0
             return status
-        self._not_ok = self._not_ok + 1 if weighed else self._not_ok
+        moving = self._moving(stamp, T_base_bone)
+        self._not_ok = 0 if moving else (self._not_ok + 1 if weighed else self._not_ok)
         reason = self._bad_reason(status, weighed, refined, fitness)
         if reason is not None:
             self._bad += 1
@@ -153,6 +163,21 @@ class RecoveryPolicy:
         elif c.after_uncertain_frames and self._not_ok >= c.after_uncertain_frames:
             self._due(f"not ok for {self._not_ok} weighed frames")
         return status
+
+    def _moving(self, stamp: float, T_base_bone: np.ndarray) -> bool:
+        """Whether the estimate moved faster than ``still`` over the window (ending at this frame)."""
+        speed, angular, window = self.still
+        self._recent.append((float(stamp), np.array(T_base_bone, float)))
+        while len(self._recent) > 2 and stamp - self._recent[1][0] >= window:
+            self._recent.popleft()
+        t0, T0 = self._recent[0]
+        dt = stamp - t0
+        if dt <= 0:
+            return False
+        dist = float(np.linalg.norm(T_base_bone[:3, 3] - T0[:3, 3]))
+        cos = (np.trace(T0[:3, :3].T @ T_base_bone[:3, :3]) - 1.0) / 2.0
+        angle = float(np.arccos(np.clip(cos, -1.0, 1.0)))
+        return dist / dt > speed or angle / dt > angular
 
     def _due(self, reason: str) -> None:
         if self._since >= self._cooldown() and self.pending is None:
@@ -189,6 +214,7 @@ class RecoveryPolicy:
         self.pending = None
         self._attempts += 1
         self._since, self._bad, self._not_ok = 0, 0, 0
+        self._recent.clear()
         self._hold = self.config.hold_frames
 
     # -- the re-spread -----------------------------------------------------------------------

@@ -146,7 +146,7 @@ class DepthTracker:
             result = replace(result, status=TrackingStatus.UNCERTAIN)   # start_from_point: never ok
         if self.recovery is not None:
             status = self.recovery.update(result.status, result.weighed, result.refined, result.refine_fitness,
-                                          result.T_base_bone)
+                                          result.T_base_bone, stamp)
             result = replace(result, status=status, reinitialised=reinitialised)
         self._T_base_bone_last = result.T_base_bone
         for stage, seconds in result.timings.items():
@@ -290,7 +290,9 @@ def _recovery_policy(config: TrackerConfig, vertices: np.ndarray, faces: np.ndar
         return None
     centroid = vertices.mean(axis=0)
     surface_point = vertices[np.argmin(np.linalg.norm(vertices - centroid, axis=1))]
-    return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, config.status.min_fitness)
+    st = config.status
+    return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, st.min_fitness,
+                          (st.uncertain_speed, st.uncertain_angular_speed, st.motion_window_s))
 
 
 def _filter_config(config: TrackerConfig) -> TrackerConfig:
