@@ -157,7 +157,7 @@ def test_a_moving_estimate_is_not_reinitialised_for_being_uncertain():
     for k in range(100):                                    # 5 cm/s, 90 frames/s, refined at a good fit
         policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.05 * k / 90, 0, 0])), k / 90)
     assert policy.pending is None
-    for k in range(100, 160):                               # at rest (after the 0.2 s window), still not ok
+    for k in range(100, 190):                               # at rest (after the 0.5 s window), still not ok
         policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.05 * 99 / 90, 0, 0])), k / 90)
     assert policy.pending is not None and "not ok" in policy.pending
 

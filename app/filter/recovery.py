@@ -16,7 +16,9 @@ slower trigger: ``after_uncertain_frames`` weighed frames in a row that are not 
 estimate is still (0 = off): on the CT crests under a rising hand the filter and the refinement slid
 together along the crest to 47 mm off with a fit of 0.65-0.9, uncertain (the predicted template
 error), never lost (BENCHMARKS.md §6b). The estimate is still when it moved less than
-``status.uncertain_speed`` / ``uncertain_angular_speed`` over ``status.motion_window_s``; a moving
+``status.uncertain_speed`` / ``uncertain_angular_speed`` over ``STILL_WINDOW_S`` = 0.5 s (longer
+than the status's 0.2 s: a wrong track's refined pose jumps a few millimetres between frames, which
+over 0.2 s read as motion and kept the count at 0 on crest_left_02 while 64-100 mm off); a moving
 estimate restarts that count: a bone being repositioned is uncertain for seconds (status.py's motion
 rule), and a re-spread around its pose before the move would lose it. The re-initialisation runs on the next frame that has a camera pose and valid
 depth.
@@ -63,6 +65,7 @@ from app.geometry import quaternion as quat
 
 RESPREAD, SMC = "respread", "smc"
 MAX_BACKOFF_DOUBLINGS = 3
+STILL_WINDOW_S = 0.5
 
 
 @dataclass
@@ -104,7 +107,7 @@ class RecoveryPolicy:
     refine_enabled : whether an unrefined weighed frame counts as bad
     min_fitness : a refined fit below this counts as bad (status.min_fitness)
     still : (speed m/s, angular speed rad/s, window s) below which the estimate is still
-        (status.uncertain_speed, uncertain_angular_speed, motion_window_s)
+        (status.uncertain_speed, uncertain_angular_speed, motion_window_s; the window at least STILL_WINDOW_S)
     """
 
     def __init__(self, config: RecoveryConfig, centroid_bone: np.ndarray, surface_point_bone: np.ndarray,
@@ -167,6 +170,7 @@ class RecoveryPolicy:
     def _moving(self, stamp: float, T_base_bone: np.ndarray) -> bool:
         """Whether the estimate moved faster than ``still`` over the window (ending at this frame)."""
         speed, angular, window = self.still
+        window = max(window, STILL_WINDOW_S)
         self._recent.append((float(stamp), np.array(T_base_bone, float)))
         while len(self._recent) > 2 and stamp - self._recent[1][0] >= window:
             self._recent.popleft()
