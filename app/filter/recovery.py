@@ -20,7 +20,11 @@ error), never lost (BENCHMARKS.md §6b). The estimate is still when it moved les
 than the status's 0.2 s: a wrong track's refined pose jumps a few millimetres between frames, which
 over 0.2 s read as motion and kept the count at 0 on crest_left_02 while 64-100 mm off); a moving
 estimate restarts that count: a bone being repositioned is uncertain for seconds (status.py's motion
-rule), and a re-spread around its pose before the move would lose it. The re-initialisation runs on the next frame that has a camera pose and valid
+rule), and a re-spread around its pose before the move would lose it. The low-fit and the slow
+trigger also need the estimate more than ``FAR_M`` / ``FAR_RAD`` = 5 mm / 5 deg (refine_track.py's
+competitor gap) from the last confident pose: under an 80 % hand a correct track is uncertain for
+seconds (the predicted template error), and re-initialising it there lost it on crest_right_05 and
+made a confident wrong pose (81 frames ok while > 5 mm off; BENCHMARKS.md §6b). The re-initialisation runs on the next frame that has a camera pose and valid
 depth.
 
 **What.** Attempts since the last ok frame are numbered k = 0, 1, ...; attempt k is
@@ -65,6 +69,7 @@ from app.geometry import quaternion as quat
 
 RESPREAD, SMC = "respread", "smc"
 MAX_BACKOFF_DOUBLINGS = 3
+FAR_M, FAR_RAD = 0.005, math.radians(5.0)
 STILL_WINDOW_S = 0.5
 
 
@@ -155,7 +160,7 @@ class RecoveryPolicy:
             return status
         moving = self._moving(stamp, T_base_bone)
         self._not_ok = 0 if moving else (self._not_ok + 1 if weighed else self._not_ok)
-        reason = self._bad_reason(status, weighed, refined, fitness)
+        reason = self._bad_reason(status, weighed, refined, fitness, T_base_bone)
         if reason is not None:
             self._bad += 1
         elif weighed:
@@ -163,9 +168,26 @@ class RecoveryPolicy:
         c = self.config
         if reason is not None and self._bad >= c.after_lost_frames:
             self._due(f"{reason} for {self._bad} frames")
-        elif c.after_uncertain_frames and self._not_ok >= c.after_uncertain_frames:
-            self._due(f"not ok for {self._not_ok} weighed frames")
+        elif c.after_uncertain_frames and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone):
+            self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
         return status
+
+    def _gap(self, T_base_bone: np.ndarray) -> tuple[float, float]:
+        T0 = self.T_base_bone_confident
+        dist = float(np.linalg.norm(T_base_bone[:3, 3] - T0[:3, 3]))
+        cos = (np.trace(T0[:3, :3].T @ T_base_bone[:3, :3]) - 1.0) / 2.0
+        return dist, float(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+    def _far(self, T_base_bone: np.ndarray) -> bool:
+        """Whether the estimate lies more than FAR_M / FAR_RAD from the last confident pose."""
+        if self.T_base_bone_confident is None:
+            return True
+        dist, angle = self._gap(T_base_bone)
+        return dist > FAR_M or angle > FAR_RAD
+
+    def _gap_text(self, T_base_bone: np.ndarray) -> str:
+        dist, angle = self._gap(T_base_bone) if self.T_base_bone_confident is not None else (math.nan, math.nan)
+        return f"{1e3 * dist:.0f} mm / {math.degrees(angle):.0f} deg"
 
     def _moving(self, stamp: float, T_base_bone: np.ndarray) -> bool:
         """Whether the estimate moved faster than ``still`` over the window (ending at this frame)."""
@@ -187,12 +209,13 @@ class RecoveryPolicy:
         if self._since >= self._cooldown() and self.pending is None:
             self.pending = reason
 
-    def _bad_reason(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float) -> str | None:
+    def _bad_reason(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float,
+                    T_base_bone: np.ndarray) -> str | None:
         if status == TrackingStatus.LOST:
             return "lost"
         if weighed and self.refine_enabled and not refined:
             return "refined track broken while the bone is visible"
-        if weighed and self.refine_enabled and not fitness >= self.min_fitness:
+        if weighed and self.refine_enabled and not fitness >= self.min_fitness and self._far(T_base_bone):
             return f"refined fit {fitness:.2f} below {self.min_fitness:.2f}"
         return None
 
