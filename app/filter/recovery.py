@@ -2,7 +2,11 @@
 
 Import as ``from app.filter.recovery import RecoveryPolicy``. Wired in
 :class:`app.pipeline.tracker.DepthTracker` (issue 12, item 4), so replay, ``osteonav track`` and the
-bench all get it.
+bench all get it with ``recovery.enabled: true``. **Off by default**: on the eight CT crests under an
+80 % hand (BENCHMARKS.md §6b) it found no lost track that the tracker did not find by itself, and it
+lost two tracks that held without it (crest_right_04: 0 -> 37 % of the frames lost; an earlier
+variant made 81 frames ok while > 5 mm off on crest_right_05): re-spread while most of the crest is
+hidden, the filter and the refinement settle on a wrong fit of the visible part.
 
 **Trigger.** A frame is *bad* when its status is lost, or (with the refinement on) it was weighed
 and the refined fit no longer confirms the visible bone: not refined at all (refine_track.py kept no
@@ -81,7 +85,7 @@ class RecoveryConfig:
     (re-spreads before each SMC attempt); smc_evaluations (the initialiser's likelihood evaluations);
     hold_frames (weighed frames capped at uncertain after one); cooldown_frames (frames between two)."""
 
-    enabled: bool = True
+    enabled: bool = False
     after_lost_frames: int = 10
     after_uncertain_frames: int = 90
     respread_sigma_p: float = 0.015
