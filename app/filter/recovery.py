@@ -4,9 +4,10 @@ Import as ``from app.filter.recovery import RecoveryPolicy``. Wired in
 :class:`app.pipeline.tracker.DepthTracker` (issue 12, item 4), so replay, ``osteonav track`` and the
 bench all get it with ``recovery.enabled: true``. **Off by default**: on the eight CT crests under an
 80 % hand (BENCHMARKS.md §6b) it found no lost track that the tracker did not find by itself, and it
-lost two tracks that held without it (crest_right_04: 0 -> 37 % of the frames lost; an earlier
-variant made 81 frames ok while > 5 mm off on crest_right_05): re-spread while most of the crest is
-hidden, the filter and the refinement settle on a wrong fit of the visible part.
+lost two tracks that held without it (crest_right_04 and crest_right_05: 0 -> 37-39 % of the frames
+lost, and 81 frames ok while > 5 mm off on crest_right_05): re-spread while most of the crest is
+hidden, the filter and the refinement settle on a wrong fit of the visible part, which then passes
+the status rules.
 
 **Trigger.** A frame is *bad* when its status is lost, or (with the refinement on) it was weighed
 and the refined fit no longer confirms the visible bone: not refined at all (refine_track.py kept no
@@ -27,9 +28,10 @@ estimate restarts that count: a bone being repositioned is uncertain for seconds
 rule), and a re-spread around its pose before the move would lose it. The low-fit and the slow
 trigger also need the estimate more than ``FAR_M`` / ``FAR_RAD`` = 5 mm / 5 deg (refine_track.py's
 competitor gap) from the last confident pose: under an 80 % hand a correct track is uncertain for
-seconds (the predicted template error), and re-initialising it there lost it on crest_right_05 and
-made a confident wrong pose (81 frames ok while > 5 mm off; BENCHMARKS.md §6b). The re-initialisation runs on the next frame that has a camera pose and valid
-depth.
+seconds (the predicted template error), and re-initialising it there raised crest_left_05's lost
+share from 1.6 to 16 %. It did not save crest_right_04 / _05, whose tracks had been > 5 mm off for a
+moment (and came back by themselves without recovery; BENCHMARKS.md §6b). The re-initialisation
+runs on the next frame that has a camera pose and valid depth.
 
 **What.** Attempts since the last ok frame are numbered k = 0, 1, ...; attempt k is
 
@@ -52,8 +54,8 @@ crest buried in tissue, is not re-initialised every few frames).
 
 **Honesty.** For ``hold_frames`` weighed frames after a re-initialisation the status is at most
 uncertain, whatever the rules say; then the usual rules (status.py, with the refinement's fit,
-predicted template error and competitor check) decide. A re-initialisation therefore never makes
-a pose confident by itself (BENCHMARKS.md §6b measures the dangerous frames with it).
+predicted template error and competitor check) decide. That is not enough: on crest_right_05 the
+wrong pose a re-spread settled on was ok in 81 frames after the hold (BENCHMARKS.md §6b).
 
 Each re-initialisation is recorded as (stamp, kind, reason); :meth:`RecoveryPolicy.report` gives
 them for the summaries.
