@@ -8,7 +8,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from app.filter.likelihood_ref import LikelihoodParams
 from app.filter.motion import MotionParams
+from app.filter.observation import depth_evidence, has_valid_depth
 from app.filter.particle_filter import STAGES, FilterConfig, ParticleFilter
 from app.filter.status import TrackingStatus
 from app.geometry import quaternion as quat
@@ -43,6 +45,12 @@ class GaussianPoseBackend:
         out = np.zeros((len(T_camera_bone), H, W), np.float32)
         out[:, 2:10, 3:13] = T_camera_bone[:, 2, 3, None, None]
         return out
+
+    def has_measurement(self, depth_meas):
+        return has_valid_depth(depth_meas, LikelihoodParams())
+
+    def evidence(self, T_camera_bone, depth_meas, min_covered_pixels):
+        return depth_evidence(self.render_depth, T_camera_bone, depth_meas, LikelihoodParams(), min_covered_pixels)
 
     def measure(self, rng):
         z = self.render_depth(self.T_camera_bone_true[None])[0]
