@@ -4,7 +4,11 @@ For each frame: the joints interpolated at the frame's stamp give ``T_base_camer
 trial's hand-eye); the depth image is reduced to the filter's resolution; the particle filter
 (started at the trial's ``initial_pose``, or with ``init.method: point`` by the one-point
 initialiser from its ``point_prior`` on the first frame; the summary's ``init`` block gives that
-run) steps; the estimate goes to the sinks. Writes, in ``out``:
+run) steps; the estimate goes to the sinks. Every frame goes, in order and on the calling thread (no
+threads, no drops: deterministic), through the per-frame core the live session uses
+(:class:`app.pipeline.frame_core.FrameCore`) and its sinks (:mod:`app.pipeline.sinks`: ground-truth
+scoring, which ``osteonav bench`` reads through :attr:`ReplayResult.errors`, the trajectory, rerun,
+the projector, the files). Writes, in ``out``:
 
 - ``estimate.txt``: TUM, the bone in the robot base frame, one row per processed frame;
 - ``status.csv``: ``stamp,status`` per processed frame (RECORDING_FORMAT.md);
