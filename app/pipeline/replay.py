@@ -65,8 +65,8 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
     ``make_tracker(mesh, camera) -> engine`` replaces the particle filter by another tracking engine
     with ``start``, ``process(depth_m, stamp, T_base_camera)``, ``particle_positions``,
     ``mean_timings_ms``, ``release`` and ``gl_description`` (wrapped in
-    :class:`app.pipeline.engine_tracker.EngineTracker`), e.g. the ICP baseline (app/baselines/icp.py);
-    ``config`` then only names the run in the summary.
+    :class:`app.pipeline.engine_tracker.EngineTracker`, the :class:`app.interfaces.Tracker` contract),
+    e.g. the ICP baseline (app/baselines/icp.py); ``config`` then only names the run in the summary.
     """
     from app.trial.reader import open_trial
 
@@ -82,7 +82,7 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
     else:
         tracker.start(reader.meta.initial_pose)
     out = Path(out_dir) if out_dir else None
-    sinks = ReplaySinks.open(reader, engine, mesh, out, rrd, projector and out is not None,
+    sinks = ReplaySinks.open(reader, tracker, mesh, out, rrd, projector and out is not None,
                              ProjectorOptions(projector_config, projector_every, projector_images))
     core = FrameCore(tracker, sinks.all)
     try:
@@ -142,7 +142,7 @@ class ReplaySinks:
     projector_skipped: str | None = None
 
     @classmethod
-    def open(cls, reader, engine, mesh, out: Path | None, rrd: bool, projector: bool,
+    def open(cls, reader, tracker: EngineTracker, mesh, out: Path | None, rrd: bool, projector: bool,
              options: ProjectorOptions) -> "ReplaySinks":
         sinks = cls(Trajectory(), GroundTruthScoring(np.asarray(mesh.vertices)), [])
         sinks.all = [sinks.scoring, sinks.trajectory]
@@ -154,11 +154,11 @@ class ReplaySinks:
             from app.viz.rerun_log import RerunLog
 
             log_ = RerunLog.to_file(out / "log.rrd")
-            log_.log_static_scene(reader.meta.camera, engine.mesh_vertices, engine.mesh_faces,
+            log_.log_static_scene(reader.meta.camera, np.asarray(mesh.vertices), np.asarray(mesh.faces),
                                   with_groundtruth=reader.groundtruth is not None)
-            log_.log_text("backend", engine.gl_description)
-            rerun = RerunSink(log_, getattr(engine, "T_flange_camera", None), depth_every=3,
-                              bone_when=("ok", "uncertain"))
+            log_.log_image_streams(reader.meta.streams)
+            log_.log_text("backend", tracker.description)
+            rerun = RerunSink(log_, reader.meta.T_flange_camera, depth_every=3, bone_when=("ok", "uncertain"))
             sinks.all.append(rerun)
         if projector:
             sinks._open_projector(mesh, out, rerun, options)
