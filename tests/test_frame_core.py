@@ -246,3 +246,34 @@ def test_the_projector_sink_renders_every_nth_estimate_with_the_truth():
     live = ProjectorEstimates(FakeProjector())
     live.on_estimate(Estimate(0.0, None, np.eye(4), "ok", latency_s=0.05))
     assert live.projector.steps == [(1, "ok", 0.05, False)], "live: the age is the latency; no frame id: the count"
+
+
+def test_replay_through_the_core_equals_the_tracker_driven_by_hand(tmp_path):
+    """Replay is deterministic and adds nothing to the tracker: its estimates, statuses and errors are
+    those of a DepthTracker stepped frame by frame over the same trial (same config and seed)."""
+    from app.config import load_config
+    from app.pipeline.replay import replay
+    from app.pipeline.tracker import DepthTracker
+    from app.sim.simulator import simulate
+    from app.trial.reader import open_trial
+
+    simulate(tmp_path / "trial", scenario_name="static_clear", seconds=0.15, seed=6)
+    config = load_config(None)
+    result = replay(tmp_path / "trial", tmp_path / "out", config, rrd=False, projector=False)
+    reader = open_trial(tmp_path / "trial")
+    tracker = DepthTracker(config, reader.load_mesh(), reader.meta.camera)
+    tracker.start(reader.meta.initial_pose)
+    T_base_camera, valid = reader.camera_poses()
+    by_hand = [tracker.process(f.depth_m, f.stamp, T_base_camera[f.index] if valid[f.index] else None)
+               for f in reader.iter_frames()]
+    tracker.release()
+    assert len(result.stamps) == len(by_hand) == len(reader) > 5
+    np.testing.assert_array_equal(result.T_base_bone, np.array([r.T_base_bone for r in by_hand]))
+    assert result.statuses == [str(r.status) for r in by_hand]
+    points = np.asarray(reader.load_mesh().vertices)
+    add = [1e3 * metrics.add(r.T_base_bone, reader.groundtruth[i], points) for i, r in enumerate(by_hand)]
+    np.testing.assert_allclose(result.errors["add_mm"], add, rtol=1e-12)
+    stamps, poses = tum.read_tum(tmp_path / "out" / "estimate.txt")
+    np.testing.assert_allclose(poses, result.T_base_bone, atol=1e-8)
+    assert result.summary["dangerous_frames"] == int(np.sum((np.array(add) > metrics.DANGEROUS_ADD_MM)
+                                                            & (np.array(result.statuses) == "ok")))
