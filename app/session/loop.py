@@ -21,7 +21,7 @@ from app.metrics import STATUS_CODE as STATUS_RANK
 from app.session.bus import Bus, EventLog, JointBuffer
 from app.session.config import PluginSpec, SessionConfig, resolve_session
 from app.session.files import EstimateFiles
-from app.session.summary import LatencyLog, SessionResult, rss_mb
+from app.session.summary import ESTIMATE_HISTORY, EVENT_HISTORY, LatencyLog, SessionResult, rss_mb
 
 log = logging.getLogger("app.session")
 
@@ -66,7 +66,8 @@ class LiveLoop:
         self.out = config.out
         if self.out is not None:
             self.out.mkdir(parents=True, exist_ok=True)
-        self.events = EventLog(self.clock, self.out / "events.csv" if self.out else None, self.lc.event_repeat_s)
+        self.events = EventLog(self.clock, self.out / "events.csv" if self.out else None, self.lc.event_repeat_s,
+                               history=EVENT_HISTORY)
         self.camera = registry.create("camera", config.camera.name, config.camera.params, "camera")
         self.robot = registry.create("robot", config.robot.name, config.robot.params, "robot")
         self.sinks: list = []
@@ -77,7 +78,7 @@ class LiveLoop:
         self.started: list = []
         self.statuses: Counter = Counter()
         self.latency = LatencyLog()
-        self.estimates: collections.deque = collections.deque(maxlen=100_000)
+        self.estimates: collections.deque = collections.deque(maxlen=ESTIMATE_HISTORY)
         self.rss: dict = {}
         self.t_start = self.clock.now()
 
@@ -268,7 +269,7 @@ class LiveLoop:
 
 
 def _light(est: Estimate) -> Estimate:
-    """The estimate without its depth image (kept in memory for the whole session)."""
+    """The estimate without its depth image (the loop keeps the last ESTIMATE_HISTORY in memory)."""
     diag = {k: v for k, v in est.diagnostics.items() if k != "frame"}
     return Estimate(est.stamp, est.frame_id, est.T_base_bone, est.status, est.T_base_camera, est.latency_s,
                     est.reasons, diag)
