@@ -22,7 +22,7 @@ from app.pipeline.frame_core import FrameCore
 from app.pipeline.sinks import EstimateFiles
 from app.session.bus import Bus, EventLog, JointBuffer
 from app.session.config import PluginSpec, SessionConfig, resolve_session
-from app.session.summary import LatencyLog, SessionResult, rss_mb
+from app.session.summary import ESTIMATE_HISTORY, EVENT_HISTORY, LatencyLog, SessionResult, rss_mb
 
 log = logging.getLogger("app.session")
 
@@ -67,7 +67,8 @@ class LiveLoop:
         self.out = config.out
         if self.out is not None:
             self.out.mkdir(parents=True, exist_ok=True)
-        self.events = EventLog(self.clock, self.out / "events.csv" if self.out else None, self.lc.event_repeat_s)
+        self.events = EventLog(self.clock, self.out / "events.csv" if self.out else None, self.lc.event_repeat_s,
+                               history=EVENT_HISTORY)
         self.camera = registry.create("camera", config.camera.name, config.camera.params, "camera")
         self.robot = registry.create("robot", config.robot.name, config.robot.params, "robot")
         self.sinks: list = []
@@ -79,7 +80,7 @@ class LiveLoop:
         self.started: list = []
         self.statuses: Counter = Counter()
         self.latency = LatencyLog()
-        self.estimates: collections.deque = collections.deque(maxlen=100_000)
+        self.estimates: collections.deque = collections.deque(maxlen=ESTIMATE_HISTORY)
         self.rss: dict = {}
         self.t_start = self.clock.now()
 
@@ -242,7 +243,8 @@ class LiveLoop:
 
 
 def _light(est: Estimate) -> Estimate:
-    """The estimate without its images, tracker result and particles (kept in memory for the whole session)."""
+    """The estimate without its images, tracker result and particles (the loop keeps the last
+    ESTIMATE_HISTORY in memory)."""
     diag = {k: v for k, v in est.diagnostics.items() if k not in ("frame", "result", "particles", "T_base_bone_true")}
     return Estimate(est.stamp, est.frame_id, est.T_base_bone, est.status, est.T_base_camera, est.latency_s,
                     est.reasons, diag)
