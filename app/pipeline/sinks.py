@@ -180,7 +180,9 @@ class RerunSink:
             self.log.log_images(frame.infrared, frame.color)
 
     def _log_result(self, result) -> None:
-        """Every numeric field of the tracker result (:func:`app.interfaces.result_scalars`)."""
+        """Every numeric field of the tracker result (:func:`app.interfaces.result_scalars`); none without one."""
+        if result is None:
+            return
         scalars = result_scalars(result)
         scalars.setdefault("reinitialised", float(getattr(result, "reinitialised", False)))
         for name, value in scalars.items():
