@@ -42,7 +42,7 @@ from app.interfaces import DepthFrame
 from app.pipeline.engine_tracker import EngineTracker
 from app.pipeline.frame_core import FrameCore
 from app.pipeline.sinks import EstimateFiles, GroundTruthScoring, ProjectorEstimates, RerunSink, Trajectory
-from app.pipeline.tracker import DepthTracker
+from app.pipeline.tracker import DepthTracker, tracker_report, use_plan
 
 log = logging.getLogger(__name__)
 
@@ -81,9 +81,11 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
         engine.start_from_point(reader.meta.point_prior)
     else:
         tracker.start(reader.meta.initial_pose)
+    getattr(engine, "set_point_prior", lambda p: None)(reader.meta.point_prior)   # the recovery's point
     out = Path(out_dir) if out_dir else None
     sinks = ReplaySinks.open(reader, tracker, mesh, out, rrd, projector and out is not None,
                              ProjectorOptions(projector_config, projector_every, projector_images))
+    use_plan(engine, sinks.plan)   # the status's template points
     core = FrameCore(tracker, sinks.all)
     try:
         elapsed = _run(core, reader, max_frames, realtime, progress)
@@ -140,6 +142,11 @@ class ReplaySinks:
     scoring: GroundTruthScoring
     all: list
     projector_skipped: str | None = None
+
+    @property
+    def plan(self):
+        """The projector's plan (None without a projector)."""
+        return next((s.plan for s in self.all if isinstance(s, ProjectorEstimates)), None)
 
     @classmethod
     def open(cls, reader, tracker: EngineTracker, mesh, out: Path | None, rrd: bool, projector: bool,
@@ -220,6 +227,7 @@ def _summary(reader, config, tracker, stamps, statuses, scoring: GroundTruthScor
         "backend": getattr(tracker, "backend_name", None),   # the likelihood backend that ran (render.backend)
         "status_fraction": {s: statuses.count(s) / n if n else 0.0 for s in ("ok", "uncertain", "lost")},
         "timings_ms": tracker.mean_timings_ms(),
+        **tracker_report(tracker),     # re-initialisations (count, stamps), template points: plan | mesh_vertices
     }
     init = getattr(tracker, "init_result", None)
     if init is not None:

@@ -208,6 +208,11 @@ class ProjectorEstimates:
         self._n = 0
         self.last = None
 
+    @property
+    def plan(self):
+        """The projector's plan (its template points bound the tracker's status: app/pipeline/tracker.py)."""
+        return self.projector.plan
+
     def on_estimate(self, est: Estimate) -> None:
         n = self._n
         self._n += 1

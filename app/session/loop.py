@@ -20,6 +20,7 @@ from app.errors import ConfigError
 from app.interfaces import DepthFrame, Estimate, SessionClock
 from app.pipeline.frame_core import FrameCore
 from app.pipeline.sinks import EstimateFiles
+from app.pipeline.tracker import start_tracker, tracker_report, use_projector_plan
 from app.session.bus import Bus, EventLog, JointBuffer
 from app.session.config import PluginSpec, SessionConfig, resolve_session
 from app.session.summary import ESTIMATE_HISTORY, EVENT_HISTORY, LatencyLog, SessionResult, rss_mb
@@ -106,6 +107,7 @@ class LiveLoop:
         if config.tracker is not None:
             self.tracker = self.core.tracker = self._create_tracker(mesh)
         self._open_sinks()
+        use_projector_plan(self.tracker, self.sinks)   # the status bounds the plan's template points
         if self.out is not None and self.tracker is not None:
             self.estimate_files = EstimateFiles(self.out)
         self.core.sinks = [self.estimate_files, *self.sinks] if self.estimate_files is not None else list(self.sinks)
@@ -115,7 +117,7 @@ class LiveLoop:
     def _create_tracker(self, mesh):
         if mesh is None:
             raise ConfigError("bone.mesh", "missing: the tracker needs the bone mesh")
-        if self.ctx["initial_pose"] is None:
+        if self.ctx["initial_pose"] is None and self.ctx.get("point_prior") is None:
             raise ConfigError("bone.initial_pose", "missing: the tracker starts from a coarse 4x4 T_base_bone")
         spec = self.config.tracker
         return registry.create("tracker", spec.name, spec.params, "tracker", mesh=mesh, camera=self.ctx["camera"],
@@ -134,7 +136,7 @@ class LiveLoop:
     def start(self) -> None:
         """Start the tracker and the sources (robot first); the duration counts from here."""
         if self.tracker is not None:
-            self.tracker.start(np.asarray(self.ctx["initial_pose"], float))
+            start_tracker(self.tracker, self.ctx["initial_pose"], self.ctx.get("point_prior"))
         self.robot.start(self.bus.push_joints)
         self.started.append(self.robot)
         self.t_sources = self.clock.now()
@@ -239,6 +241,7 @@ class LiveLoop:
             "events": dict(self.events.counts),
             "rss_mb": {**self.rss, "end": rss_mb()},
             "outputs": sink_reports,
+            **tracker_report(self.tracker),     # re-initialisations, template points (app/pipeline/tracker.py)
         }
 
 
