@@ -164,7 +164,7 @@ def test_symmetry_check_turns_a_cloud_stuck_on_the_turned_bone_back_to_the_likel
     peaks only at the true pose: the check must find and take the true pose (and leave a cloud that
     is already right where it is)."""
     from app.filter.estimate import estimate
-    from app.filter.smc_init import OnePointInitialiser, SMCInitConfig, SMCResult, mesh_symmetries
+    from app.filter.smc_init import Budget, Level, OnePointInitialiser, SMCInitConfig, SMCResult, Tempering, mesh_symmetries
 
     box = trimesh.creation.box((0.08, 0.03, 0.02))
     T_true = se3.from_rotvec_trans(np.array([0.1, -0.2, 0.3]), np.array([0.4, 0.05, 0.02]))
@@ -176,7 +176,9 @@ def test_symmetry_check_turns_a_cloud_stuck_on_the_turned_bone_back_to_the_likel
         angle = quat.angle_between(q, np.repeat(q_true[None], len(q), axis=0))
         return -(np.linalg.norm(p - t_true, axis=1) / 0.002) ** 2 - (angle / np.radians(2.0)) ** 2
 
-    initialiser = OnePointInitialiser(None, None, box.vertices, box.faces, SMCInitConfig(particles=100), rng)
+    config = SMCInitConfig(particles=100)
+    initialiser = OnePointInitialiser(None, None, box.vertices, box.faces, config, rng)
+    tempering, level = Tempering(prior, config, Budget(), rng), Level("closed form", log_lik)
     S = mesh_symmetries(box.vertices, box.faces)[0]
 
     def cloud_at(T):
@@ -186,11 +188,11 @@ def test_symmetry_check_turns_a_cloud_stuck_on_the_turned_bone_back_to_the_likel
         ll = log_lik(p, q)
         return SMCResult(p, q, ll, estimate(p, q, np.full(100, -np.log(100))))
 
-    turned = initialiser._symmetry_check(cloud_at(T_true @ S), prior, log_lik)
+    turned = initialiser._symmetry_check(cloud_at(T_true @ S), tempering, level)
     assert turned.symmetry_turned
     assert np.linalg.norm(turned.estimate.T_base_bone[:3, 3] - t_true) < 0.003
     assert np.degrees(se3.rotation_angle(turned.estimate.T_base_bone, T_true)) < 3.0
-    kept = initialiser._symmetry_check(cloud_at(T_true), prior, log_lik)
+    kept = initialiser._symmetry_check(cloud_at(T_true), tempering, level)
     assert not kept.symmetry_turned
 
 
