@@ -236,3 +236,93 @@ def test_the_initialiser_budget_counts_evaluations_not_seconds(max_evaluations):
     if max_evaluations == 12_000:
         # 12,000 / 3 runs = 4,000 each: 2,000 prior draws, then 3 steps of 800: every run uses its share
         assert results[0].evaluations >= max_evaluations
+
+
+class ScaledBackend(CountingBackend):
+    """CountingBackend whose log-likelihood is ``scale`` times the closed form, with ``resized`` like the
+    CPU backend (a coarser level: the scale of its pixel count), and NaN for poses past ``nan_beyond`` m."""
+
+    name = "cpu"
+
+    def __init__(self, T_camera_bone_true, camera, nan_beyond=np.inf, vertices=None, faces=None):
+        super().__init__(T_camera_bone_true)
+        self.camera, self.nan_beyond, self.vertices, self.faces, self.cull = camera, nan_beyond, vertices, faces, True
+        self.children = []
+
+    def log_likelihood(self, T_camera_bone, depth):
+        assert depth.shape == (self.camera.height, self.camera.width)
+        ll = super().log_likelihood(T_camera_bone, depth) * (self.camera.width * self.camera.height / 64 / 48)
+        far = np.linalg.norm(T_camera_bone[:, :3, 3] - self.t_true, axis=1) > self.nan_beyond
+        return np.where(far, np.nan, ll)
+
+    def resized(self, camera, vertices=None, faces=None, cull_back_faces=None):
+        child = ScaledBackend(self.t_true_pose, camera, self.nan_beyond, vertices, faces)
+        self.children.append(child)
+        return child
+
+    @property
+    def t_true_pose(self):
+        return se3.make_pose(np.eye(3), self.t_true)
+
+
+def test_levels_coarse_to_fine_with_decimated_meshes_and_pixel_scales():
+    from app.filter.smc_init import make_levels
+
+    box = trimesh.creation.icosphere(subdivisions=3, radius=0.02)          # 1,280 triangles, outward
+    camera = PinholeCamera(np.array([[200.0, 0, 79.5], [0, 200.0, 59.5], [0, 0, 1]]), 160, 120)
+    backend = ScaledBackend(np.eye(4), camera, vertices=box.vertices, faces=box.faces)
+    levels = make_levels(backend, camera, np.zeros((120, 160), np.float32), np.eye(4), ((4, 250), (2, 500), (64, 10)))
+    assert [v.name for v in levels] == ["40x30", "80x60", "160x120"]    # 160/64 px is under the minimum: skipped
+    assert [v.scale for v in levels] == [1200.0, 4800.0, 19200.0]
+    assert [len(c.faces) <= t for c, t in zip(backend.children, (250, 500))] == [True, True]
+    assert all(len(c.faces) > 100 for c in backend.children)
+    plain = make_levels(CountingBackend(np.eye(4)), camera, np.zeros((120, 160), np.float32), np.eye(4), ((2, 500),))
+    assert [v.name for v in plain] == ["160x120"]                         # no ``resized``: the filter's level only
+
+
+def test_a_level_switch_between_proportional_likelihoods_keeps_the_cloud_and_divides_phi(rng):
+    """p_b = p_a^4 (4x the pixels): π_a at φ is π_b at φ / 4 exactly, so the weights are uniform and
+    systematic resampling keeps every pose once."""
+    from app.filter.smc_init import Budget, Level, Tempering
+
+    def ll_a(p, q):
+        return -np.sum(p ** 2, axis=1) / 2e-4
+
+    a, b = Level("a", ll_a, 1200.0), Level("b", lambda p, q: 4.0 * ll_a(p, q), 4800.0)
+    prior = SurfacePrior(trimesh.creation.box((0.02, 0.02, 0.02)).vertices, trimesh.creation.box((0.02, 0.02, 0.02)).faces,
+                         np.zeros(3), 0.005, 200, rng)
+    budget = Budget()
+    tempering = Tempering(prior, SMCInitConfig(), budget, rng)
+    cloud = tempering.score(a, rng.normal(0, 0.01, (50, 3)), quat.random_uniform(rng, 50))
+    moved, phi = tempering.switch(cloud, 0.6, a, b)
+    assert phi == pytest.approx(0.15)
+    np.testing.assert_array_equal(np.sort(moved.p, axis=0), np.sort(cloud.p, axis=0))
+    np.testing.assert_allclose(moved.ll, 4.0 * ll_a(moved.p, moved.q))
+    assert budget.evaluations == 100
+    assert tempering.switch(cloud, 1.0, b, a)[1] == 1.0                    # never past φ = 1
+
+
+def test_non_finite_log_likelihoods_are_minus_infinity_counted_and_never_chosen():
+    """Policy of the particle filter: NaN / +inf scores are -inf (zero likelihood) and counted. Poses
+    more than 2 cm off score NaN here; the sampler must still find the pose and report the count."""
+    from app.filter.smc_init import Budget, Level, OnePointInitialiser, evaluate
+
+    budget = Budget()
+    ll = evaluate(Level("x", lambda p, q: np.array([1.0, np.nan, np.inf, -np.inf])), np.zeros((4, 3)),
+                  np.zeros((4, 4)), budget)
+    np.testing.assert_array_equal(ll, [1.0, -np.inf, -np.inf, -np.inf])
+    assert budget.nonfinite == 2 and budget.evaluations == 4
+
+    box = trimesh.creation.box((0.06, 0.02, 0.01))
+    T_base_bone = se3.make_pose(np.eye(3), np.array([0.0, 0.0, 0.3]))
+    point = T_base_bone[:3, 3] + np.array([0.0, 0.0, 0.005])
+    camera = PinholeCamera(np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]]), 64, 48)
+    config = replace(SMCInitConfig(), restarts=1, prior_draws=2000, sigma_n=0.0, symmetry_check=False,
+                     surface_samples=500, max_evaluations=20_000, coarse_levels=((2, 1000),))
+    backend = ScaledBackend(T_base_bone, camera, nan_beyond=0.02, vertices=box.vertices, faces=box.faces)
+    result = OnePointInitialiser(backend, camera, box.vertices, box.faces, config,
+                                 np.random.default_rng(3)).run(np.zeros((48, 64), np.float32), np.eye(4), point)
+    assert result.levels == ["32x24", "64x48"] and result.nonfinite > 0
+    assert np.all(np.isfinite(result.log_likelihood)) and np.all(np.isfinite(result.p))
+    assert np.linalg.norm(result.estimate.T_base_bone[:3, 3] - T_base_bone[:3, 3]) < 0.005
+    assert result.evaluations == backend.scored + sum(c.scored for c in backend.children)
