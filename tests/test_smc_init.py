@@ -69,6 +69,16 @@ def test_next_phi_keeps_the_target_ess_and_goes_to_one_when_it_can(rng):
     assert next_phi(0.3, np.full(100, -7.0), 0.5) == 1.0                # a flat likelihood: straight to 1
 
 
+def test_ess_fraction_is_the_weights_modules_ess_over_n_with_zero_weights(rng):
+    from app.filter.smc_init.tempering import ess_fraction
+
+    for scale in (0.1, 30.0, 3000.0):
+        log_w = rng.normal(0.0, scale, 400)
+        log_w[:7] = -np.inf
+        assert ess_fraction(log_w) == pytest.approx(lw_ops.ess(lw_ops.normalise_log_weights(log_w)) / 400, rel=1e-12)
+    assert ess_fraction(np.full(5, -np.inf)) == 0.0
+
+
 def test_systematic_resampling_draws_any_count_following_the_weights(rng):
     """The initialiser keeps n of its wider first draw: systematic resampling with n != N draws."""
     w = np.array([0.5, 0.25, 0.125, 0.125])
