@@ -336,3 +336,34 @@ def test_non_finite_log_likelihoods_are_minus_infinity_counted_and_never_chosen(
     assert np.all(np.isfinite(result.log_likelihood)) and np.all(np.isfinite(result.p))
     assert np.linalg.norm(result.estimate.T_base_bone[:3, 3] - T_base_bone[:3, 3]) < 0.005
     assert result.evaluations == backend.scored + sum(c.scored for c in backend.children)
+
+
+def test_coarse_levels_of_the_cpu_backend_scale_with_their_pixel_count():
+    """The level switch assumes log p_b ≈ (s_b / s_a) log p_a between resolutions (levels.py): on the
+    crest's rendered depth, over poses spread like the early tempering's (3 cm, 0.5 rad), each level's
+    log-likelihood is 4x the coarser one's (a least-squares slope within 3.3-4.7) and follows it."""
+    from app.config import load_config
+    from app.filter.smc_init import make_levels
+    from app.mesh import load_mesh, outward_wound, prepare_mesh
+    from app.render.cpu_likelihood import CPULikelihoodBackend
+    from app.sim.simulator import D415_640x480, DEFAULT_MESH
+
+    config = load_config(None)
+    mesh = prepare_mesh(load_mesh(DEFAULT_MESH), max_triangles=1000, center=False)
+    camera = D415_640x480.resized(160, 120)
+    backend = CPULikelihoodBackend(mesh.vertices, mesh.faces, camera, params=config.likelihood,
+                                   cull_back_faces=outward_wound(mesh))
+    T_camera_bone = se3.make_pose(quat.to_matrix(quat.exp_map(np.array([3.0, 0.1, 0.0]))), np.array([0.0, 0.0, 0.42]))
+    rendered = backend.render_depth(T_camera_bone[None])[0]
+    depth = np.where(rendered > 0, rendered, 0.6).astype(np.float32)
+    levels = make_levels(backend, camera, depth, np.eye(4), ((4, 250), (2, 500)))
+    assert [v.name for v in levels] == ["40x30", "80x60", "160x120"]
+    rng = np.random.default_rng(0)
+    q0, t0 = se3.to_quat_trans(T_camera_bone)
+    p = t0 + rng.normal(0.0, 0.03, (200, 3))
+    q = quat.normalize(quat.multiply(quat.exp_map(rng.normal(0.0, 0.5, (200, 3))), np.repeat(q0[None], 200, axis=0)))
+    ll = [level.score(p, q) for level in levels]
+    for coarse, fine in zip(ll[:-1], ll[1:]):
+        a, b = coarse - coarse.mean(), fine - fine.mean()
+        assert 3.3 < (a @ b) / (a @ a) < 4.7
+        assert np.corrcoef(a, b)[0, 1] > 0.9
