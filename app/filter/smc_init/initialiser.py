@@ -103,6 +103,7 @@ class SMCResult:
 
 
 def _result(t: Tempered, phis=None, acceptance=None, reached=True, symmetry_turned=False) -> SMCResult:
+    """The SMCResult of a tempered cloud (equal weights), its schedule after ``phis`` (earlier levels')."""
     c = t.cloud
     return SMCResult(c.p, c.q, c.ll, estimate(c.p, c.q, lw_ops.uniform_log_weights(len(c.p))),
                      (phis or []) + t.phis, (acceptance or []) + t.acceptance, reached_target=reached and t.reached,
