@@ -93,6 +93,8 @@ class FilterOutput:
     timings : seconds per stage (STAGES). Set by the tracker's local refinement
     (app/filter/refine_track.py): refine_fitness (NaN when not refined), template_std (m),
     refined : T_base_bone is the refined pose; competitor : a competing pose fits about as well.
+    Set by the tracker's recovery (app/filter/recovery.py): reinitialised : the particles were
+    re-initialised on this frame (a lost track).
     """
 
     T_base_bone: np.ndarray
@@ -113,6 +115,7 @@ class FilterOutput:
     template_std: float = float("inf")
     refined: bool = False
     competitor: bool = False
+    reinitialised: bool = False
 
 
 class ParticleFilter:

@@ -34,7 +34,7 @@ import numpy as np
 from app import metrics
 from app.config import TrackerConfig, load_config
 from app.errors import MeshError
-from app.pipeline.tracker import DepthTracker
+from app.pipeline.tracker import DepthTracker, tracker_report, use_plan
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +78,7 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
         tracker.start_from_point(reader.meta.point_prior)
     else:
         tracker.start(reader.meta.initial_pose)
+    getattr(tracker, "set_point_prior", lambda p: None)(reader.meta.point_prior)   # the recovery's point
     T_base_camera, pose_valid = reader.camera_poses()
     out = Path(out_dir) if out_dir else None
     sink = None
@@ -103,6 +104,7 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
         except MeshError as exc:
             log.warning("projector skipped: no plan fits this trial's mesh (%s)", exc)
             projector_skipped = str(exc)
+    use_plan(tracker, projector_sink.plan if projector_sink is not None else None)   # the status's template points
     stamps, estimates, statuses, add_mm, trans_mm, rot_deg = [], [], [], [], [], []
     t_start = time.perf_counter()
     wall0, stamp0 = time.perf_counter(), None
@@ -212,6 +214,7 @@ def _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_de
         "backend": getattr(tracker, "backend_name", None),   # the likelihood backend that ran (render.backend)
         "status_fraction": {s: statuses.count(s) / n if n else 0.0 for s in ("ok", "uncertain", "lost")},
         "timings_ms": tracker.mean_timings_ms(),
+        **tracker_report(tracker),     # re-initialisations (count, stamps), template points: plan | mesh_vertices
     }
     init = getattr(tracker, "init_result", None)
     if init is not None:

@@ -18,10 +18,11 @@ from app import plugins_registry as registry
 from app.errors import ConfigError
 from app.interfaces import DepthFrame, Estimate, SessionClock
 from app.metrics import STATUS_CODE as STATUS_RANK
+from app.pipeline.tracker import start_tracker, tracker_report, use_projector_plan
 from app.session.bus import Bus, EventLog, JointBuffer
 from app.session.config import PluginSpec, SessionConfig, resolve_session
 from app.session.files import EstimateFiles
-from app.session.summary import LatencyLog, SessionResult, rss_mb
+from app.session.summary import ESTIMATE_HISTORY, EVENT_HISTORY, LatencyLog, SessionResult, rss_mb
 
 log = logging.getLogger("app.session")
 
@@ -66,7 +67,8 @@ class LiveLoop:
         self.out = config.out
         if self.out is not None:
             self.out.mkdir(parents=True, exist_ok=True)
-        self.events = EventLog(self.clock, self.out / "events.csv" if self.out else None, self.lc.event_repeat_s)
+        self.events = EventLog(self.clock, self.out / "events.csv" if self.out else None, self.lc.event_repeat_s,
+                               history=EVENT_HISTORY)
         self.camera = registry.create("camera", config.camera.name, config.camera.params, "camera")
         self.robot = registry.create("robot", config.robot.name, config.robot.params, "robot")
         self.sinks: list = []
@@ -77,7 +79,7 @@ class LiveLoop:
         self.started: list = []
         self.statuses: Counter = Counter()
         self.latency = LatencyLog()
-        self.estimates: collections.deque = collections.deque(maxlen=100_000)
+        self.estimates: collections.deque = collections.deque(maxlen=ESTIMATE_HISTORY)
         self.rss: dict = {}
         self.t_start = self.clock.now()
 
@@ -103,6 +105,7 @@ class LiveLoop:
         if config.tracker is not None:
             self.tracker = self._create_tracker(mesh)
         self._open_sinks()
+        use_projector_plan(self.tracker, self.sinks)   # the status bounds the plan's template points
         if self.out is not None and self.tracker is not None:
             self.estimate_files = EstimateFiles(self.out)
         joints = JointBuffer(self.lc.joint_buffer_s, self.lc.max_joint_gap_s)
@@ -111,7 +114,7 @@ class LiveLoop:
     def _create_tracker(self, mesh):
         if mesh is None:
             raise ConfigError("bone.mesh", "missing: the tracker needs the bone mesh")
-        if self.ctx["initial_pose"] is None:
+        if self.ctx["initial_pose"] is None and self.ctx.get("point_prior") is None:
             raise ConfigError("bone.initial_pose", "missing: the tracker starts from a coarse 4x4 T_base_bone")
         spec = self.config.tracker
         return registry.create("tracker", spec.name, spec.params, "tracker", mesh=mesh, camera=self.ctx["camera"],
@@ -130,7 +133,7 @@ class LiveLoop:
     def start(self) -> None:
         """Start the tracker and the sources (robot first); the duration counts from here."""
         if self.tracker is not None:
-            self.tracker.start(np.asarray(self.ctx["initial_pose"], float))
+            start_tracker(self.tracker, self.ctx["initial_pose"], self.ctx.get("point_prior"))
         self.robot.start(self.bus.push_joints)
         self.started.append(self.robot)
         self.t_sources = self.clock.now()
@@ -264,11 +267,12 @@ class LiveLoop:
             "events": dict(self.events.counts),
             "rss_mb": {**self.rss, "end": rss_mb()},
             "outputs": sink_reports,
+            **tracker_report(self.tracker),     # re-initialisations, template points (app/pipeline/tracker.py)
         }
 
 
 def _light(est: Estimate) -> Estimate:
-    """The estimate without its depth image (kept in memory for the whole session)."""
+    """The estimate without its depth image (the loop keeps the last ESTIMATE_HISTORY in memory)."""
     diag = {k: v for k, v in est.diagnostics.items() if k != "frame"}
     return Estimate(est.stamp, est.frame_id, est.T_base_bone, est.status, est.T_base_camera, est.latency_s,
                     est.reasons, diag)
