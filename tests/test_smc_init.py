@@ -254,19 +254,20 @@ class ScaledBackend(CountingBackend):
 
     name = "cpu"
 
-    def __init__(self, T_camera_bone_true, camera, nan_beyond=np.inf, vertices=None, faces=None):
+    def __init__(self, T_camera_bone_true, camera, nan_beyond=np.inf, vertices=None, faces=None, sharpness=1.0):
         super().__init__(T_camera_bone_true)
         self.camera, self.nan_beyond, self.vertices, self.faces, self.cull = camera, nan_beyond, vertices, faces, True
-        self.children = []
+        self.sharpness, self.children = sharpness, []
 
     def log_likelihood(self, T_camera_bone, depth):
         assert depth.shape == (self.camera.height, self.camera.width)
-        ll = super().log_likelihood(T_camera_bone, depth) * (self.camera.width * self.camera.height / 64 / 48)
+        scale = self.sharpness * self.camera.width * self.camera.height / 64 / 48
+        ll = super().log_likelihood(T_camera_bone, depth) * scale
         far = np.linalg.norm(T_camera_bone[:, :3, 3] - self.t_true, axis=1) > self.nan_beyond
         return np.where(far, np.nan, ll)
 
     def resized(self, camera, vertices=None, faces=None, cull_back_faces=None):
-        child = ScaledBackend(self.t_true_pose, camera, self.nan_beyond, vertices, faces)
+        child = ScaledBackend(self.t_true_pose, camera, self.nan_beyond, vertices, faces, self.sharpness)
         self.children.append(child)
         return child
 
@@ -367,3 +368,31 @@ def test_coarse_levels_of_the_cpu_backend_scale_with_their_pixel_count():
         a, b = coarse - coarse.mean(), fine - fine.mean()
         assert 3.3 < (a @ b) / (a @ a) < 4.7
         assert np.corrcoef(a, b)[0, 1] > 0.9
+
+
+def test_the_end_at_the_filters_level_keeps_its_share_of_a_small_budget():
+    """With coarse levels, the runs share max_evaluations less FINISH_SHARE of it, and the end at the
+    filter's level gets that share from when it starts: a budget the run exhausts (a sharp likelihood,
+    12,000 first draws of 20,000) must not reach the end spent (where φ would jump straight to 1)."""
+    from app.filter.smc_init import OnePointInitialiser
+    from app.filter.smc_init.initialiser import FINISH_SHARE
+
+    box = trimesh.creation.box((0.06, 0.02, 0.01))
+    T_base_bone = se3.make_pose(np.eye(3), np.array([0.0, 0.0, 0.3]))
+    point = T_base_bone[:3, 3] + np.array([0.0, 0.0, 0.005])
+    camera = PinholeCamera(np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]]), 64, 48)
+    config = replace(SMCInitConfig(), restarts=1, prior_draws=12_000, sigma_n=0.0, symmetry_check=False,
+                     surface_samples=500, max_evaluations=20_000, coarse_levels=((2, 1000),))
+    backend = ScaledBackend(T_base_bone, camera, vertices=box.vertices, faces=box.faces, sharpness=3000.0)
+    result = OnePointInitialiser(backend, camera, box.vertices, box.faces, config,
+                                 np.random.default_rng(4)).run(np.zeros((48, 64), np.float32), np.eye(4), point)
+    coarse_scored = sum(c.scored for c in backend.children)
+    overshoot = 2 * config.mh_moves * config.particles
+    assert coarse_scored <= (1 - FINISH_SHARE) * config.max_evaluations + overshoot
+    assert backend.scored >= FINISH_SHARE * config.max_evaluations        # the end got its share
+    assert result.evaluations == coarse_scored + backend.scored <= config.max_evaluations + 2 * overshoot
+    # the coarse run ends at φ = 1, the end starts at φ = 1 x 768 / 3072 px = 0.25 and tempers by the
+    # ESS rule (spent, it would jump from 0.25 straight to 1)
+    start = result.phis.index(0.25)
+    assert len(result.phis) - start >= 3 and 0.25 < result.phis[start + 1] < 1.0
+    assert np.linalg.norm(result.estimate.T_base_bone[:3, 3] - T_base_bone[:3, 3]) < 0.005

@@ -21,6 +21,12 @@ from app.geometry import se3
 
 log = logging.getLogger(__name__)
 
+# share of max_evaluations kept for the end at the filter's level when there are coarse levels: the
+# runs share the rest, and the end gets this many from when it starts (the default run's end scores
+# ~5,000 poses; a small budget, e.g. the recovery's 30,000 with one restart, would otherwise reach the
+# end spent by the runs' last steps and the unbudgeted symmetry check, and jump to φ = 1 there)
+FINISH_SHARE = 0.1
+
 
 @dataclass
 class SMCInitConfig:
@@ -135,17 +141,21 @@ class OnePointInitialiser:
         ``restarts`` independent runs on the coarse levels; the one whose cloud has the highest mean
         log-likelihood wins (a run in a wrong basin, e.g. the crest turned end for end, scores
         hundreds of nats lower); the symmetry check; then the move to the filter's level.
-        ``max_evaluations`` is shared by all of it (``budget_s``: the wall-time safety net).
+        ``max_evaluations`` is shared by the runs, :data:`FINISH_SHARE` of it kept for the end (the
+        symmetry check is not budgeted; each budgeted stage overshoots by at most a step and its
+        final sweeps; ``budget_s``: the wall-time safety net).
         """
         c, t_start = self.config, time.perf_counter()
         budget = Budget(deadline=t_start + c.budget_s)
         tempering = Tempering(self._prior(depth, T_base_camera, point_base, sigma_t), c, budget, self.rng)
         levels = make_levels(self.backend, self.camera, depth, T_base_camera, c.coarse_levels)
         coarse = levels[:-1] or levels
+        finish_reserve = int(FINISH_SHARE * c.max_evaluations) if len(levels) > 1 else 0
+        runs_budget = c.max_evaluations - finish_reserve
         best: SMCResult | None = None
         restarts = max(1, c.restarts)
         for k in range(restarts):
-            left = c.max_evaluations - budget.evaluations
+            left = runs_budget - budget.evaluations
             if best is not None and (left <= 0 or budget.late()):
                 break
             budget.limit = budget.evaluations + left // (restarts - k)
@@ -154,8 +164,8 @@ class OnePointInitialiser:
                 best = result
         if c.symmetry_check:
             best = self._symmetry_check(best, tempering, coarse[-1])
-        if len(levels) > 1:
-            budget.limit = c.max_evaluations
+        if len(levels) > 1:   # the end's own share, whatever the runs' last steps and the symmetry check spent
+            budget.limit = budget.evaluations + finish_reserve
             best = self._finish(best, tempering, coarse[-1], levels[-1])
         best.seconds = time.perf_counter() - t_start
         best.evaluations, best.nonfinite, best.levels = budget.evaluations, budget.nonfinite, [v.name for v in levels]
