@@ -126,6 +126,16 @@ class CPULikelihoodBackend:
         cpu_raster.render_batch(T, self.vertices, self.faces, self.cam, self.cull, self.zbufs, out)
         return out
 
+    def resized(self, camera: PinholeCamera, vertices: np.ndarray | None = None, faces: np.ndarray | None = None,
+                cull_back_faces: bool | None = None) -> "CPULikelihoodBackend":
+        """The same likelihood and clip planes at another camera, optionally with another mesh (a
+        coarser one; ``cull_back_faces`` then says whether it is wound outwards): the one-point
+        initialiser's coarse levels (:func:`app.filter.smc_init.levels.make_levels`)."""
+        same = vertices is None
+        return CPULikelihoodBackend(self.vertices if same else vertices, self.faces if same else faces, camera,
+                                    self.capacity, self.params, near=float(self.cam[4]), far=float(self.cam[5]),
+                                    cull_back_faces=self.cull if cull_back_faces is None else cull_back_faces)
+
     def sync(self) -> None:
         """Nothing to wait for: the kernels return when done (the GL backend's ``sync`` waits)."""
 
