@@ -21,6 +21,7 @@ import numba
 import numpy as np
 
 from app.filter.likelihood_ref import LikelihoodParams
+from app.filter.observation import Evidence, depth_evidence, has_valid_depth
 from app.geometry.camera import PinholeCamera
 from app.render import cpu_raster
 from app.render.batched import DEFAULT_FAR, DEFAULT_NEAR
@@ -141,3 +142,11 @@ class CPULikelihoodBackend:
     def release(self) -> None:
         """Nothing to free but memory (kept for the backend contract)."""
         self.zbufs = np.zeros((0, 0, 0))
+
+    def has_measurement(self, depth_meas: np.ndarray) -> bool:
+        """Whether any pixel is a valid measurement (:class:`app.filter.observation.ObservationModel`)."""
+        return has_valid_depth(depth_meas, self.params)
+
+    def evidence(self, T_camera_bone: np.ndarray, depth_meas: np.ndarray, min_covered_pixels: int) -> Evidence:
+        """The pose's covered pixels and inliers (:func:`app.filter.observation.depth_evidence`)."""
+        return depth_evidence(self.render_depth, T_camera_bone, depth_meas, self.params, min_covered_pixels)
