@@ -54,21 +54,19 @@ class _Inner:
         return {"recovery": {"reinitialisations": 0}}
 
 
-class _Adapter:                       # plugins/_tracker_adapter.py's shape: the tracker behind .tracker
-    def __init__(self):
-        self.tracker = _Inner()
+def _Adapter():                       # a session plugin: the DepthTracker behind EngineTracker's .engine
+    from app.pipeline.engine_tracker import EngineTracker
 
-    def start(self, T):
-        self.tracker.start(T)
+    return EngineTracker(_Inner())
 
 
 def test_session_start_uses_the_pose_and_keeps_the_point_for_recovery():
     a = _Adapter()
     start_tracker(a, np.eye(4), np.array([1.0, 2.0, 3.0]))
-    assert a.tracker.calls == [("set_point_prior", (1.0, 2.0, 3.0)), ("start", (4, 4))]
+    assert a.engine.calls == [("set_point_prior", (1.0, 2.0, 3.0)), ("start", (4, 4))]
     b = _Adapter()
     start_tracker(b, None, np.array([1.0, 2.0, 3.0]))     # no coarse start: the point starts the tracker
-    assert b.tracker.calls[-1] == ("start_from_point", (1.0, 2.0, 3.0))
+    assert b.engine.calls[-1] == ("start_from_point", (1.0, 2.0, 3.0))
     assert tracker_report(b) == {"recovery": {"reinitialisations": 0}}
     with pytest.raises(ConfigError, match="bone.initial_pose"):
         start_tracker(_Adapter(), None, None)

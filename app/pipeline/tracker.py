@@ -242,8 +242,8 @@ PLAN_POINTS = 300   # mesh vertices standing in for the template's points in the
 
 
 def _inner(tracker):
-    """The DepthTracker behind a session plugin (plugins/_tracker_adapter.py's ``tracker``), or itself."""
-    return tracker if hasattr(tracker, "report") else getattr(tracker, "tracker", tracker)
+    """The DepthTracker behind a session plugin (app/pipeline/engine_tracker.py's ``engine``), or itself."""
+    return tracker if hasattr(tracker, "report") else getattr(tracker, "engine", tracker)
 
 
 def tracker_report(tracker) -> dict:
