@@ -6,7 +6,7 @@ Usage (from the repository root; run with nice on the shared machine)::
         --variants off on --out /tmp/recovery_crests.json
 
 For each crest x seed it simulates a trial (cached, as scripts/refine_crests.py) and replays it with
-recovery off (``recovery.enabled: false``, the behaviour before) and on (the defaults), and prints one
+recovery off (``recovery.enabled: false``, the default) and on (enabled, its other defaults), and prints one
 row per run and the median / worst per variant: the lost share (ADD > 10 mm), the dangerous frames
 (ok while ADD > 5 mm), the re-initialisations, the longest stretch with ADD > 5 mm (s of trial time),
 the ADD median over the last second, whether the run ends found (ADD < 2 mm), and for each
@@ -33,7 +33,7 @@ def variant_config(name: str):
     if name == "off":
         return replace(config, recovery=replace(config.recovery, enabled=False))
     if name == "on":
-        return config
+        return replace(config, recovery=replace(config.recovery, enabled=True))
     raise SystemExit(f"unknown variant {name!r}: off | on")
 
 

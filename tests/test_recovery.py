@@ -77,8 +77,17 @@ def _track(trial_dir, config):
     return np.array(stamps), np.array(add), np.array(statuses), np.array(reinit), report
 
 
+def _enabled():
+    config = load_config(None)
+    return replace(config, recovery=replace(config.recovery, enabled=True))
+
+
+def test_recovery_is_off_by_default():
+    assert not load_config(None).recovery.enabled      # BENCHMARKS.md §6b: it lost tracks on CT crests
+
+
 def test_a_knocked_off_track_is_found_again_within_2_s_and_never_ok_while_off(trial):
-    stamps, add, statuses, reinit, report = _track(trial, load_config(None))
+    stamps, add, statuses, reinit, report = _track(trial, _enabled())
     after = stamps >= KNOCK_S
     assert add[after][0] > 10.0                                  # the knock took the track off
     found = np.nonzero(after & (add < 2.0))[0]
@@ -157,7 +166,7 @@ def test_a_moving_estimate_is_not_reinitialised_for_being_uncertain():
     for k in range(100):                                    # 5 cm/s, 90 frames/s, refined at a good fit
         policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.05 * k / 90, 0, 0])), k / 90)
     assert policy.pending is None
-    for k in range(100, 160):                               # at rest (after the 0.2 s window), still not ok
+    for k in range(100, 190):                               # at rest (after the 0.5 s window), still not ok
         policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.05 * 99 / 90, 0, 0])), k / 90)
     assert policy.pending is not None and "not ok" in policy.pending
 
@@ -179,8 +188,8 @@ def test_respread_is_about_the_bone_centroid_with_the_configured_spread(rng):
 # -- configuration ----------------------------------------------------------------------------------
 
 def test_recovery_keys_are_checked_and_named_with_the_fix():
-    config = config_from_dict({"recovery": {"enabled": False, "after_lost_frames": 5, "smc_evaluations": 2000}})
-    assert config.recovery == RecoveryConfig(enabled=False, after_lost_frames=5, smc_evaluations=2000)
+    config = config_from_dict({"recovery": {"enabled": True, "after_lost_frames": 5, "smc_evaluations": 2000}})
+    assert config.recovery == RecoveryConfig(enabled=True, after_lost_frames=5, smc_evaluations=2000)
     with pytest.raises(ConfigError, match=r"recovery\.after_lost_frame.*did you mean 'recovery\.after_lost_frames'"):
         config_from_dict({"recovery": {"after_lost_frame": 5}})
     with pytest.raises(ConfigError, match=r"recovery\.after_lost_frames.*integer"):
@@ -201,12 +210,14 @@ def test_default_yaml_documents_every_recovery_key():
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="not met (BENCHMARKS.md §6b): on crest_left_02 the turned track stays "
+                   "refined at a fit >= 0.6, 50-60 mm off, uncertain; nothing triggers within 2 s")
 def test_a_knocked_off_track_is_found_again_on_a_ct_crest(tmp_path, crest_mesh_path):
     """The same knock on a shared CT crest (static_clear): found again within 2 s, never ok while off."""
     from app.sim.simulator import simulate
 
     simulate(tmp_path / "trial", mesh_path=crest_mesh_path, scenario_name="static_clear", seconds=3.4, seed=5)
-    stamps, add, statuses, reinit, report = _track(tmp_path / "trial", load_config(None))
+    stamps, add, statuses, reinit, report = _track(tmp_path / "trial", _enabled())
     after = stamps >= KNOCK_S
     found = np.nonzero(after & (add < 2.0))[0]
     assert add[after][0] > 10.0 and report["recovery"]["reinitialisations"] >= 1

@@ -2,7 +2,12 @@
 
 Import as ``from app.filter.recovery import RecoveryPolicy``. Wired in
 :class:`app.pipeline.tracker.DepthTracker` (issue 12, item 4), so replay, ``osteonav track`` and the
-bench all get it.
+bench all get it with ``recovery.enabled: true``. **Off by default**: on the eight CT crests under an
+80 % hand (BENCHMARKS.md §6b) it found no lost track that the tracker did not find by itself, and it
+lost two tracks that held without it (crest_right_04 and crest_right_05: 0 -> 37-39 % of the frames
+lost, and 81 frames ok while > 5 mm off on crest_right_05): re-spread while most of the crest is
+hidden, the filter and the refinement settle on a wrong fit of the visible part, which then passes
+the status rules.
 
 **Trigger.** A frame is *bad* when its status is lost, or (with the refinement on) it was weighed
 and the refined fit no longer confirms the visible bone: not refined at all (refine_track.py kept no
@@ -16,10 +21,17 @@ slower trigger: ``after_uncertain_frames`` weighed frames in a row that are not 
 estimate is still (0 = off): on the CT crests under a rising hand the filter and the refinement slid
 together along the crest to 47 mm off with a fit of 0.65-0.9, uncertain (the predicted template
 error), never lost (BENCHMARKS.md §6b). The estimate is still when it moved less than
-``status.uncertain_speed`` / ``uncertain_angular_speed`` over ``status.motion_window_s``; a moving
+``status.uncertain_speed`` / ``uncertain_angular_speed`` over ``STILL_WINDOW_S`` = 0.5 s (longer
+than the status's 0.2 s: a wrong track's refined pose jumps a few millimetres between frames, which
+over 0.2 s read as motion and kept the count at 0 on crest_left_02 while 64-100 mm off); a moving
 estimate restarts that count: a bone being repositioned is uncertain for seconds (status.py's motion
-rule), and a re-spread around its pose before the move would lose it. The re-initialisation runs on the next frame that has a camera pose and valid
-depth.
+rule), and a re-spread around its pose before the move would lose it. The low-fit and the slow
+trigger also need the estimate more than ``FAR_M`` / ``FAR_RAD`` = 5 mm / 5 deg (refine_track.py's
+competitor gap) from the last confident pose: under an 80 % hand a correct track is uncertain for
+seconds (the predicted template error), and re-initialising it there raised crest_left_05's lost
+share from 1.6 to 16 %. It did not save crest_right_04 / _05, whose tracks had been > 5 mm off for a
+moment (and came back by themselves without recovery; BENCHMARKS.md §6b). The re-initialisation
+runs on the next frame that has a camera pose and valid depth.
 
 **What.** Attempts since the last ok frame are numbered k = 0, 1, ...; attempt k is
 
@@ -42,8 +54,8 @@ crest buried in tissue, is not re-initialised every few frames).
 
 **Honesty.** For ``hold_frames`` weighed frames after a re-initialisation the status is at most
 uncertain, whatever the rules say; then the usual rules (status.py, with the refinement's fit,
-predicted template error and competitor check) decide. A re-initialisation therefore never makes
-a pose confident by itself (BENCHMARKS.md §6b measures the dangerous frames with it).
+predicted template error and competitor check) decide. That is not enough: on crest_right_05 the
+wrong pose a re-spread settled on was ok in 81 frames after the hold (BENCHMARKS.md §6b).
 
 Each re-initialisation is recorded as (stamp, kind, reason); :meth:`RecoveryPolicy.report` gives
 them for the summaries.
@@ -63,6 +75,8 @@ from app.geometry import quaternion as quat
 
 RESPREAD, SMC = "respread", "smc"
 MAX_BACKOFF_DOUBLINGS = 3
+FAR_M, FAR_RAD = 0.005, math.radians(5.0)
+STILL_WINDOW_S = 0.5
 
 
 @dataclass
@@ -73,7 +87,7 @@ class RecoveryConfig:
     (re-spreads before each SMC attempt); smc_evaluations (the initialiser's likelihood evaluations);
     hold_frames (weighed frames capped at uncertain after one); cooldown_frames (frames between two)."""
 
-    enabled: bool = True
+    enabled: bool = False
     after_lost_frames: int = 10
     after_uncertain_frames: int = 90
     respread_sigma_p: float = 0.015
@@ -104,7 +118,7 @@ class RecoveryPolicy:
     refine_enabled : whether an unrefined weighed frame counts as bad
     min_fitness : a refined fit below this counts as bad (status.min_fitness)
     still : (speed m/s, angular speed rad/s, window s) below which the estimate is still
-        (status.uncertain_speed, uncertain_angular_speed, motion_window_s)
+        (status.uncertain_speed, uncertain_angular_speed, motion_window_s; the window at least STILL_WINDOW_S)
     """
 
     def __init__(self, config: RecoveryConfig, centroid_bone: np.ndarray, surface_point_bone: np.ndarray,
@@ -152,7 +166,7 @@ class RecoveryPolicy:
             return status
         moving = self._moving(stamp, T_base_bone)
         self._not_ok = 0 if moving else (self._not_ok + 1 if weighed else self._not_ok)
-        reason = self._bad_reason(status, weighed, refined, fitness)
+        reason = self._bad_reason(status, weighed, refined, fitness, T_base_bone)
         if reason is not None:
             self._bad += 1
         elif weighed:
@@ -160,13 +174,31 @@ class RecoveryPolicy:
         c = self.config
         if reason is not None and self._bad >= c.after_lost_frames:
             self._due(f"{reason} for {self._bad} frames")
-        elif c.after_uncertain_frames and self._not_ok >= c.after_uncertain_frames:
-            self._due(f"not ok for {self._not_ok} weighed frames")
+        elif c.after_uncertain_frames and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone):
+            self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
         return status
+
+    def _gap(self, T_base_bone: np.ndarray) -> tuple[float, float]:
+        T0 = self.T_base_bone_confident
+        dist = float(np.linalg.norm(T_base_bone[:3, 3] - T0[:3, 3]))
+        cos = (np.trace(T0[:3, :3].T @ T_base_bone[:3, :3]) - 1.0) / 2.0
+        return dist, float(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+    def _far(self, T_base_bone: np.ndarray) -> bool:
+        """Whether the estimate lies more than FAR_M / FAR_RAD from the last confident pose."""
+        if self.T_base_bone_confident is None:
+            return True
+        dist, angle = self._gap(T_base_bone)
+        return dist > FAR_M or angle > FAR_RAD
+
+    def _gap_text(self, T_base_bone: np.ndarray) -> str:
+        dist, angle = self._gap(T_base_bone) if self.T_base_bone_confident is not None else (math.nan, math.nan)
+        return f"{1e3 * dist:.0f} mm / {math.degrees(angle):.0f} deg"
 
     def _moving(self, stamp: float, T_base_bone: np.ndarray) -> bool:
         """Whether the estimate moved faster than ``still`` over the window (ending at this frame)."""
         speed, angular, window = self.still
+        window = max(window, STILL_WINDOW_S)
         self._recent.append((float(stamp), np.array(T_base_bone, float)))
         while len(self._recent) > 2 and stamp - self._recent[1][0] >= window:
             self._recent.popleft()
@@ -183,12 +215,13 @@ class RecoveryPolicy:
         if self._since >= self._cooldown() and self.pending is None:
             self.pending = reason
 
-    def _bad_reason(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float) -> str | None:
+    def _bad_reason(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float,
+                    T_base_bone: np.ndarray) -> str | None:
         if status == TrackingStatus.LOST:
             return "lost"
         if weighed and self.refine_enabled and not refined:
             return "refined track broken while the bone is visible"
-        if weighed and self.refine_enabled and not fitness >= self.min_fitness:
+        if weighed and self.refine_enabled and not fitness >= self.min_fitness and self._far(T_base_bone):
             return f"refined fit {fitness:.2f} below {self.min_fitness:.2f}"
         return None
 
