@@ -6,7 +6,7 @@ Usage::
     config = load_config("configs/default.yaml")   # or load_config(None) for the defaults
 
 ``configs/default.yaml`` documents every key, its unit and where its value comes from. The YAML
-has seven sections; each key maps to one attribute:
+has eight sections; each key maps to one attribute:
 
 - ``filter.*``     -> ``config.particles``, ``sampling``, ``resample_threshold``, ``resampling``,
                       ``first_dt``, ``seed``
@@ -17,6 +17,7 @@ has seven sections; each key maps to one attribute:
 - ``likelihood.*`` -> ``config.likelihood`` (:class:`app.filter.likelihood_ref.LikelihoodParams`)
 - ``status.*``     -> ``config.status`` (:class:`app.filter.status.StatusThresholds`)
 - ``refine.*``     -> ``config.refine`` (:class:`app.filter.refine_track.RefineConfig`)
+- ``recovery.*``   -> ``config.recovery`` (:class:`app.filter.recovery.RecoveryConfig`)
 - ``render.*``     -> ``config.resolution`` (width, height), ``near``, ``far``,
                       ``mesh_triangles``, ``cull_back_faces``, ``backend``
 
@@ -40,6 +41,7 @@ from app.filter.likelihood_ref import OCCLUSION_MODELS, LikelihoodParams
 from app.filter.motion import MotionParams
 from app.filter.observation import BACKENDS
 from app.filter.particle_filter import SAMPLING_MODES, FilterConfig
+from app.filter.recovery import RecoveryConfig
 from app.filter.refine_track import RefineConfig
 from app.filter.resampling import SCHEMES
 
@@ -65,6 +67,7 @@ class TrackerConfig(FilterConfig):
     init_restarts, init_budget_s : independent runs of the initialiser (the most likely kept), and
         a wall-time safety net only (s; the budget is counted in likelihood evaluations, smc_init.py)
     refine : the local refinement and its own track (app/filter/refine_track.py)
+    recovery : the automatic re-initialisation of a lost track (app/filter/recovery.py)
 
     The product's defaults differ from the publications' in four measured places (BENCHMARKS.md,
     "Choosing the defaults"): the background-ratio likelihood with tempering α = 0.2 (the plain
@@ -91,6 +94,7 @@ class TrackerConfig(FilterConfig):
     likelihood: LikelihoodParams = field(default_factory=lambda: LikelihoodParams(background_ratio=True,
                                                                                   pixel_weight=0.2))
     refine: RefineConfig = field(default_factory=RefineConfig)
+    recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
 
 
 @dataclass(frozen=True)
@@ -171,6 +175,15 @@ KEYS: dict[str, _Key] = {
     "refine.competitor_margin": _f("refine.competitor_margin", 0.0, 1.0),
     "refine.feedback": _Key(("refine", "feedback"), "bool"),
     "refine.feedback_fitness": _f("refine.feedback_fitness", 0.0, 1.0),
+    "recovery.enabled": _Key(("recovery", "enabled"), "bool"),
+    "recovery.after_lost_frames": _i("recovery.after_lost_frames", 1, 100_000),
+    "recovery.after_uncertain_frames": _i("recovery.after_uncertain_frames", 0, 1_000_000),
+    "recovery.respread_sigma_p": _f("recovery.respread_sigma_p", 0.0, 0.2, lo_open=True),
+    "recovery.respread_sigma_r": _f("recovery.respread_sigma_r", 0.0, math.pi, lo_open=True),
+    "recovery.respreads": _i("recovery.respreads", 0, 100),
+    "recovery.smc_evaluations": _i("recovery.smc_evaluations", 600, 10_000_000),
+    "recovery.hold_frames": _i("recovery.hold_frames", 0, 100_000),
+    "recovery.cooldown_frames": _i("recovery.cooldown_frames", 1, 100_000),
     "render.resolution": _Key(("resolution",), "resolution", 8, 4096),
     "render.near": _f("near", 0.0, 10.0, lo_open=True),
     "render.far": _f("far", 0.0, 100.0, lo_open=True),

@@ -180,14 +180,56 @@ class RobotSource(Protocol):
 
 
 @runtime_checkable
+class TrackerResult(Protocol):
+    """What every tracker returns per frame: the pose and the status (the typed part of the contract).
+
+    T_base_bone : (4, 4) the bone in the robot base frame; status : 'ok' | 'uncertain' | 'lost'.
+    Trackers add their own fields (the particle filter's spreads, ESS, refinement fitness; ICP's
+    fitness): :func:`result_scalars` lists the numeric ones for the logs.
+    """
+
+    T_base_bone: np.ndarray
+    status: str
+
+
+@runtime_checkable
 class Tracker(Protocol):
-    """A tracker plugin (kind ``tracker``), created and used on the loop thread only (GL)."""
+    """A tracker plugin (kind ``tracker``), created and used on the loop thread only (GL).
+
+    ``process`` gets the whole frame (depth, stamp, and the infrared / colour images when the camera
+    delivers them) and the camera's pose at its stamp (None when unknown). ``description`` is one line
+    naming the tracker and where it runs (summaries, logs); ``particle_positions`` the (N, 3) points to
+    draw in the log (the particles; the pose's origin for a tracker without them).
+    """
+
+    description: str
 
     def start(self, T_base_bone: np.ndarray) -> None: ...
 
-    def process(self, depth_m: np.ndarray, stamp: float, T_base_camera: np.ndarray | None) -> Any: ...
+    def process(self, frame: DepthFrame, T_base_camera: np.ndarray | None) -> TrackerResult: ...
+
+    def particle_positions(self) -> np.ndarray: ...
+
+    def mean_timings_ms(self) -> dict[str, float]: ...
 
     def release(self) -> None: ...
+
+
+def result_scalars(result) -> dict[str, float]:
+    """Every numeric (int, float, bool) dataclass field of a tracker result, by name, as float.
+
+    New fields are picked up without a change here (e.g. a recovery's ``reinitialised``).
+    """
+    import dataclasses
+
+    if not dataclasses.is_dataclass(result):
+        return {}
+    out = {}
+    for f in dataclasses.fields(result):
+        value = getattr(result, f.name)
+        if isinstance(value, (bool, int, float, np.floating, np.integer)) and not isinstance(value, str):
+            out[f.name] = float(value)
+    return out
 
 
 @runtime_checkable

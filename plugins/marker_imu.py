@@ -39,6 +39,7 @@ import numpy as np
 
 from app.errors import ConfigError
 from app.geometry import quaternion
+from app.interfaces import DepthFrame
 
 log = logging.getLogger(__name__)
 
@@ -100,6 +101,7 @@ class MarkerImuTracker:
         if q.shape != (4,) or abs(np.linalg.norm(q) - 1) > 1e-3:
             raise ConfigError("tracker.params.q_S_M", f"expected a unit quaternion (w, x, y, z), got {q_S_M!r}")
         self.images = images
+        self.description = f"marker + IMU (images: {images}, imu: {imu})"
         self._latest: dict[str, np.ndarray | None] = {"ir": None, "color": None}
         K, dist = self.sim.K, None
         if images == "ir":
@@ -136,10 +138,6 @@ class MarkerImuTracker:
             self.rerun = open_log(self._rerun_target, self._rerun_every)
         self._T_start = np.asarray(T_base_bone, float)
 
-    def on_frame_images(self, infrared: np.ndarray | None, color: np.ndarray | None) -> None:
-        """The session hands over each frame's camera images before :meth:`process`."""
-        self._latest = {"ir": infrared, "color": color}
-
     def _image(self, t: float) -> np.ndarray | None:
         if self.images == "simulated":
             return self.sim.image(t, self.rng)
@@ -168,7 +166,10 @@ class MarkerImuTracker:
             self.fusion.on_imu(imu["stamp"][self._imu_index], imu["q_W_S"][self._imu_index])
             self._imu_index += 1
 
-    def process(self, depth_m: np.ndarray, stamp: float, T_base_camera: np.ndarray | None) -> MarkerImuResult:
+    def process(self, frame: DepthFrame, T_base_camera: np.ndarray | None) -> MarkerImuResult:
+        """One tick at the frame's stamp, reading the frame's infrared / colour image (``images``)."""
+        stamp = frame.stamp
+        self._latest = {"ir": frame.infrared, "color": frame.color}
         if self._t0 is None:
             self._t0 = stamp
         t = min(stamp - self._t0, self.sim.sc.seconds - 1.0)
@@ -219,6 +220,13 @@ class MarkerImuTracker:
 
             self.R_W_P = register_pelvic_plane(np.asarray(self._reg_samples))
             log.info("pelvic plane registered with the IMU from %d samples", len(self._reg_samples))
+
+    def particle_positions(self) -> np.ndarray:
+        """No particles: the start pose's origin (the log draws it)."""
+        return np.asarray(self._T_start, float)[None, :3, 3]
+
+    def mean_timings_ms(self) -> dict[str, float]:
+        return {}
 
     def release(self) -> None:
         if self.rerun is not None:

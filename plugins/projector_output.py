@@ -35,10 +35,10 @@ class ProjectorOutput:
         self.png_dir, self.every, self.rerun = png_dir, every, rerun
         self.sink = None
         self.window = None
-        self._n = 0
         self.shown = 0
 
     def open(self, context: dict) -> None:
+        from app.pipeline.sinks import ProjectorEstimates
         from app.projector.sink import ProjectorSink
 
         mesh = context.get("mesh")
@@ -49,12 +49,13 @@ class ProjectorOutput:
             import rerun as rr
 
             rec = rr.get_data_recording()     # the rerun output's recording, when it was opened first
-        self.sink = ProjectorSink.from_config(self.config, np.asarray(mesh.vertices), np.asarray(mesh.faces),
+        projector = ProjectorSink.from_config(self.config, np.asarray(mesh.vertices), np.asarray(mesh.faces),
                                               rec=rec, png_dir=self.png_dir, error_every=10**9)
+        self.sink = ProjectorEstimates(projector, every=self.every)
         if self.window_wanted:
             from app.projector.output import ProjectorWindow
 
-            self.window = ProjectorWindow(screen=self.screen, max_age_s=self.sink.view.max_age_s)
+            self.window = ProjectorWindow(screen=self.screen, max_age_s=projector.view.max_age_s)
 
     def on_frame(self, frame: DepthFrame) -> None:
         pass
@@ -63,12 +64,10 @@ class ProjectorOutput:
         pass
 
     def on_estimate(self, est: Estimate) -> None:
-        self._n += 1
-        if (self._n - 1) % self.every:
+        self.sink.on_estimate(est)
+        out = self.sink.last
+        if out is None:
             return
-        age = est.latency_s if est.latency_s is not None else None
-        out = self.sink.step(est.frame_id if est.frame_id is not None else self._n, est.T_base_camera,
-                             est.T_base_bone, est.status, age_s=age)
         self.shown += int(out.shown)
         if self.window is not None:
             self.window.show(out.image)
@@ -78,9 +77,9 @@ class ProjectorOutput:
         pass
 
     def close(self) -> dict:
-        summary = {"rendered": self.sink.frames if self.sink else 0, "template_shown": self.shown}
+        summary = {"rendered": self.sink.projector.frames if self.sink else 0, "template_shown": self.shown}
         if self.window is not None:
             self.window.close()
         if self.sink is not None:
-            self.sink.release()
+            self.sink.close()
         return summary

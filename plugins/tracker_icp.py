@@ -1,6 +1,6 @@
 """The Open3D point-to-plane ICP baseline as a session plugin (``tracker: icp``).
 
-A thin adapter over :class:`app.baselines.icp.ICPTracker`, the tracker ``osteonav bench`` compares
+The :class:`app.pipeline.engine_tracker.EngineTracker` of :class:`app.baselines.icp.ICPTracker`, the tracker ``osteonav bench`` compares
 the particle filter with. ``params.config`` names an ICP YAML (``tracker: icp`` plus an ``icp``
 section, e.g. ``configs/bench/icp.yaml``; relative to the session file); ``params.icp`` overrides
 single keys inline; neither: the bench's built-in ``icp`` configuration. Every key is checked by
@@ -14,17 +14,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from plugins._tracker_adapter import TrackerAdapter
+from app.pipeline.engine_tracker import EngineTracker
 
 
-class ICPTrackerPlugin(TrackerAdapter):
+class ICPTrackerPlugin(EngineTracker):
     kind, name = "tracker", "icp"
 
     def __init__(self, mesh, camera, T_flange_camera=None, config: str | None = None, icp: dict | None = None):
         from app.baselines.icp import ICPTracker
 
-        self.tracker = ICPTracker(_params(config, icp), mesh, camera)
-        self.tracker.T_flange_camera = T_flange_camera
+        engine = ICPTracker(_params(config, icp), mesh, camera)
+        engine.T_flange_camera = T_flange_camera
+        super().__init__(engine)
 
 
 def _params(config: str | None, overrides: dict | None):

@@ -1,5 +1,9 @@
 """Conformance of every likelihood backend (app/filter/observation.py) to the numpy reference.
 
+The observation-model contract as well: each backend's ``evidence`` (covered pixels, inliers, hidden)
+against the same counts on the ray cast, ``has_measurement``, and the CompositeObservation (the sum
+of two models; one model alone scores as itself; pooled evidence) and the non-finite policy.
+
 Each backend in BACKENDS must pass all of these; a third backend is added by adding its factory.
 Inputs are random: poses near a true pose, plus poses behind the camera, off screen, crossing the
 near plane and straddling the image (= GL tile) border; measured images with noise, occluders in
@@ -266,3 +270,164 @@ def test_a_wrong_image_size_is_refused(ctx, meshes, backend_name):
             backend.log_likelihood(np.repeat(true_pose(mesh)[None], 4, axis=0), np.zeros((120, 160), np.float32))
     finally:
         backend.release()
+
+
+# -- the observation-model contract: evidence, measurement check, composite --------------------------
+
+def reference_evidence(mesh, camera, cull, T_camera_bone, depth, params, min_covered):
+    """The evidence of one pose computed on the numpy ray cast (the backend-independent reference)."""
+    from app.filter.observation import depth_evidence
+
+    def render(T):
+        return raycast_depth(mesh.vertices, mesh.faces, camera, T, NEAR, FAR, cull).astype(np.float32)
+
+    return depth_evidence(render, T_camera_bone, depth, params, min_covered)
+
+
+@pytest.mark.parametrize("option", ["beam", "background_ratio"])
+@pytest.mark.parametrize("backend_name", list(BACKENDS))
+def test_evidence_matches_the_ray_cast_reference(ctx, meshes, backend_name, option, rng):
+    """covered pixels and inliers of the true pose, offset poses and an off-screen pose agree with the
+    ray cast's within the coverage tolerance of the module docstring; occluders in front are left out."""
+    from app.filter.observation import Evidence, LikelihoodBackend, ObservationModel
+
+    mesh, cull = meshes["default"]
+    camera = CAMERAS["160x120"]
+    params = replace(LikelihoodParams(), **OPTIONS[option])
+    truth = raycast_depth(mesh.vertices, mesh.faces, camera, true_pose(mesh)[None], NEAR, FAR, cull)[0]
+    depth = measured_image(truth, rng, params.z_max)
+    poses = random_poses(rng, 8, mesh)
+    poses[6] = true_pose(mesh)
+    backend = BACKENDS[backend_name](ctx, mesh, camera, len(poses), params, cull)
+    try:
+        assert isinstance(backend, ObservationModel) and isinstance(backend, LikelihoodBackend)
+        got = [backend.evidence(T, depth, 30) for T in poses]
+    finally:
+        backend.release()
+    want = [reference_evidence(mesh, camera, cull, T, depth, params, 30) for T in poses]
+    assert all(isinstance(e, Evidence) for e in got)
+    assert got[0] == got[1] == Evidence(0, 0, True), "behind the camera / off screen: nothing covered, hidden"
+    assert np.isnan(got[0].inlier_fraction)
+    for g, w in zip(got[2:], want[2:]):
+        slack = max(2, 0.005 * w.covered_pixels) * 2
+        assert abs(g.covered_pixels - w.covered_pixels) <= slack and abs(g.inliers - w.inliers) <= slack, (g, w)
+        assert g.bone_hidden == (g.covered_pixels < 30)
+    assert want[6].covered_pixels > 300 and want[6].inlier_fraction > 0.6, "the true pose must be seen and explain it"
+    assert got[6].inlier_fraction == pytest.approx(want[6].inlier_fraction, abs=0.01)
+
+
+@pytest.mark.parametrize("backend_name", list(BACKENDS))
+def test_evidence_says_hidden_when_an_occluder_covers_the_bone(ctx, meshes, backend_name):
+    """A hand 5 cm in front of every pixel of the pose: nothing is covered, the bone is hidden; with
+    the hand gone, the pose's pixels all count and all are inliers."""
+    mesh, cull = meshes["default"]
+    camera = CAMERAS["80x60"]
+    T = true_pose(mesh)
+    truth = raycast_depth(mesh.vertices, mesh.faces, camera, T[None], NEAR, FAR, cull)[0].astype(np.float32)
+    background = np.float32(0.6)
+    clear = np.where(truth > 0, truth, background).astype(np.float32)
+    hand = np.where(truth > 0, truth - 0.05, background).astype(np.float32)
+    backend = BACKENDS[backend_name](ctx, mesh, camera, 1, LikelihoodParams(), cull)
+    try:
+        seen, hidden = backend.evidence(T, clear, 30), backend.evidence(T, hand, 30)
+    finally:
+        backend.release()
+    n = int((truth > 0).sum())
+    assert n > 30
+    assert abs(seen.covered_pixels - n) <= max(2, 0.005 * n) and seen.inliers == seen.covered_pixels
+    assert not seen.bone_hidden and seen.inlier_fraction == 1.0
+    assert hidden.covered_pixels == 0 and hidden.bone_hidden
+
+
+@pytest.mark.parametrize("backend_name", list(BACKENDS))
+def test_has_measurement_needs_one_valid_pixel(ctx, meshes, backend_name):
+    mesh, cull = meshes["default"]
+    params = LikelihoodParams()
+    backend = BACKENDS[backend_name](ctx, mesh, CAMERA_80, 1, params, cull)
+    try:
+        empty = np.zeros((60, 80), np.float32)
+        junk = empty.copy()
+        junk[0, :3] = [np.nan, np.inf, params.z_max + 0.1]
+        one = junk.copy()
+        one[5, 5] = 0.5
+        assert not backend.has_measurement(empty) and not backend.has_measurement(junk)
+        assert backend.has_measurement(one)
+    finally:
+        backend.release()
+
+
+class _Fixed:
+    """A stand-in observation model with given scores and evidence (for the composite's arithmetic)."""
+
+    def __init__(self, name, scores, evidence, measured=True):
+        self.name, self.scores, self._evidence, self.measured = name, np.asarray(scores, float), evidence, measured
+        self.timings = {"score": 0.001}
+        self.released = False
+
+    def log_likelihood(self, T_camera_bone, depth_meas):
+        return self.scores[:len(T_camera_bone)]
+
+    def has_measurement(self, depth_meas):
+        return self.measured
+
+    def evidence(self, T_camera_bone, depth_meas, min_covered_pixels):
+        return self._evidence
+
+    def describe(self):
+        return f"fixed {self.name}"
+
+    def release(self):
+        self.released = True
+
+
+def test_a_composite_of_two_backends_scores_their_sum_and_one_alone_scores_as_itself(ctx, meshes, rng):
+    """CompositeObservation([a, b]) == a + b (two depth models with different options, on the CPU);
+    CompositeObservation([a]) == a exactly, evidence included."""
+    from app.filter.observation import CompositeObservation, ObservationModel
+
+    mesh, cull = meshes["default"]
+    camera = CAMERAS["80x60"]
+    pa, pb = LikelihoodParams(), replace(LikelihoodParams(), **OPTIONS["background_ratio"])
+    truth = raycast_depth(mesh.vertices, mesh.faces, camera, true_pose(mesh)[None], NEAR, FAR, cull)[0]
+    depth = measured_image(truth, rng, pa.z_max)
+    poses = random_poses(rng, 20, mesh)
+    a, b = make_cpu(ctx, mesh, camera, 20, pa, cull), make_cpu(ctx, mesh, camera, 20, pb, cull)
+    both, alone = CompositeObservation([a, b]), CompositeObservation([a])
+    assert isinstance(both, ObservationModel)
+    la, lb = a.log_likelihood(poses, depth), b.log_likelihood(poses, depth)
+    assert np.ptp(la) > 10 and np.ptp(lb) > 1, "the scores must differ across poses for the sum to mean something"
+    np.testing.assert_allclose(both.log_likelihood(poses, depth), la + lb, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(alone.log_likelihood(poses, depth), la)
+    assert alone.evidence(poses[6], depth, 30) == a.evidence(poses[6], depth, 30)
+    assert both.name == "cpu+cpu" and set(both.timings) == {"cpu_prepare", "cpu_raster_likelihood"}
+    assert both.has_measurement(depth) and not both.has_measurement(np.zeros_like(depth))
+    both.release()
+
+
+def test_a_composite_pools_evidence_and_is_hidden_only_when_every_model_is():
+    from app.filter.observation import CompositeObservation, Evidence
+
+    seen, hidden = Evidence(100, 80, False), Evidence(10, 2, True)
+    a, b = _Fixed("a", [1.0, -np.inf, 3.0], seen), _Fixed("b", [0.5, 2.0, np.nan], hidden, measured=False)
+    composite = CompositeObservation([a, b])
+    T = np.repeat(np.eye(4)[None], 3, axis=0)
+    out = composite.log_likelihood(T, np.zeros((2, 2), np.float32))
+    assert out[0] == 1.5 and out[1] == -np.inf and np.isnan(out[2]), "a plain sum: the filter applies the NaN policy"
+    e = composite.evidence(T[0], None, 30)
+    assert e == Evidence(110, 82, False) and e.inlier_fraction == pytest.approx(82 / 110)
+    assert CompositeObservation([b, b]).evidence(T[0], None, 30).bone_hidden
+    assert composite.has_measurement(None) and not CompositeObservation([b]).has_measurement(None)
+    assert composite.describe() == "fixed a + fixed b"
+    composite.release()
+    assert a.released and b.released
+    with pytest.raises(ValueError, match="at least one"):
+        CompositeObservation([])
+
+
+def test_the_non_finite_policy_sets_nan_and_plus_inf_to_minus_inf_and_counts_them():
+    from app.filter.observation import finite_log_likelihood
+
+    raw = np.array([1.0, np.nan, np.inf, -np.inf, -2.0])
+    out, n_bad = finite_log_likelihood(raw)
+    assert n_bad == 2 and np.isnan(raw[1]), "the caller's array is left alone"
+    np.testing.assert_array_equal(out, [1.0, -np.inf, -np.inf, -np.inf, -2.0])

@@ -8,7 +8,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from app.filter.likelihood_ref import LikelihoodParams
 from app.filter.motion import MotionParams
+from app.filter.observation import depth_evidence, has_valid_depth
 from app.filter.particle_filter import STAGES, FilterConfig, ParticleFilter
 from app.filter.status import TrackingStatus
 from app.geometry import quaternion as quat
@@ -24,7 +26,10 @@ class GaussianPoseBackend:
     measured image from :meth:`measure` makes the true pose's pixels inliers.
     """
 
+    name = "gaussian"
+
     def __init__(self, sigma_t=0.002, sigma_r=0.02):
+        self.timings = {}
         self.sigma_t, self.sigma_r = sigma_t, sigma_r
         self.T_camera_bone_true = None
         self.calls = 0
@@ -43,6 +48,12 @@ class GaussianPoseBackend:
         out = np.zeros((len(T_camera_bone), H, W), np.float32)
         out[:, 2:10, 3:13] = T_camera_bone[:, 2, 3, None, None]
         return out
+
+    def has_measurement(self, depth_meas):
+        return has_valid_depth(depth_meas, LikelihoodParams())
+
+    def evidence(self, T_camera_bone, depth_meas, min_covered_pixels):
+        return depth_evidence(self.render_depth, T_camera_bone, depth_meas, LikelihoodParams(), min_covered_pixels)
 
     def measure(self, rng):
         z = self.render_depth(self.T_camera_bone_true[None])[0]
@@ -237,3 +248,51 @@ def test_a_300_ms_dropout_is_predicted_frame_by_frame_not_in_one_huge_step(rng):
     pf.step(None, 0.3, None)
     std = pf.state.p.std(axis=0)
     assert np.all(std < 0.02) and np.all(std > 0.001)
+
+
+class _Tempered:
+    """An observation model scoring like another one times ``factor`` (a second, weaker modality)."""
+
+    name = "tempered"
+    timings: dict = {}
+
+    def __init__(self, model, factor):
+        self.model, self.factor = model, factor
+
+    def log_likelihood(self, T_camera_bone, depth_meas):
+        return self.factor * self.model.log_likelihood(T_camera_bone, depth_meas)
+
+    def has_measurement(self, depth_meas):
+        return False
+
+    def evidence(self, T_camera_bone, depth_meas, min_covered_pixels):
+        from app.filter.observation import Evidence
+
+        return Evidence(0, 0, True)
+
+
+def test_the_filter_knows_only_the_protocol_a_composite_of_one_model_runs_exactly_as_the_model():
+    """The filter through CompositeObservation([m]) gives bit-identical outputs to m (same seed); with a
+    second model scoring 1/2 of the first the sum is 1.5 m, so the filter converges as with m sharpened."""
+    from app.filter.observation import CompositeObservation
+
+    offset = pose([0.05, -0.04, 0.03], [0.006, -0.005, 0.004])
+    config = FilterConfig(particles=200, init_sigma_p=0.008, init_sigma_r=0.08)
+    outs = {}
+    for kind in ("alone", "composite", "two"):
+        rng = np.random.default_rng(11)
+        backend = GaussianPoseBackend()
+        model = {"alone": backend, "composite": CompositeObservation([backend]),
+                 "two": CompositeObservation([backend, _Tempered(backend, 0.5)])}[kind]
+        pf = ParticleFilter(config, model, rng)
+        pf.initialise(T_BASE_BONE @ offset)
+        backend.T_camera_bone_true = se3.inverse(T_BASE_CAMERA) @ T_BASE_BONE
+        outs[kind] = [pf.step(backend.measure(rng), i / 90.0, T_BASE_CAMERA) for i in range(30)]
+    for a, b in zip(outs["alone"], outs["composite"]):
+        np.testing.assert_array_equal(a.T_base_bone, b.T_base_bone)
+        assert (a.status, a.ess, a.inlier_fraction, a.covered_pixels) == (b.status, b.ess, b.inlier_fraction,
+                                                                           b.covered_pixels)
+    assert outs["two"][0].log_likelihood_max == pytest.approx(1.5 * outs["alone"][0].log_likelihood_max)
+    d, r = errors(outs["two"][-1].T_base_bone, T_BASE_BONE)
+    assert d < 1.5e-3 and r < np.radians(1.5)
+    assert outs["two"][-1].covered_pixels == outs["alone"][-1].covered_pixels, "evidence pools counts (the 2nd has 0)"

@@ -6,7 +6,13 @@ import pytest
 
 from app import plugins_registry as registry
 from app.errors import ConfigError
+from app.interfaces import DepthFrame
 from app.marker import imu as imu_proto
+
+
+def _tick(stamp):
+    """A frame without images (the simulated marker camera renders its own)."""
+    return DepthFrame(frame_id=0, stamp=float(stamp), depth_m=np.zeros((2, 2), np.float32), arrival=float(stamp))
 
 
 def _create(**params):
@@ -19,7 +25,7 @@ def test_registered_and_tracks_with_simulated_imu():
     tracker.start(np.eye(4))
     T_base_camera = np.eye(4)
     T_base_camera[:3, 3] = [0.1, 0.0, 0.2]
-    results = [tracker.process(None, 50.0 + k / 10, T_base_camera) for k in range(12)]
+    results = [tracker.process(_tick(50.0 + k / 10), T_base_camera) for k in range(12)]
     tracker.release()
     assert results[-1].status == "ok"
     assert {r.path for r in results} <= {"roi", "full"} and results[-1].path == "roi"
@@ -37,7 +43,7 @@ def test_udp_imu_feeds_the_filter_over_loopback():
         end = time.monotonic() + 30.0       # event-driven wait; the timeout is a safety net only
         while tracker.receiver.counts["received"] < 30 and time.monotonic() < end:
             time.sleep(0.01)
-        result = tracker.process(None, 0.0, None)
+        result = tracker.process(_tick(0.0), None)
     finally:
         sender.close()
         tracker.release()
@@ -58,7 +64,7 @@ def test_rerun_log_file_and_angles_after_imu_registration(tmp_path):
     rrd = tmp_path / "marker.rrd"
     tracker = _create(imu="simulated", seed=3, rerun=str(rrd))
     tracker.start(np.eye(4))
-    results = [tracker.process(None, k / 10, None) for k in range(45)]   # registration ends at 2 s
+    results = [tracker.process(_tick(k / 10), None) for k in range(45)]   # registration ends at 2 s
     tracker.release()
     assert rrd.exists() and rrd.stat().st_size > 1000
     assert results[5].inclination is None                               # still registering
@@ -82,7 +88,7 @@ def test_rerun_auto_without_a_recording_does_not_log():
     tracker = _create(imu="simulated", seed=4)
     assert tracker.rerun is None
     tracker.start(np.eye(4))
-    assert tracker.process(None, 0.0, None).path in ("roi", "full", "none")
+    assert tracker.process(_tick(0.0), None).path in ("roi", "full", "none")
     tracker.release()
 
 
@@ -101,7 +107,7 @@ def test_in_a_session_the_tracker_logs_into_the_rerun_outputs_recording(tmp_path
         tracker.start(np.eye(4))
         assert tracker.rerun is not None
         for k in range(25):
-            tracker.process(None, k / 10, None)
+            tracker.process(_tick(k / 10), None)
         tracker.release()
     finally:
         output.close()

@@ -49,12 +49,20 @@ class FakeTracker:
     def __init__(self, mesh=None, camera=None, T_flange_camera=None):
         self.calls = []
 
+    description = "fake tracker"
+
     def start(self, T_base_bone):
         self.T = np.asarray(T_base_bone)
 
-    def process(self, depth_m, stamp, T_base_camera):
-        self.calls.append((stamp, T_base_camera is not None))
+    def process(self, frame, T_base_camera):
+        self.calls.append((frame.stamp, T_base_camera is not None))
         return Output(self.T, "ok" if T_base_camera is not None else "uncertain")
+
+    def particle_positions(self):
+        return self.T[None, :3, 3]
+
+    def mean_timings_ms(self):
+        return {}
 
     def release(self):
         pass

@@ -164,11 +164,19 @@ class SlowTracker:
     def start(self, T_base_bone):
         self.T = np.asarray(T_base_bone, float)
 
-    def process(self, depth_m, stamp, T_base_camera):
+    description = "slow tracker"
+
+    def process(self, frame, T_base_camera):
         self.calls += 1
         self.world.clock.advance(self.work_s)
         self.world.emit_due()
         return type("Result", (), {"T_base_bone": self.T, "status": "ok"})()
+
+    def particle_positions(self):
+        return self.T[None, :3, 3]
+
+    def mean_timings_ms(self):
+        return {}
 
     def release(self):
         pass

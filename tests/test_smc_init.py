@@ -69,6 +69,16 @@ def test_next_phi_keeps_the_target_ess_and_goes_to_one_when_it_can(rng):
     assert next_phi(0.3, np.full(100, -7.0), 0.5) == 1.0                # a flat likelihood: straight to 1
 
 
+def test_ess_fraction_is_the_weights_modules_ess_over_n_with_zero_weights(rng):
+    from app.filter.smc_init.tempering import ess_fraction
+
+    for scale in (0.1, 30.0, 3000.0):
+        log_w = rng.normal(0.0, scale, 400)
+        log_w[:7] = -np.inf
+        assert ess_fraction(log_w) == pytest.approx(lw_ops.ess(lw_ops.normalise_log_weights(log_w)) / 400, rel=1e-12)
+    assert ess_fraction(np.full(5, -np.inf)) == 0.0
+
+
 def test_systematic_resampling_draws_any_count_following_the_weights(rng):
     """The initialiser keeps n of its wider first draw: systematic resampling with n != N draws."""
     w = np.array([0.5, 0.25, 0.125, 0.125])
@@ -164,7 +174,7 @@ def test_symmetry_check_turns_a_cloud_stuck_on_the_turned_bone_back_to_the_likel
     peaks only at the true pose: the check must find and take the true pose (and leave a cloud that
     is already right where it is)."""
     from app.filter.estimate import estimate
-    from app.filter.smc_init import OnePointInitialiser, SMCInitConfig, SMCResult, mesh_symmetries
+    from app.filter.smc_init import Budget, Level, OnePointInitialiser, SMCInitConfig, SMCResult, Tempering, mesh_symmetries
 
     box = trimesh.creation.box((0.08, 0.03, 0.02))
     T_true = se3.from_rotvec_trans(np.array([0.1, -0.2, 0.3]), np.array([0.4, 0.05, 0.02]))
@@ -176,7 +186,9 @@ def test_symmetry_check_turns_a_cloud_stuck_on_the_turned_bone_back_to_the_likel
         angle = quat.angle_between(q, np.repeat(q_true[None], len(q), axis=0))
         return -(np.linalg.norm(p - t_true, axis=1) / 0.002) ** 2 - (angle / np.radians(2.0)) ** 2
 
-    initialiser = OnePointInitialiser(None, None, box.vertices, box.faces, SMCInitConfig(particles=100), rng)
+    config = SMCInitConfig(particles=100)
+    initialiser = OnePointInitialiser(None, None, box.vertices, box.faces, config, rng)
+    tempering, level = Tempering(prior, config, Budget(), rng), Level("closed form", log_lik)
     S = mesh_symmetries(box.vertices, box.faces)[0]
 
     def cloud_at(T):
@@ -186,11 +198,11 @@ def test_symmetry_check_turns_a_cloud_stuck_on_the_turned_bone_back_to_the_likel
         ll = log_lik(p, q)
         return SMCResult(p, q, ll, estimate(p, q, np.full(100, -np.log(100))))
 
-    turned = initialiser._symmetry_check(cloud_at(T_true @ S), prior, log_lik)
+    turned = initialiser._symmetry_check(cloud_at(T_true @ S), tempering, level)
     assert turned.symmetry_turned
     assert np.linalg.norm(turned.estimate.T_base_bone[:3, 3] - t_true) < 0.003
     assert np.degrees(se3.rotation_angle(turned.estimate.T_base_bone, T_true)) < 3.0
-    kept = initialiser._symmetry_check(cloud_at(T_true), prior, log_lik)
+    kept = initialiser._symmetry_check(cloud_at(T_true), tempering, level)
     assert not kept.symmetry_turned
 
 
@@ -234,3 +246,153 @@ def test_the_initialiser_budget_counts_evaluations_not_seconds(max_evaluations):
     if max_evaluations == 12_000:
         # 12,000 / 3 runs = 4,000 each: 2,000 prior draws, then 3 steps of 800: every run uses its share
         assert results[0].evaluations >= max_evaluations
+
+
+class ScaledBackend(CountingBackend):
+    """CountingBackend whose log-likelihood is ``scale`` times the closed form, with ``resized`` like the
+    CPU backend (a coarser level: the scale of its pixel count), and NaN for poses past ``nan_beyond`` m."""
+
+    name = "cpu"
+
+    def __init__(self, T_camera_bone_true, camera, nan_beyond=np.inf, vertices=None, faces=None, sharpness=1.0):
+        super().__init__(T_camera_bone_true)
+        self.camera, self.nan_beyond, self.vertices, self.faces, self.cull = camera, nan_beyond, vertices, faces, True
+        self.sharpness, self.children = sharpness, []
+
+    def log_likelihood(self, T_camera_bone, depth):
+        assert depth.shape == (self.camera.height, self.camera.width)
+        scale = self.sharpness * self.camera.width * self.camera.height / 64 / 48
+        ll = super().log_likelihood(T_camera_bone, depth) * scale
+        far = np.linalg.norm(T_camera_bone[:, :3, 3] - self.t_true, axis=1) > self.nan_beyond
+        return np.where(far, np.nan, ll)
+
+    def resized(self, camera, vertices=None, faces=None, cull_back_faces=None):
+        child = ScaledBackend(self.t_true_pose, camera, self.nan_beyond, vertices, faces, self.sharpness)
+        self.children.append(child)
+        return child
+
+    @property
+    def t_true_pose(self):
+        return se3.make_pose(np.eye(3), self.t_true)
+
+
+def test_levels_coarse_to_fine_with_decimated_meshes_and_pixel_scales():
+    from app.filter.smc_init import make_levels
+
+    box = trimesh.creation.icosphere(subdivisions=3, radius=0.02)          # 1,280 triangles, outward
+    camera = PinholeCamera(np.array([[200.0, 0, 79.5], [0, 200.0, 59.5], [0, 0, 1]]), 160, 120)
+    backend = ScaledBackend(np.eye(4), camera, vertices=box.vertices, faces=box.faces)
+    levels = make_levels(backend, camera, np.zeros((120, 160), np.float32), np.eye(4), ((4, 250), (2, 500), (64, 10)))
+    assert [v.name for v in levels] == ["40x30", "80x60", "160x120"]    # 160/64 px is under the minimum: skipped
+    assert [v.scale for v in levels] == [1200.0, 4800.0, 19200.0]
+    assert [len(c.faces) <= t for c, t in zip(backend.children, (250, 500))] == [True, True]
+    assert all(len(c.faces) > 100 for c in backend.children)
+    plain = make_levels(CountingBackend(np.eye(4)), camera, np.zeros((120, 160), np.float32), np.eye(4), ((2, 500),))
+    assert [v.name for v in plain] == ["160x120"]                         # no ``resized``: the filter's level only
+
+
+def test_a_level_switch_between_proportional_likelihoods_keeps_the_cloud_and_divides_phi(rng):
+    """p_b = p_a^4 (4x the pixels): π_a at φ is π_b at φ / 4 exactly, so the weights are uniform and
+    systematic resampling keeps every pose once."""
+    from app.filter.smc_init import Budget, Level, Tempering
+
+    def ll_a(p, q):
+        return -np.sum(p ** 2, axis=1) / 2e-4
+
+    a, b = Level("a", ll_a, 1200.0), Level("b", lambda p, q: 4.0 * ll_a(p, q), 4800.0)
+    prior = SurfacePrior(trimesh.creation.box((0.02, 0.02, 0.02)).vertices, trimesh.creation.box((0.02, 0.02, 0.02)).faces,
+                         np.zeros(3), 0.005, 200, rng)
+    budget = Budget()
+    tempering = Tempering(prior, SMCInitConfig(), budget, rng)
+    cloud = tempering.score(a, rng.normal(0, 0.01, (50, 3)), quat.random_uniform(rng, 50))
+    moved, phi = tempering.switch(cloud, 0.6, a, b)
+    assert phi == pytest.approx(0.15)
+    np.testing.assert_array_equal(np.sort(moved.p, axis=0), np.sort(cloud.p, axis=0))
+    np.testing.assert_allclose(moved.ll, 4.0 * ll_a(moved.p, moved.q))
+    assert budget.evaluations == 100
+    assert tempering.switch(cloud, 1.0, b, a)[1] == 1.0                    # never past φ = 1
+
+
+def test_non_finite_log_likelihoods_are_minus_infinity_counted_and_never_chosen():
+    """Policy of the particle filter: NaN / +inf scores are -inf (zero likelihood) and counted. Poses
+    more than 2 cm off score NaN here; the sampler must still find the pose and report the count."""
+    from app.filter.smc_init import Budget, Level, OnePointInitialiser, evaluate
+
+    budget = Budget()
+    ll = evaluate(Level("x", lambda p, q: np.array([1.0, np.nan, np.inf, -np.inf])), np.zeros((4, 3)),
+                  np.zeros((4, 4)), budget)
+    np.testing.assert_array_equal(ll, [1.0, -np.inf, -np.inf, -np.inf])
+    assert budget.nonfinite == 2 and budget.evaluations == 4
+
+    box = trimesh.creation.box((0.06, 0.02, 0.01))
+    T_base_bone = se3.make_pose(np.eye(3), np.array([0.0, 0.0, 0.3]))
+    point = T_base_bone[:3, 3] + np.array([0.0, 0.0, 0.005])
+    camera = PinholeCamera(np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]]), 64, 48)
+    config = replace(SMCInitConfig(), restarts=1, prior_draws=2000, sigma_n=0.0, symmetry_check=False,
+                     surface_samples=500, max_evaluations=20_000, coarse_levels=((2, 1000),))
+    backend = ScaledBackend(T_base_bone, camera, nan_beyond=0.02, vertices=box.vertices, faces=box.faces)
+    result = OnePointInitialiser(backend, camera, box.vertices, box.faces, config,
+                                 np.random.default_rng(3)).run(np.zeros((48, 64), np.float32), np.eye(4), point)
+    assert result.levels == ["32x24", "64x48"] and result.nonfinite > 0
+    assert np.all(np.isfinite(result.log_likelihood)) and np.all(np.isfinite(result.p))
+    assert np.linalg.norm(result.estimate.T_base_bone[:3, 3] - T_base_bone[:3, 3]) < 0.005
+    assert result.evaluations == backend.scored + sum(c.scored for c in backend.children)
+
+
+def test_coarse_levels_of_the_cpu_backend_scale_with_their_pixel_count():
+    """The level switch assumes log p_b ≈ (s_b / s_a) log p_a between resolutions (levels.py): on the
+    crest's rendered depth, over poses spread like the early tempering's (3 cm, 0.5 rad), each level's
+    log-likelihood is 4x the coarser one's (a least-squares slope within 3.3-4.7) and follows it."""
+    from app.config import load_config
+    from app.filter.smc_init import make_levels
+    from app.mesh import load_mesh, outward_wound, prepare_mesh
+    from app.render.cpu_likelihood import CPULikelihoodBackend
+    from app.sim.simulator import D415_640x480, DEFAULT_MESH
+
+    config = load_config(None)
+    mesh = prepare_mesh(load_mesh(DEFAULT_MESH), max_triangles=1000, center=False)
+    camera = D415_640x480.resized(160, 120)
+    backend = CPULikelihoodBackend(mesh.vertices, mesh.faces, camera, params=config.likelihood,
+                                   cull_back_faces=outward_wound(mesh))
+    T_camera_bone = se3.make_pose(quat.to_matrix(quat.exp_map(np.array([3.0, 0.1, 0.0]))), np.array([0.0, 0.0, 0.42]))
+    rendered = backend.render_depth(T_camera_bone[None])[0]
+    depth = np.where(rendered > 0, rendered, 0.6).astype(np.float32)
+    levels = make_levels(backend, camera, depth, np.eye(4), ((4, 250), (2, 500)))
+    assert [v.name for v in levels] == ["40x30", "80x60", "160x120"]
+    rng = np.random.default_rng(0)
+    q0, t0 = se3.to_quat_trans(T_camera_bone)
+    p = t0 + rng.normal(0.0, 0.03, (200, 3))
+    q = quat.normalize(quat.multiply(quat.exp_map(rng.normal(0.0, 0.5, (200, 3))), np.repeat(q0[None], 200, axis=0)))
+    ll = [level.score(p, q) for level in levels]
+    for coarse, fine in zip(ll[:-1], ll[1:]):
+        a, b = coarse - coarse.mean(), fine - fine.mean()
+        assert 3.3 < (a @ b) / (a @ a) < 4.7
+        assert np.corrcoef(a, b)[0, 1] > 0.9
+
+
+def test_the_end_at_the_filters_level_keeps_its_share_of_a_small_budget():
+    """With coarse levels, the runs share max_evaluations less FINISH_SHARE of it, and the end at the
+    filter's level gets that share from when it starts: a budget the run exhausts (a sharp likelihood,
+    12,000 first draws of 20,000) must not reach the end spent (where φ would jump straight to 1)."""
+    from app.filter.smc_init import OnePointInitialiser
+    from app.filter.smc_init.initialiser import FINISH_SHARE
+
+    box = trimesh.creation.box((0.06, 0.02, 0.01))
+    T_base_bone = se3.make_pose(np.eye(3), np.array([0.0, 0.0, 0.3]))
+    point = T_base_bone[:3, 3] + np.array([0.0, 0.0, 0.005])
+    camera = PinholeCamera(np.array([[100.0, 0, 31.5], [0, 100.0, 23.5], [0, 0, 1]]), 64, 48)
+    config = replace(SMCInitConfig(), restarts=1, prior_draws=12_000, sigma_n=0.0, symmetry_check=False,
+                     surface_samples=500, max_evaluations=20_000, coarse_levels=((2, 1000),))
+    backend = ScaledBackend(T_base_bone, camera, vertices=box.vertices, faces=box.faces, sharpness=3000.0)
+    result = OnePointInitialiser(backend, camera, box.vertices, box.faces, config,
+                                 np.random.default_rng(4)).run(np.zeros((48, 64), np.float32), np.eye(4), point)
+    coarse_scored = sum(c.scored for c in backend.children)
+    overshoot = 2 * config.mh_moves * config.particles
+    assert coarse_scored <= (1 - FINISH_SHARE) * config.max_evaluations + overshoot
+    assert backend.scored >= FINISH_SHARE * config.max_evaluations        # the end got its share
+    assert result.evaluations == coarse_scored + backend.scored <= config.max_evaluations + 2 * overshoot
+    # the coarse run ends at φ = 1, the end starts at φ = 1 x 768 / 3072 px = 0.25 and tempers by the
+    # ESS rule (spent, it would jump from 0.25 straight to 1)
+    start = result.phis.index(0.25)
+    assert len(result.phis) - start >= 3 and 0.25 < result.phis[start + 1] < 1.0
+    assert np.linalg.norm(result.estimate.T_base_bone[:3, 3] - T_base_bone[:3, 3]) < 0.005

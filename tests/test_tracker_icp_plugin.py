@@ -6,6 +6,7 @@ import pytest
 
 from app import plugins_registry as registry
 from app.errors import ConfigError
+from app.interfaces import DepthFrame
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +38,8 @@ def test_icp_plugin_tracks_a_static_bone_from_the_coarse_start(trial):
     T_base_camera, valid = trial.camera_poses()
     errors = []
     for i in range(len(trial)):
-        result = tracker.process(trial.read_depth(i), float(trial.stamps[i]), T_base_camera[i] if valid[i] else None)
+        frame = DepthFrame(i, float(trial.stamps[i]), trial.read_depth(i), float(trial.stamps[i]))
+        result = tracker.process(frame, T_base_camera[i] if valid[i] else None)
         errors.append(1e3 * np.linalg.norm(result.T_base_bone[:3, 3] - trial.groundtruth[i][:3, 3]))
     tracker.release()
     start_error = 1e3 * np.linalg.norm(trial.meta.initial_pose[:3, 3] - trial.groundtruth[0][:3, 3])

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.filter.observation import finite_log_likelihood
 from app.geometry import se3
 
 APART_M = 0.005
@@ -62,7 +63,7 @@ def score(backend, T_camera_bone: np.ndarray, depth_small: np.ndarray, batch: in
     """log p(z | x) of many poses through a backend that takes at most ``batch`` per call."""
     out = [np.asarray(backend.log_likelihood(T_camera_bone[i:i + batch], depth_small), float)
            for i in range(0, len(T_camera_bone), batch)]
-    return np.concatenate(out)
+    return finite_log_likelihood(np.concatenate(out))[0]   # the one non-finite policy: NaN / +inf -> -inf
 
 
 def diagnose_frame(index, backend, refiner, depth_full, depth_small, T_camera_bone_true, rng, batch,

@@ -12,7 +12,13 @@ app/render/cpu_raster.py) runs one after the other on the same synthetic sequenc
 - the backend's ``log_likelihood`` of N poses alone (``backend_ms``) and, for gl, the bare render
   of the N poses (one instanced draw), the reference of the overhead ratio (issue 3);
 - for cpu, the first kernel calls of the process (numba compile, or loading numba's on-disk cache:
-  ``numba_cache``) in ``first_call_s``, reported apart from the rate.
+  ``numba_cache``) in ``first_call_s``, reported apart from the rate;
+- with ``refine.enabled``, the local refinement's time per frame (``stages_ms['refine']``, the
+  tracker's ``DepthTracker._refine``, wall) and its process CPU time (``refine_cpu_ms``: the
+  tracker's ``refined_track.update`` calls, timed by wrapping them in the synchronised pass), and
+  what it adds to the rest of the frame (issue 12's "at most 30 %"): ``refine_added`` =
+  refine_cpu / (CPU per frame - refine_cpu), in CPU time, which other jobs on the machine do not
+  inflate, and ``refine_added_wall`` from the wall times; None when disabled.
 Ratios between backends measured in one run are stable on noisy machines; absolute times are not.
 """
 from __future__ import annotations
@@ -31,6 +37,7 @@ BACKENDS = ("cpu", "gl")
 PARTICLES = (200, 700, 1500)
 RESOLUTIONS = ((80, 60), (100, 75), (160, 120))
 FILTER_STAGES = ("predict", "likelihood", "weight", "resample", "estimate")
+REFINE_STAGE = "refine"   # DepthTracker's stage when refine.enabled (app/pipeline/tracker.py)
 
 
 def _scene():
@@ -87,11 +94,14 @@ def measure(config: TrackerConfig, mesh, camera_full, frames: int = 30, warmup: 
     backend.profile = True          # stage split: the GL backend waits after each stage
     tracker._timings.clear()
     tracker._frames = 0
+    refine_cpu_s = _time_refinement_cpu(tracker)
     for _ in range(frames):
         stamp += 1 / 90
         tracker.process(depth_full, stamp, T_base_camera)
     stages = tracker.mean_timings_ms()
     backend.profile = False
+    refine_ms = stages.get(REFINE_STAGE) if config.refine.enabled else None
+    refine_cpu_ms = 1e3 * refine_cpu_s[0] / frames if tracker.refined_track is not None else None
     poses = se3.inverse(T_base_camera) @ np.repeat(T_base_bone[None], config.particles, axis=0)
     poses = poses @ se3.from_quat_trans(quat.exp_map(rng.normal(0, 0.02, (config.particles, 3))),
                                         rng.normal(0, 0.003, (config.particles, 3)))
@@ -106,11 +116,42 @@ def measure(config: TrackerConfig, mesh, camera_full, frames: int = 30, warmup: 
         "full_frame_ms": full_ms, "fps": 1e3 / full_ms, "process_cpu_ms": process_cpu_ms, "backend_ms": backend_ms, "bare_render_ms": bare_render_ms,
         "overhead_fraction": None if bare_render_ms is None else max(0.0, 1.0 - bare_render_ms / full_ms),
         "stages_ms": stages, "setup_s": setup_s, "description": tracker.gl_description,
+        "refine_ms": refine_ms, "refine_cpu_ms": refine_cpu_ms,
+        "refine_added": _refine_added(refine_cpu_ms, process_cpu_ms), "refine_added_wall": _refine_added(refine_ms, full_ms),
         "first_call_s": first_call_seconds() if tracker.backend_name == "cpu" else None,
         "numba_cache": _numba_cache_state() if tracker.backend_name == "cpu" else None,
     }
     tracker.release()
     return row
+
+
+def _time_refinement_cpu(tracker) -> list[float]:
+    """[process CPU seconds] that the tracker's refinement calls add up to from now on (a one-element
+    list the wrapper updates); [0.0] and nothing wrapped when the refinement is off."""
+    total = [0.0]
+    track = tracker.refined_track
+    if track is None:
+        return total
+    update = track.update
+
+    def timed(*args, **kwargs):
+        c0 = time.process_time()
+        try:
+            return update(*args, **kwargs)
+        finally:
+            total[0] += time.process_time() - c0
+
+    track.update = timed
+    return total
+
+
+def _refine_added(refine_ms: float | None, frame_ms: float) -> float | None:
+    """What the refinement adds to the rest of the frame: refine / (frame - refine); None without it.
+    The refinement's time comes from the synchronised pass, the frame's from the timed one (both
+    per frame, both wall or both CPU)."""
+    if refine_ms is None or frame_ms <= refine_ms:
+        return None
+    return refine_ms / (frame_ms - refine_ms)
 
 
 def _numba_cache_state() -> str:
@@ -141,16 +182,20 @@ def run(particles=PARTICLES, resolutions=RESOLUTIONS, frames: int = 30, base: Tr
 
 
 def table(results: list[dict]) -> str:
-    """Fixed-width table: one line per row, with the speed-up over gl of the same N and resolution."""
+    """Fixed-width table: one line per row, with the speed-up over gl of the same N and resolution;
+    with the refinement on in any row, its stage (wall ms) and ``refine_added`` (CPU, as %) as two more columns."""
     gl_fps = {(r["particles"], r["resolution"]): r["fps"] for r in results if r["backend"] == "gl"}
+    stage_names = FILTER_STAGES + ((REFINE_STAGE,) if any(r.get("refine_ms") is not None for r in results) else ())
     header = (f"{'backend':<7} {'N':>5} {'res':>8} {'fps':>7} {'x gl':>6} {'frame ms':>9} {'cpu ms':>8} {'backend ms':>10}  "
-              + " ".join(f"{s:>10}" for s in FILTER_STAGES))
+              + " ".join(f"{s:>10}" for s in stage_names) + (f" {'refine +%cpu':>12}" if REFINE_STAGE in stage_names else ""))
     lines = [header, "-" * len(header)]
     for r in results:
         ref = gl_fps.get((r["particles"], r["resolution"]))
         ratio = f"{r['fps'] / ref:>6.1f}" if ref else f"{'-':>6}"
         stages = r["stages_ms"]
+        added = r.get("refine_added")
         lines.append(f"{r['backend']:<7} {r['particles']:>5} {r['resolution']:>8} {r['fps']:>7.1f} {ratio} "
                      f"{r['full_frame_ms']:>9.2f} {r['process_cpu_ms']:>8.2f} {r['backend_ms']:>10.2f}  "
-                     + " ".join(f"{stages.get(s, float('nan')):>10.2f}" for s in FILTER_STAGES))
+                     + " ".join(f"{stages.get(s, float('nan')):>10.2f}" for s in stage_names)
+                     + ("" if REFINE_STAGE not in stage_names else f" {'-' if added is None else f'{100 * added:.0f}':>12}"))
     return "\n".join(lines)

@@ -6,5 +6,5 @@
 - ``likelihood_ref``: the numpy reference of the observation model (the GL shader's specification)
 - ``estimate``: weighted mean pose and spread
 - ``status``: ok / uncertain / lost rules
-- ``particle_filter``: the per-frame stepper against a LikelihoodBackend
+- ``particle_filter``: the per-frame stepper against an ObservationModel (``observation``)
 """

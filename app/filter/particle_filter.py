@@ -1,9 +1,10 @@
 """The particle filter stepper: one call per frame through named stages.
 
 Import as ``from app.filter.particle_filter import ParticleFilter``. DESIGN.md "The particle
-filter"; the particles are poses ``T_base_bone`` (:mod:`app.filter.motion`), the likelihood comes
-from a :class:`app.filter.observation.LikelihoodBackend` (GL: ``app/render/likelihood.py``, CPU:
-``app/render/cpu_likelihood.py``), which sees ``T_camera_bone = inv(T_base_camera) @ T_base_bone``.
+filter"; the particles are poses ``T_base_bone`` (:mod:`app.filter.motion`), the likelihood and the
+evidence for the status come from an :class:`app.filter.observation.ObservationModel` (the depth
+backends, GL: ``app/render/likelihood.py``, CPU: ``app/render/cpu_likelihood.py``, or a
+``CompositeObservation`` summing several), which sees ``T_camera_bone = inv(T_base_camera) @ T_base_bone``.
 
 ``step(depth, stamp, T_base_camera)``, with ΔT = stamp - previous stamp (``first_dt`` = 1/90 s on
 the first frame; a non-increasing stamp gives ΔT = 0). ΔT is predicted in sub-steps of at most
@@ -13,19 +14,21 @@ camera dropouts are predicted as the frames they replace (:meth:`ParticleFilter.
 - sampling 'joint': predict (p, v, q, ω) → likelihood → weight → [resample]
 - sampling 'blockwise' ((B) 7.2.3): predict (p, v) → likelihood → weight → [resample] →
   predict (q, ω) → likelihood → weight → [resample]
-- weight: lw += log p(z | x) (NaN or +inf values set to -inf in the filter's copy and counted),
+- weight: lw += log p(z | x) (NaN or +inf values set to -inf and counted, the one non-finite policy
+  of :func:`app.filter.observation.finite_log_likelihood`),
   normalised with log-sum-exp; if every weight is -inf the weights are reset to uniform (logged).
 - resample when ESS / N < ``resample_threshold`` ((B): 0.5) with the configured scheme
   (:mod:`app.filter.resampling`); the estimate is taken from the weighted particles of the last
   weighing, before that resampling (less noise).
-- estimate: weighted mean pose and spread (:mod:`app.filter.estimate`); the estimate is rendered
-  once more for the inlier fraction; its speed comes from :mod:`app.filter.motion_gate`; status
-  by :mod:`app.filter.status`.
+- estimate: weighted mean pose and spread (:mod:`app.filter.estimate`); the observation model
+  reports its evidence about the estimate (covered pixels, inlier fraction; ``model.evidence``);
+  its speed comes from :mod:`app.filter.motion_gate`; status by :mod:`app.filter.status`.
 
 A frame without a camera pose (None) or without any valid depth pixel is predicted only; its
-status is at best uncertain. A frame in which occluders hide the bone (the last estimate, rendered
-against the new image, has fewer than ``status.min_covered_pixels`` valid pixels that are not
-more than ``likelihood.occluder_margin`` in front of it: a hand over the bone) is neither
+status is at best uncertain. A frame in which occluders hide the bone (the model's evidence about the
+last estimate in the new image says ``bone_hidden``; for depth: fewer than
+``status.min_covered_pixels`` valid pixels not more than ``likelihood.occluder_margin`` in front
+of it, a hand over the bone) is neither
 predicted nor weighed: the particles are held where they were, because the only evidence left
 would be the soft tissue and the table around the hidden bone, which pull the cloud away, and
 the motion noise would spread it for nothing; the status is uncertain. Weighing resumes as soon
@@ -40,13 +43,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from app.filter import likelihood_ref
 from app.filter import motion
 from app.filter import resampling as rs
 from app.filter import weights as lw_ops
 from app.filter.estimate import PoseEstimate, estimate
 from app.filter.motion_gate import MotionGate
-from app.filter.observation import LikelihoodBackend
+from app.filter.observation import Evidence, ObservationModel, finite_log_likelihood
 from app.filter.likelihood_ref import LikelihoodParams
 from app.filter.motion import MotionParams, ParticleState
 from app.filter.status import StatusInputs, StatusThresholds, TrackingStatus, classify
@@ -93,6 +95,8 @@ class FilterOutput:
     timings : seconds per stage (STAGES). Set by the tracker's local refinement
     (app/filter/refine_track.py): refine_fitness (NaN when not refined), template_std (m),
     refined : T_base_bone is the refined pose; competitor : a competing pose fits about as well.
+    Set by the tracker's recovery (app/filter/recovery.py): reinitialised : the particles were
+    re-initialised on this frame (a lost track).
     """
 
     T_base_bone: np.ndarray
@@ -113,6 +117,7 @@ class FilterOutput:
     template_std: float = float("inf")
     refined: bool = False
     competitor: bool = False
+    reinitialised: bool = False
 
 
 class ParticleFilter:
@@ -121,16 +126,16 @@ class ParticleFilter:
     Parameters
     ----------
     config : FilterConfig (or TrackerConfig)
-    backend : LikelihoodBackend
+    model : ObservationModel (a likelihood backend, or a CompositeObservation of several)
     rng : np.random.Generator, the only source of randomness
     """
 
-    def __init__(self, config: FilterConfig, backend: LikelihoodBackend, rng: np.random.Generator):
+    def __init__(self, config: FilterConfig, model: ObservationModel, rng: np.random.Generator):
         if config.sampling not in SAMPLING_MODES:
             raise ValueError(f"unknown sampling {config.sampling!r}; valid: {', '.join(SAMPLING_MODES)}")
         rs.check_scheme(config.resampling)
         self.config = config
-        self.backend = backend
+        self.model = model
         self.rng = rng
         self.state: ParticleState | None = None
         self._first_stamp: float | None = None
@@ -180,15 +185,12 @@ class ParticleFilter:
         return dt
 
     def _weigh(self, T_camera_base: np.ndarray, depth: np.ndarray, timings: dict) -> tuple[float, int]:
-        """lw += log p(z | x); returns (max finite log-likelihood, NaN count)."""
+        """lw += log p(z | x) (non-finite values as -inf, counted: observation.finite_log_likelihood);
+        returns (max finite log-likelihood, non-finite count)."""
         t = time.perf_counter()
-        log_lik = np.asarray(self.backend.log_likelihood(T_camera_base @ self.state.poses(), depth), dtype=float)
+        log_lik = self.model.log_likelihood(T_camera_base @ self.state.poses(), depth)
         t = _tick(timings, "likelihood", t)
-        bad = lw_ops.nonfinite_mask(log_lik)
-        n_nan = int(bad.sum())
-        if n_nan:
-            log.warning("%d of %d log-likelihoods are NaN or +inf: weighted as -inf", n_nan, len(log_lik))
-            log_lik = np.where(bad, -np.inf, log_lik)
+        log_lik, n_nan = finite_log_likelihood(log_lik)
         finite = log_lik[np.isfinite(log_lik)]
         ll_max = float(finite.max()) if finite.size else float("nan")
         lw = self.state.lw + log_lik
@@ -225,95 +227,111 @@ class ParticleFilter:
 
     # -- one frame --------------------------------------------------------------------------
     def step(self, depth_meas: np.ndarray | None, stamp: float, T_base_camera: np.ndarray | None) -> FilterOutput:
-        """Process one frame (module docstring).
+        """Process one frame (module docstring): clock, gate, update (weigh / hold / predict),
+        estimate, evidence, status.
 
         Parameters
         ----------
-        depth_meas : (h, w) float32 metres at the backend's resolution (0 / non-finite invalid), or None
+        depth_meas : (h, w) float32 metres at the model's resolution (0 / non-finite invalid), or None
         stamp : s, the frame's time stamp
         T_base_camera : (4, 4) camera pose in the base frame at the stamp, or None when unknown
         """
         if self.state is None:
             raise RuntimeError("ParticleFilter.step needs particles: call initialise(T_base_bone) or set_state() first")
         timings = dict.fromkeys(STAGES, 0.0)
+        dt = self._advance_clock(stamp, T_base_camera)
+        weighed, hidden = self._gate(depth_meas, T_base_camera)
+        if weighed:
+            update = self._weigh_blocks(depth_meas, T_base_camera, dt, timings)
+        elif hidden:
+            update = _Update(ess=lw_ops.ess(self.state.lw))      # hold the particles where they are
+        else:
+            self._predict("joint", dt, timings)
+            update = _Update(ess=lw_ops.ess(self.state.lw))
+        t = time.perf_counter()
+        pose = update.pose if update.pose is not None else estimate(self.state.p, self.state.q, self.state.lw)
+        self._last_estimate = pose
+        evidence = self._evidence(pose, depth_meas, T_base_camera) if weighed else NO_EVIDENCE
+        status = self._status(pose, update, evidence, depth_meas, stamp, weighed)
+        _tick(timings, "estimate", t)
+        return FilterOutput(
+            T_base_bone=pose.T_base_bone, position_spread=pose.position_spread, rotation_spread=pose.rotation_spread,
+            ess=update.ess, ess_ratio=update.ess / self.state.n, log_likelihood_max=update.ll_max, status=status,
+            inlier_fraction=evidence.inlier_fraction, covered_pixels=evidence.covered_pixels, n_nan=update.n_nan,
+            resampled=update.resampled, dt=dt, weighed=weighed, timings=timings,
+        )
+
+    def _advance_clock(self, stamp: float, T_base_camera: np.ndarray | None) -> float:
+        """ΔT of this frame; remembers the stamp (and the last stamp with a camera pose)."""
         dt = self._dt(stamp)
         self._last_stamp = stamp
         if self._first_stamp is None:
             self._first_stamp = stamp
         if T_base_camera is not None:
             self._last_pose_stamp = stamp
-        has_depth = depth_meas is not None and bool(np.any(likelihood_ref.valid_measurement(depth_meas, self.config.likelihood)))
-        weighed = T_base_camera is not None and has_depth
-        hidden = weighed and self._bone_hidden(depth_meas, T_base_camera)
-        weighed = weighed and not hidden
-        ll_max, n_nan, resampled = float("nan"), 0, False
-        ess = float(self.state.n)
-        if hidden:
-            ess = lw_ops.ess(self.state.lw)      # hold the particles where they are (module docstring)
-        elif not weighed:
-            self._predict("joint", dt, timings)
-            ess = lw_ops.ess(self.state.lw)
-        else:
-            T_camera_base = se3.inverse(T_base_camera)
-            blocks = ("joint",) if self.config.sampling == "joint" else ("position", "orientation")
-            for i, block in enumerate(blocks):
-                self._predict(block, dt, timings)
-                ll_max, nan_block = self._weigh(T_camera_base, depth_meas, timings)
-                n_nan += nan_block
-                ess = lw_ops.ess(self.state.lw)
-                if i == len(blocks) - 1:
-                    t = time.perf_counter()
-                    pose = estimate(self.state.p, self.state.q, self.state.lw)
-                    _tick(timings, "estimate", t)
-                resampled |= self._maybe_resample(timings)
-        t = time.perf_counter()
-        if not weighed:
-            pose = estimate(self.state.p, self.state.q, self.state.lw)
-        self._last_estimate = pose
-        inlier_fraction, covered = self._inliers(pose, depth_meas, T_base_camera) if weighed else (float("nan"), 0)
+        return dt
+
+    def _gate(self, depth_meas: np.ndarray | None, T_base_camera: np.ndarray | None) -> tuple[bool, bool]:
+        """(weighed, hidden): weigh when there is a camera pose and a measurement, unless occluders
+        hide the last estimate (the occlusion hold of the module docstring)."""
+        if T_base_camera is None or depth_meas is None or not self.model.has_measurement(depth_meas):
+            return False, False
+        hidden = self._last_estimate is not None and self._evidence(
+            self._last_estimate, depth_meas, T_base_camera).bone_hidden
+        return not hidden, hidden
+
+    def _weigh_blocks(self, depth_meas: np.ndarray, T_base_camera: np.ndarray, dt: float, timings: dict) -> _Update:
+        """predict → weigh → [resample] per block ('joint', or position then orientation); the
+        estimate is taken after the last weighing, before its resampling."""
+        T_camera_base = se3.inverse(T_base_camera)
+        blocks = ("joint",) if self.config.sampling == "joint" else ("position", "orientation")
+        update = _Update(ess=float(self.state.n))
+        for i, block in enumerate(blocks):
+            self._predict(block, dt, timings)
+            update.ll_max, n_nan = self._weigh(T_camera_base, depth_meas, timings)
+            update.n_nan += n_nan
+            update.ess = lw_ops.ess(self.state.lw)
+            if i == len(blocks) - 1:
+                t = time.perf_counter()
+                update.pose = estimate(self.state.p, self.state.q, self.state.lw)
+                _tick(timings, "estimate", t)
+            update.resampled |= self._maybe_resample(timings)
+        return update
+
+    def _evidence(self, pose: PoseEstimate, depth_meas: np.ndarray, T_base_camera: np.ndarray) -> Evidence:
+        """The observation model's evidence about ``pose`` in this frame (covered pixels, inliers, hidden)."""
+        T_camera_bone = se3.inverse(T_base_camera) @ pose.T_base_bone
+        return self.model.evidence(T_camera_bone, depth_meas, self.config.status.min_covered_pixels)
+
+    def _status(self, pose: PoseEstimate, update: _Update, evidence: Evidence, depth_meas: np.ndarray | None,
+                stamp: float, weighed: bool) -> TrackingStatus:
+        """The status rules (app/filter/status.py) with the motion gate's speeds."""
         since = self._last_pose_stamp if self._last_pose_stamp is not None else self._first_stamp
-        seconds_without_pose = stamp - since
         speed, angular_speed, since_motion = self.motion_gate.update(stamp, pose.T_base_bone)
-        status = classify(StatusInputs(
+        return classify(StatusInputs(
             position_spread=pose.position_spread, rotation_spread=pose.rotation_spread,
-            ess_ratio=ess / self.state.n, inlier_fraction=inlier_fraction, covered_pixels=covered,
+            ess_ratio=update.ess / self.state.n, inlier_fraction=evidence.inlier_fraction,
+            covered_pixels=evidence.covered_pixels,
             image_pixels=int(np.size(depth_meas)) if depth_meas is not None else 0,
-            n_nan=n_nan, n_particles=self.state.n, weighed=weighed, seconds_without_pose=seconds_without_pose,
+            n_nan=update.n_nan, n_particles=self.state.n, weighed=weighed, seconds_without_pose=stamp - since,
             speed=speed, angular_speed=angular_speed, seconds_since_motion=since_motion,
         ), self.config.status)
-        _tick(timings, "estimate", t)
-        return FilterOutput(
-            T_base_bone=pose.T_base_bone, position_spread=pose.position_spread, rotation_spread=pose.rotation_spread,
-            ess=ess, ess_ratio=ess / self.state.n, log_likelihood_max=ll_max, status=status,
-            inlier_fraction=inlier_fraction, covered_pixels=covered, n_nan=n_nan, resampled=resampled, dt=dt,
-            weighed=weighed, timings=timings,
-        )
 
-    def _bone_hidden(self, depth: np.ndarray, T_base_camera: np.ndarray) -> bool:
-        """Whether occluders hide the last estimate: fewer than ``min_covered_pixels`` of its
-        rendered pixels have a valid measurement that is not more than ``occluder_margin`` in front."""
-        if self._last_estimate is None:
-            return False
-        _, visible = self._inliers(self._last_estimate, depth, T_base_camera)
-        return visible < self.config.status.min_covered_pixels
 
-    def _inliers(self, pose: PoseEstimate, depth: np.ndarray, T_base_camera: np.ndarray) -> tuple[float, int]:
-        """Inlier fraction and count of the estimate's valid covered pixels that no occluder hides.
+NO_EVIDENCE = Evidence(covered_pixels=0, inliers=0, bone_hidden=False)   # a frame that was not weighed
 
-        Pixels measured more than ``likelihood.occluder_margin`` in front of the rendered depth see an
-        occluder and are left out of both (app/filter/status.py).
-        """
-        T_camera_bone = se3.inverse(T_base_camera) @ pose.T_base_bone
-        rendered = self.backend.render_depth(T_camera_bone[None])[0]
-        valid = likelihood_ref.valid_measurement(depth, self.config.likelihood) & (rendered > 0)
-        with np.errstate(invalid="ignore"):
-            occluded = valid & (depth < rendered - self.config.likelihood.occluder_margin)
-        considered = valid & ~occluded
-        covered = int(considered.sum())
-        if covered == 0:
-            return float("nan"), 0
-        inliers = int((likelihood_ref.inlier_mask(depth, rendered, self.config.likelihood) & considered).sum())
-        return inliers / covered, covered
+
+@dataclass
+class _Update:
+    """What the frame's update stage reports: ESS after the last weighing (or of the held / predicted
+    weights), max finite log-likelihood, non-finite count, whether it resampled, and the estimate
+    taken before resampling (None: take it from the particles as they are)."""
+
+    ess: float
+    ll_max: float = float("nan")
+    n_nan: int = 0
+    resampled: bool = False
+    pose: PoseEstimate | None = None
 
 
 MAX_SUBSTEPS = 90

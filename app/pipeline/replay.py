@@ -4,7 +4,11 @@ For each frame: the joints interpolated at the frame's stamp give ``T_base_camer
 trial's hand-eye); the depth image is reduced to the filter's resolution; the particle filter
 (started at the trial's ``initial_pose``, or with ``init.method: point`` by the one-point
 initialiser from its ``point_prior`` on the first frame; the summary's ``init`` block gives that
-run) steps; the estimate goes to the sinks. Writes, in ``out``:
+run) steps; the estimate goes to the sinks. Every frame goes, in order and on the calling thread (no
+threads, no drops: deterministic), through the per-frame core the live session uses
+(:class:`app.pipeline.frame_core.FrameCore`) and its sinks (:mod:`app.pipeline.sinks`: ground-truth
+scoring, which ``osteonav bench`` reads through :attr:`ReplayResult.errors`, the trajectory, rerun,
+the projector, the files). Writes, in ``out``:
 
 - ``estimate.txt``: TUM, the bone in the robot base frame, one row per processed frame;
 - ``status.csv``: ``stamp,status`` per processed frame (RECORDING_FORMAT.md);
@@ -34,12 +38,13 @@ import numpy as np
 from app import metrics
 from app.config import TrackerConfig, load_config
 from app.errors import MeshError
-from app.pipeline.tracker import DepthTracker
+from app.interfaces import DepthFrame
+from app.pipeline.engine_tracker import EngineTracker
+from app.pipeline.frame_core import FrameCore
+from app.pipeline.sinks import EstimateFiles, GroundTruthScoring, ProjectorEstimates, RerunSink, Trajectory
+from app.pipeline.tracker import DepthTracker, tracker_report, use_plan
 
 log = logging.getLogger(__name__)
-
-LOST_ADD_M = 1e-3 * metrics.LOST_ADD_MM            # app/metrics.py: defined once
-DANGEROUS_ADD_M = 1e-3 * metrics.DANGEROUS_ADD_MM
 
 
 @dataclass
@@ -57,119 +62,129 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
            projector_every: int = 3, projector_images: bool = False) -> ReplayResult:
     """Run the tracker over a trial; write the outputs listed in the module docstring to ``out_dir``.
 
-    ``make_tracker(mesh, camera) -> tracker`` replaces the particle filter by another tracker with
-    the same interface (``start``, ``process``, ``particle_positions``, ``mean_timings_ms``,
-    ``release``, ``mesh_vertices``/``mesh_faces``/``gl_description``/``T_flange_camera``), e.g. the
-    ICP baseline (app/baselines/icp.py); ``config`` then only names the run in the summary.
+    ``make_tracker(mesh, camera) -> engine`` replaces the particle filter by another tracking engine
+    with ``start``, ``process(depth_m, stamp, T_base_camera)``, ``particle_positions``,
+    ``mean_timings_ms``, ``release`` and ``gl_description`` (wrapped in
+    :class:`app.pipeline.engine_tracker.EngineTracker`, the :class:`app.interfaces.Tracker` contract),
+    e.g. the ICP baseline (app/baselines/icp.py); ``config`` then only names the run in the summary.
     """
     from app.trial.reader import open_trial
-    from app.trial.tum import write_status_csv, write_tum
 
     config = config or load_config(None)
     reader = open_trial(trial_dir)
     from_point = make_tracker is None and config.init_method == "point"
     _check_start(reader, Path(trial_dir), from_point)
     mesh = reader.load_mesh()
-    if make_tracker is None:
-        tracker = DepthTracker(config, mesh, reader.meta.camera)
-    else:
-        tracker = make_tracker(mesh, reader.meta.camera)
+    engine = DepthTracker(config, mesh, reader.meta.camera) if make_tracker is None else make_tracker(mesh, reader.meta.camera)
+    tracker = EngineTracker(engine)
     if from_point:
-        tracker.start_from_point(reader.meta.point_prior)
+        engine.start_from_point(reader.meta.point_prior)
     else:
         tracker.start(reader.meta.initial_pose)
-    T_base_camera, pose_valid = reader.camera_poses()
+    getattr(engine, "set_point_prior", lambda p: None)(reader.meta.point_prior)   # the recovery's point
     out = Path(out_dir) if out_dir else None
-    sink = None
+    sinks = ReplaySinks.open(reader, tracker, mesh, out, rrd, projector and out is not None,
+                             ProjectorOptions(projector_config, projector_every, projector_images))
+    use_plan(engine, sinks.plan)   # the status's template points
+    core = FrameCore(tracker, sinks.all)
+    try:
+        elapsed = _run(core, reader, max_frames, realtime, progress)
+    finally:
+        reports = core.close()
+    summary = _summary(reader, config, engine, sinks.trajectory.stamps, sinks.trajectory.statuses, sinks.scoring,
+                       elapsed, np.asarray(mesh.vertices))
+    if sinks.projector_skipped is not None:
+        summary["projector"] = {"plan": None, "skipped": sinks.projector_skipped}
+    if "ProjectorEstimates" in reports:
+        summary["projector"] = reports["ProjectorEstimates"]
     if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        if rrd:
-            from app.viz.rerun_log import RerunLog
+        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    t = sinks.trajectory
+    return ReplayResult(summary, np.array(t.stamps), np.array(t.poses), t.statuses, sinks.scoring.errors())
 
-            sink = RerunLog.to_file(out / "log.rrd")
-            sink.log_static_scene(reader.meta.camera, tracker.mesh_vertices, tracker.mesh_faces,
-                                  with_groundtruth=reader.groundtruth is not None)
-            sink.log_text("backend", tracker.gl_description)
-    points = np.asarray(mesh.vertices)
-    projector_sink, projector_skipped = None, None
-    if projector and out is not None:
-        from app.projector.sink import ProjectorSink
 
-        try:   # a plan that does not fit this trial's mesh is replaced by one derived from it (never a failed replay)
-            projector_sink = ProjectorSink.from_config(projector_config, np.asarray(mesh.vertices),
-                                                       np.asarray(mesh.faces), rec=sink.rec if sink is not None else None,
-                                                       png_dir=out / "projector" if projector_images else None,
-                                                       error_every=2, derive_plan=True)
-        except MeshError as exc:
-            log.warning("projector skipped: no plan fits this trial's mesh (%s)", exc)
-            projector_skipped = str(exc)
-    stamps, estimates, statuses, add_mm, trans_mm, rot_deg = [], [], [], [], [], []
-    t_start = time.perf_counter()
-    wall0, stamp0 = time.perf_counter(), None
+def _run(core: FrameCore, reader, max_frames: int | None, realtime: bool, progress) -> float:
+    """Every frame in order through the core (paced at the recorded stamps with ``realtime``); seconds taken."""
+    T_base_camera, pose_valid = reader.camera_poses()
+    truth = reader.groundtruth
     n_total = len(reader.stamps) if max_frames is None else min(max_frames, len(reader.stamps))
+    t_start = time.perf_counter()
+    stamp0 = None
     for frame in reader.iter_frames():
         i = frame.index
         if i >= n_total:
             break
         if realtime:
             stamp0 = frame.stamp if stamp0 is None else stamp0
-            delay = (frame.stamp - stamp0) - (time.perf_counter() - wall0)
+            delay = (frame.stamp - stamp0) - (time.perf_counter() - t_start)
             if delay > 0:
                 time.sleep(delay)
-        result = tracker.process(frame.depth_m, frame.stamp, T_base_camera[i] if pose_valid[i] else None)
-        stamps.append(frame.stamp)
-        estimates.append(result.T_base_bone)
-        statuses.append(result.status)
-        if reader.groundtruth is not None:
-            T_gt = reader.groundtruth[i]
-            add_mm.append(1e3 * metrics.add(result.T_base_bone, T_gt, points))
-            trans_mm.append(1e3 * metrics.translation_error(result.T_base_bone, T_gt))
-            rot_deg.append(np.rad2deg(metrics.rotation_error(result.T_base_bone, T_gt)))
-        if sink is not None:
-            _log_frame(sink, frame, T_base_camera[i] if pose_valid[i] else None, result, tracker,
-                       reader.groundtruth[i] if reader.groundtruth is not None else None,
-                       add_mm[-1] if add_mm else None, rot_deg[-1] if rot_deg else None)
-        if projector_sink is not None and i % max(1, projector_every) == 0:
-            projector_sink.step(frame.frame_id, T_base_camera[i] if pose_valid[i] else None, result.T_base_bone,
-                                result.status, age_s=0.0,
-                                T_base_bone_true=reader.groundtruth[i] if reader.groundtruth is not None else None)
+        depth_frame = DepthFrame(frame.frame_id, frame.stamp, frame.depth_m, frame.stamp, frame.infrared, frame.color)
+        core.process(depth_frame, T_base_camera[i] if pose_valid[i] else None,
+                     T_base_bone_true=truth[i] if truth is not None else None)
         if progress:
             progress(i + 1, n_total)
-    elapsed = time.perf_counter() - t_start
-    T_est = np.array(estimates)
-    summary = _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_deg, elapsed, points)
-    if projector_skipped is not None:
-        summary["projector"] = {"plan": None, "skipped": projector_skipped}
-    if projector_sink is not None:
-        summary["projector"] = projector_sink.summary()
-        projector_sink.release()
-    if out is not None:
-        write_tum(out / "estimate.txt", np.array(stamps), T_est)
-        write_status_csv(out / "status.csv", np.array(stamps), statuses)
-        (out / "summary.json").write_text(json.dumps(summary, indent=2))
-    if sink is not None:
-        sink.close()
-    tracker.release()
-    return ReplayResult(summary, np.array(stamps), T_est, statuses,
-                        {"add_mm": np.array(add_mm), "trans_mm": np.array(trans_mm), "rot_deg": np.array(rot_deg)})
+    return time.perf_counter() - t_start
 
 
-def _log_frame(sink, frame, T_base_camera, result, tracker, T_gt, add_mm, rot_deg) -> None:
-    sink.set_frame(frame.frame_id, frame.stamp)
-    T_base_flange = T_base_camera @ np.linalg.inv(tracker.T_flange_camera) if T_base_camera is not None and tracker.T_flange_camera is not None else None
-    sink.log_camera(T_base_flange, T_base_camera, frame.depth_m if frame.index % 3 == 0 else None)
-    sink.log_bone("estimate", result.T_base_bone if result.status != "lost" else None)
-    if T_gt is not None:
-        sink.log_bone("groundtruth", T_gt)
-    sink.log_particles(tracker.particle_positions())
-    sink.log_scalar("ess_ratio", result.ess_ratio)
-    sink.log_scalar("log_likelihood_max", result.log_likelihood_max)
-    sink.log_scalar("spread/position_mm", 1e3 * result.position_spread)
-    sink.log_scalar("spread/rotation_deg", np.rad2deg(result.rotation_spread))
-    sink.log_scalar("status", metrics.STATUS_CODE.get(result.status, 2))
-    if add_mm is not None:
-        sink.log_scalar("error/add_mm", add_mm)
-        sink.log_scalar("error/rotation_deg", rot_deg)
+@dataclass
+class ProjectorOptions:
+    config: str | Path | None = None
+    every: int = 3
+    images: bool = False
+
+
+@dataclass
+class ReplaySinks:
+    """Replay's sinks, in the core's order: scoring (with ground truth), trajectory, rerun, projector, files."""
+
+    trajectory: Trajectory
+    scoring: GroundTruthScoring
+    all: list
+    projector_skipped: str | None = None
+
+    @property
+    def plan(self):
+        """The projector's plan (None without a projector)."""
+        return next((s.plan for s in self.all if isinstance(s, ProjectorEstimates)), None)
+
+    @classmethod
+    def open(cls, reader, tracker: EngineTracker, mesh, out: Path | None, rrd: bool, projector: bool,
+             options: ProjectorOptions) -> "ReplaySinks":
+        sinks = cls(Trajectory(), GroundTruthScoring(np.asarray(mesh.vertices)), [])
+        sinks.all = [sinks.scoring, sinks.trajectory]
+        if out is None:
+            return sinks
+        out.mkdir(parents=True, exist_ok=True)
+        rerun = None
+        if rrd:
+            from app.viz.rerun_log import RerunLog
+
+            log_ = RerunLog.to_file(out / "log.rrd")
+            log_.log_static_scene(reader.meta.camera, np.asarray(mesh.vertices), np.asarray(mesh.faces),
+                                  with_groundtruth=reader.groundtruth is not None)
+            log_.log_image_streams(reader.meta.streams)
+            log_.log_text("backend", tracker.description)
+            rerun = RerunSink(log_, reader.meta.T_flange_camera, depth_every=3, bone_when=("ok", "uncertain"))
+            sinks.all.append(rerun)
+        if projector:
+            sinks._open_projector(mesh, out, rerun, options)
+        sinks.all.append(EstimateFiles(out))
+        return sinks
+
+    def _open_projector(self, mesh, out: Path, rerun: RerunSink | None, options: ProjectorOptions) -> None:
+        from app.projector.sink import ProjectorSink
+
+        try:   # a plan that does not fit this trial's mesh is replaced by one derived from it (never a failed replay)
+            projector = ProjectorSink.from_config(options.config, np.asarray(mesh.vertices), np.asarray(mesh.faces),
+                                                  rec=rerun.log.rec if rerun is not None else None,
+                                                  png_dir=out / "projector" if options.images else None,
+                                                  error_every=2, derive_plan=True)
+        except MeshError as exc:
+            log.warning("projector skipped: no plan fits this trial's mesh (%s)", exc)
+            self.projector_skipped = str(exc)
+            return
+        self.all.append(ProjectorEstimates(projector, every=options.every, age_s=0.0))
 
 
 def _check_start(reader, trial_dir: Path, from_point: bool) -> None:
@@ -198,7 +213,7 @@ def _init_summary(init, reader, points: np.ndarray) -> dict:
     return out
 
 
-def _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_deg, elapsed, points) -> dict:
+def _summary(reader, config, tracker, stamps, statuses, scoring: GroundTruthScoring, elapsed, points) -> dict:
     n = len(stamps)
     summary = {
         "trial": str(reader.path),
@@ -212,18 +227,10 @@ def _summary(reader, config, tracker, stamps, statuses, add_mm, trans_mm, rot_de
         "backend": getattr(tracker, "backend_name", None),   # the likelihood backend that ran (render.backend)
         "status_fraction": {s: statuses.count(s) / n if n else 0.0 for s in ("ok", "uncertain", "lost")},
         "timings_ms": tracker.mean_timings_ms(),
+        **tracker_report(tracker),     # re-initialisations (count, stamps), template points: plan | mesh_vertices
     }
     init = getattr(tracker, "init_result", None)
     if init is not None:
         summary["init"] = _init_summary(init, reader, points)
-    if add_mm:
-        add = np.array(add_mm)
-        ok = np.array([s == "ok" for s in statuses])
-        summary.update({
-            "add_mm": metrics.summarise(add),
-            "translation_mm": metrics.summarise(trans_mm),
-            "rotation_deg": metrics.summarise(rot_deg),
-            "lost_fraction": float(np.mean(add > 1e3 * LOST_ADD_M)),
-            "dangerous_frames": int(np.sum(ok & (add > 1e3 * DANGEROUS_ADD_M))),
-        })
+    summary.update(scoring.summary())
     return summary

@@ -4,6 +4,11 @@ One object per session: it owns the backend (``render.backend``: GL resources ar
 calling thread; app/render/backends.py), the
 tracking mesh (decimated to ``config.mesh_triangles``) and the filter. ``process`` is the per-frame
 entry point used by ``replay`` and ``track``: full-resolution depth in, estimate and status out.
+A lost track re-initialises itself (``recovery.*``, app/filter/recovery.py); the
+re-initialisations are in :meth:`DepthTracker.report` and each frame's ``FilterOutput.reinitialised``.
+The status's predicted template error is computed over the plan's template points when the tracker
+is given them (:meth:`DepthTracker.use_plan_points`: replay with a plan, a session with the
+projector), else over ``PLAN_POINTS`` of the mesh's vertices (a conservative bound).
 """
 from __future__ import annotations
 
@@ -17,6 +22,7 @@ import trimesh
 from app.config import TrackerConfig
 from app.depth_image import downsample_nearest
 from app.filter.particle_filter import FilterOutput, ParticleFilter
+from app.filter.recovery import RESPREAD, RecoveryPolicy
 from app.filter.refine import Refiner, RefineParams
 from app.filter.refine_track import RefinedTrack
 from app.filter.status import RefinementEvidence, TrackingStatus, with_refinement
@@ -63,12 +69,36 @@ class DepthTracker:
         self._pending_point: np.ndarray | None = None
         self._started_from_point = False
         self.init_result = None
+        self.recovery = _recovery_policy(config, self.mesh_vertices, self.mesh_faces)
+        self.template_points = "mesh_vertices"
+        self._T_base_bone_last: np.ndarray | None = None
 
     def start(self, T_base_bone: np.ndarray) -> None:
         """Spread the particles around a coarse initial pose (the surgeon's alignment)."""
         self.filter.initialise(T_base_bone)
         if self.refined_track is not None:
             self.refined_track.seed(T_base_bone)
+        if self.recovery is not None:
+            self.recovery.set_start(T_base_bone)
+
+    def set_point_prior(self, point_base: np.ndarray | None) -> None:
+        """A point on the bone in the base frame (m; the trial's or session's ``point_prior``): the
+        recovery's one-point initialiser starts from it (app/filter/recovery.py)."""
+        if point_base is not None:
+            point_base = np.asarray(point_base, dtype=float).reshape(3)
+            if not np.all(np.isfinite(point_base)):
+                raise ValueError(f"the point prior must be 3 finite numbers, got {point_base!r}")
+        if self.recovery is not None:
+            self.recovery.set_point_prior(point_base)
+
+    def use_plan_points(self, points_bone: np.ndarray) -> None:
+        """Bound the predicted error of these template points (bone frame, m; the plan's) in the status
+        instead of the mesh's vertices (app/filter/status.py, ``max_template_std``)."""
+        points_bone = np.asarray(points_bone, dtype=float).reshape(-1, 3)
+        if self.refined_track is None or len(points_bone) == 0:
+            return
+        self.refined_track.plan_points = points_bone - self.refined_track.refiner.center
+        self.template_points = "plan"
 
     def start_from_point(self, point_base: np.ndarray) -> None:
         """Start from one point on the bone (base frame, m): the one-point SMC initialiser runs on the
@@ -85,6 +115,8 @@ class DepthTracker:
             raise ValueError(f"the point on the bone must be 3 finite numbers, got {point_base!r}")
         self._pending_point = point
         self._started_from_point = True
+        if self.recovery is not None and self.recovery.point_prior is None:
+            self.recovery.set_point_prior(point)
 
     def _initialise_from_point(self, depth_small: np.ndarray, T_base_camera: np.ndarray) -> None:
         from app.filter.smc_init import OnePointInitialiser, seed_state, smc_config_for
@@ -99,15 +131,24 @@ class DepthTracker:
         """One frame: full-resolution depth (H, W) metres, its stamp (s) and camera pose (None = unknown)."""
         width, height = self.config.resolution
         depth_small = downsample_nearest(depth_m, width, height)
+        usable = T_base_camera is not None and bool(np.any(np.isfinite(depth_small) & (depth_small > 0)))
         if self._pending_point is not None:
-            if T_base_camera is None or not np.any(np.isfinite(depth_small) & (depth_small > 0)):
+            if not usable:
                 return self._not_started(stamp)
             self._initialise_from_point(depth_small, T_base_camera)
+        reinitialised = self.recovery is not None and self.recovery.pending is not None and usable
+        if reinitialised:
+            self._reinitialise(depth_small, T_base_camera, stamp)
         result = self.filter.step(depth_small, stamp, T_base_camera)
         if self.refined_track is not None:
             result = self._refine(result, depth_m, T_base_camera)
         if self._started_from_point and result.status == TrackingStatus.OK:
             result = replace(result, status=TrackingStatus.UNCERTAIN)   # start_from_point: never ok
+        if self.recovery is not None:
+            status = self.recovery.update(result.status, result.weighed, result.refined, result.refine_fitness,
+                                          result.T_base_bone, stamp)
+            result = replace(result, status=status, reinitialised=reinitialised)
+        self._T_base_bone_last = result.T_base_bone
         for stage, seconds in result.timings.items():
             self._timings[stage] += seconds
         for stage, seconds in self.backend.timings.items():
@@ -139,6 +180,43 @@ class DepthTracker:
         return replace(result, T_base_bone=T_base_bone, status=status, timings=timings, refine_fitness=out.fitness,
                        template_std=out.template_std, refined=out.T_base_bone is not None, competitor=out.competitor)
 
+    def _reinitialise(self, depth_small: np.ndarray, T_base_camera: np.ndarray, stamp: float) -> None:
+        """The recovery's due attempt (app/filter/recovery.py): a wide re-spread around the last
+        confident pose, or the one-point SMC initialiser on this frame."""
+        policy = self.recovery
+        T_now = self._T_base_bone_last if self._T_base_bone_last is not None else policy.T_base_bone_confident
+        if policy.T_base_bone_confident is None:
+            policy.set_start(T_now)
+        kind = policy.next_kind()
+        if kind == RESPREAD:
+            self.filter.set_state(policy.respread_state(self.config.particles, self.filter.rng))
+            if self.refined_track is not None:
+                self.refined_track.seed(policy.T_base_bone_confident)
+        else:
+            self._smc_from(policy.smc_point(), depth_small, T_base_camera)
+            if self.refined_track is not None:
+                self.refined_track.reset()
+        log.info("recovery at %.3f s: %s (%s)", stamp, kind, policy.pending)
+        policy.done(stamp, kind)
+
+    def _smc_from(self, point_base: np.ndarray, depth_small: np.ndarray, T_base_camera: np.ndarray) -> None:
+        """The one-point initialiser with the recovery's budget (likelihood evaluations), one run."""
+        from app.filter.smc_init import OnePointInitialiser, seed_state, smc_config_for
+
+        budget = self.config.recovery.smc_evaluations
+        smc = smc_config_for(self.config, max_evaluations=budget, prior_draws=max(budget // 3, 1), restarts=1)
+        initialiser = OnePointInitialiser(self.backend, self.camera, self.mesh_vertices, self.mesh_faces, smc,
+                                          self.filter.rng)
+        result = initialiser.run(depth_small, T_base_camera, point_base)
+        self.filter.set_state(seed_state(result, self.config.particles, self.filter.rng))
+
+    def report(self) -> dict:
+        """For the summaries: the re-initialisations (count, stamps, kinds, reasons) and which points
+        the status's predicted template error was computed over ('plan' | 'mesh_vertices')."""
+        recovery = self.recovery.report() if self.recovery is not None else \
+            {"enabled": False, "reinitialisations": 0, "events": []}
+        return {"recovery": recovery, "template_points": self.template_points}
+
     def _not_started(self, stamp: float) -> FilterOutput:
         """A lost result while the one-point initialiser waits for a frame it can use (the pose: the
         pointed point, identity rotation; a lost status blanks every output that would use it)."""
@@ -161,6 +239,60 @@ class DepthTracker:
 
 
 PLAN_POINTS = 300   # mesh vertices standing in for the template's points in the status's error bound
+
+
+def _inner(tracker):
+    """The DepthTracker behind a session plugin (app/pipeline/engine_tracker.py's ``engine``), or itself."""
+    return tracker if hasattr(tracker, "report") else getattr(tracker, "engine", tracker)
+
+
+def tracker_report(tracker) -> dict:
+    """``DepthTracker.report()`` for a summary ({} for a tracker without one, e.g. the ICP baseline)."""
+    inner = _inner(tracker)
+    return inner.report() if hasattr(inner, "report") else {}
+
+
+def start_tracker(tracker, initial_pose: np.ndarray | None, point_prior: np.ndarray | None) -> None:
+    """Start a session's tracker: from the coarse initial pose when given, else from the point prior
+    (the one-point initialiser: never ok, DepthTracker.start_from_point); the point prior is kept for
+    the recovery either way."""
+    inner = _inner(tracker)
+    if point_prior is not None and hasattr(inner, "set_point_prior"):
+        inner.set_point_prior(point_prior)
+    if initial_pose is not None:
+        tracker.start(np.asarray(initial_pose, float))
+    elif point_prior is not None and hasattr(inner, "start_from_point"):
+        inner.start_from_point(point_prior)
+    else:
+        from app.errors import ConfigError
+
+        raise ConfigError("bone.initial_pose", "missing: this tracker starts from a coarse 4x4 T_base_bone "
+                          "(or give bone.point_prior for the particle filter)")
+
+
+def use_plan(tracker, plan) -> None:
+    """Give a tracker the plan's template points for its status bound (when it takes them)."""
+    inner = _inner(tracker)
+    if plan is not None and hasattr(inner, "use_plan_points"):
+        inner.use_plan_points(plan.points())
+
+
+def use_projector_plan(tracker, sinks) -> None:
+    """A session: the plan of the first projector output (plugins/projector_output.py's ``sink.plan``)."""
+    plans = (getattr(getattr(s, "sink", None), "plan", None) for s in sinks)
+    use_plan(tracker, next((p for p in plans if p is not None), None))
+
+
+def _recovery_policy(config: TrackerConfig, vertices: np.ndarray, faces: np.ndarray) -> RecoveryPolicy | None:
+    """The recovery policy (app/filter/recovery.py) with the mesh's centroid and the surface point
+    nearest it, or None when ``recovery.enabled`` is false."""
+    if not config.recovery.enabled:
+        return None
+    centroid = vertices.mean(axis=0)
+    surface_point = vertices[np.argmin(np.linalg.norm(vertices - centroid, axis=1))]
+    st = config.status
+    return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, st.min_fitness,
+                          (st.uncertain_speed, st.uncertain_angular_speed, st.motion_window_s))
 
 
 def _filter_config(config: TrackerConfig) -> TrackerConfig:

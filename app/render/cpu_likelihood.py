@@ -21,6 +21,7 @@ import numba
 import numpy as np
 
 from app.filter.likelihood_ref import LikelihoodParams
+from app.filter.observation import Evidence, depth_evidence, has_valid_depth
 from app.geometry.camera import PinholeCamera
 from app.render import cpu_raster
 from app.render.batched import DEFAULT_FAR, DEFAULT_NEAR
@@ -125,9 +126,27 @@ class CPULikelihoodBackend:
         cpu_raster.render_batch(T, self.vertices, self.faces, self.cam, self.cull, self.zbufs, out)
         return out
 
+    def resized(self, camera: PinholeCamera, vertices: np.ndarray | None = None, faces: np.ndarray | None = None,
+                cull_back_faces: bool | None = None) -> "CPULikelihoodBackend":
+        """The same likelihood and clip planes at another camera, optionally with another mesh (a
+        coarser one; ``cull_back_faces`` then says whether it is wound outwards): the one-point
+        initialiser's coarse levels (:func:`app.filter.smc_init.levels.make_levels`)."""
+        same = vertices is None
+        return CPULikelihoodBackend(self.vertices if same else vertices, self.faces if same else faces, camera,
+                                    self.capacity, self.params, near=float(self.cam[4]), far=float(self.cam[5]),
+                                    cull_back_faces=self.cull if cull_back_faces is None else cull_back_faces)
+
     def sync(self) -> None:
         """Nothing to wait for: the kernels return when done (the GL backend's ``sync`` waits)."""
 
     def release(self) -> None:
         """Nothing to free but memory (kept for the backend contract)."""
         self.zbufs = np.zeros((0, 0, 0))
+
+    def has_measurement(self, depth_meas: np.ndarray) -> bool:
+        """Whether any pixel is a valid measurement (:class:`app.filter.observation.ObservationModel`)."""
+        return has_valid_depth(depth_meas, self.params)
+
+    def evidence(self, T_camera_bone: np.ndarray, depth_meas: np.ndarray, min_covered_pixels: int) -> Evidence:
+        """The pose's covered pixels and inliers (:func:`app.filter.observation.depth_evidence`)."""
+        return depth_evidence(self.render_depth, T_camera_bone, depth_meas, self.params, min_covered_pixels)

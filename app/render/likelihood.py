@@ -20,6 +20,7 @@ import moderngl
 import numpy as np
 
 from app.filter.likelihood_ref import LOG_FLOOR, LikelihoodParams
+from app.filter.observation import Evidence, depth_evidence, has_valid_depth
 from app.geometry.camera import PinholeCamera
 from app.render import shaders
 from app.render.batched import DEFAULT_FAR, DEFAULT_NEAR, BatchedDepthRenderer
@@ -152,6 +153,14 @@ class GLLikelihoodBackend:
         self.renderer.release()
         for obj in (self.shader, self.measured, self.output, self.boxes):
             obj.release()
+
+    def has_measurement(self, depth_meas: np.ndarray) -> bool:
+        """Whether any pixel is a valid measurement (:class:`app.filter.observation.ObservationModel`)."""
+        return has_valid_depth(depth_meas, self.params)
+
+    def evidence(self, T_camera_bone: np.ndarray, depth_meas: np.ndarray, min_covered_pixels: int) -> Evidence:
+        """The pose's covered pixels and inliers (:func:`app.filter.observation.depth_evidence`)."""
+        return depth_evidence(self.render_depth, T_camera_bone, depth_meas, self.params, min_covered_pixels)
 
 
 

@@ -26,7 +26,7 @@ from there. Every error names the key (dotted) and the allowed values.
 
 Modules: :mod:`app.session.config` (the file), :mod:`app.session.bus` (events, joints, the bus),
 :mod:`app.session.loop` (the loop), :mod:`app.session.summary` (latency, rate, memory),
-:mod:`app.session.files` (estimate.txt, status.csv). Import the public names from here.
+:class:`app.pipeline.sinks.EstimateFiles` (estimate.txt, status.csv). Import the public names from here.
 
 The loop (:func:`run_session`), one thread (the tracker's GL context lives on it):
 
@@ -52,7 +52,7 @@ from __future__ import annotations
 from app.session.bus import Bus, EventLog, JointBuffer
 from app.session.config import (FORMAT, LoopConfig, PluginSpec, SessionConfig, load_session, parse_session,
                                 resolve_session)
-from app.session.files import EstimateFiles
+from app.pipeline.sinks import EstimateFiles
 from app.session.loop import LiveLoop, run_session
 from app.session.summary import LatencyLog, SessionResult, rss_mb
 

@@ -7,6 +7,7 @@ drop-oldest queue). The :class:`JointBuffer` interpolates the joints at a frame'
 """
 from __future__ import annotations
 
+import collections
 import csv
 import logging
 import threading
@@ -28,11 +29,11 @@ class EventLog:
     The same (source, kind) within ``repeat_s`` is counted but not repeated.
     """
 
-    def __init__(self, clock: SessionClock, path: Path | None, repeat_s: float = 1.0):
+    def __init__(self, clock: SessionClock, path: Path | None, repeat_s: float = 1.0, history: int | None = None):
         self.clock = clock
         self.repeat_s = repeat_s
         self.counts: Counter = Counter()
-        self.events: list[SessionEvent] = []
+        self.events: collections.deque[SessionEvent] = collections.deque(maxlen=history)  # the last `history`
         self.sinks: list = []
         self._last: dict[tuple[str, str], float] = {}
         self._lock = threading.Lock()

@@ -59,6 +59,7 @@ class SessionConfig:
     intrinsics: PinholeCamera | None = None
     mesh: Path | None = None
     initial_pose: np.ndarray | None = None
+    point_prior: np.ndarray | None = None
     record: Path | None = None
     out: Path | None = None
     loop: LoopConfig = field(default_factory=LoopConfig)
@@ -113,6 +114,20 @@ def _matrix4(key: str, value: Any, base: Path, src: str) -> np.ndarray | None:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or not np.allclose(T[3], [0, 0, 0, 1]) or np.linalg.det(R) < 0:
         raise ConfigError(key, "not a rigid transform (rotation not orthonormal, or last row not 0 0 0 1)", src)
     return T
+
+
+def _point3(key: str, value: Any, src: str) -> np.ndarray | None:
+    """A point in the base frame (m), inline as [x, y, z]: ``bone.point_prior``, a point on the bone
+    (the tracker's recovery starts its one-point initialiser there, app/filter/recovery.py)."""
+    if value is None:
+        return None
+    ok = isinstance(value, (list, tuple)) and len(value) == 3 and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    p = np.asarray(value, dtype=float) if ok else None
+    if p is None or not np.all(np.isfinite(p)):
+        raise ConfigError(key, f"expected a point on the bone in the base frame, metres: [x, y, z] (3 finite "
+                          f"numbers, e.g. [0.61, -0.12, 0.05]), got {value!r}", src)
+    return p
 
 
 def _plugin(kind: str, value: Any, base: Path, src: str, default: str | None = None) -> PluginSpec:
@@ -183,7 +198,7 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
     intrinsics = _intrinsics(calib.get("intrinsics"), base, src)
     bone = _mapping("bone", raw.get("bone"), src)
     for k in bone:
-        _allowed(f"bone.{k}", k, ("mesh", "initial_pose"), src)
+        _allowed(f"bone.{k}", k, ("mesh", "initial_pose", "point_prior"), src)
     mesh = _resolve(base, bone.get("mesh"))
     if mesh is not None and not mesh.is_file():
         raise ConfigError("bone.mesh", f"file not found: {mesh}", src)
@@ -192,6 +207,7 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
         path=path, camera=camera, robot=robot, tracker=tracker, outputs=outputs, robot_model=robot_model,
         hand_eye=_matrix4("calibration.hand_eye", calib.get("hand_eye"), base, src), intrinsics=intrinsics,
         mesh=mesh, initial_pose=_matrix4("bone.initial_pose", bone.get("initial_pose"), base, src),
+        point_prior=_point3("bone.point_prior", bone.get("point_prior"), src),
         record=_resolve(base, raw.get("record")), out=_resolve(base, raw.get("out")), loop=loop,
     )
 
@@ -224,7 +240,7 @@ def _loop_config(loop_raw: dict, src: str) -> LoopConfig:
 
 
 def resolve_session(config: SessionConfig, camera_model: PinholeCamera, defaults: dict) -> dict:
-    """Calibration, robot model, mesh and initial pose: the file's, else the sources'."""
+    """Calibration, robot model, mesh, initial pose and point prior: the file's, else the sources'."""
     from app.geometry.ur import dh_from_config
 
     robot = config.robot_model or defaults.get("robot")
@@ -235,6 +251,7 @@ def resolve_session(config: SessionConfig, camera_model: PinholeCamera, defaults
         raise ConfigError("calibration.hand_eye", "missing: the 4x4 camera pose in the flange frame (a file or inline)")
     mesh = config.mesh or defaults.get("mesh")
     initial_pose = config.initial_pose if config.initial_pose is not None else defaults.get("initial_pose")
+    point_prior = config.point_prior if config.point_prior is not None else defaults.get("point_prior")
     return {"camera": config.intrinsics or camera_model, "robot": robot, "dh": dh_from_config(robot),
             "T_flange_camera": np.asarray(T_flange_camera, float), "mesh_path": Path(mesh) if mesh else None,
-            "initial_pose": initial_pose}
+            "initial_pose": initial_pose, "point_prior": point_prior}

@@ -1,7 +1,8 @@
 """The live loop (:func:`run_session`): sources -> bus -> newest frame -> tracker -> estimate -> sinks.
 
 One thread (the tracker's GL context lives on it). See :mod:`app.session` for the steps; the
-per-frame work is :meth:`LiveLoop.process`, the tick without frames :meth:`LiveLoop.no_frame`.
+per-frame work is :meth:`LiveLoop.process` (the camera pose, then the per-frame core shared with
+replay, :class:`app.pipeline.frame_core.FrameCore`), the tick without frames :meth:`LiveLoop.no_frame`.
 """
 from __future__ import annotations
 
@@ -17,11 +18,12 @@ import numpy as np
 from app import plugins_registry as registry
 from app.errors import ConfigError
 from app.interfaces import DepthFrame, Estimate, SessionClock
-from app.metrics import STATUS_CODE as STATUS_RANK
+from app.pipeline.frame_core import FrameCore
+from app.pipeline.sinks import EstimateFiles
+from app.pipeline.tracker import start_tracker, tracker_report, use_projector_plan
 from app.session.bus import Bus, EventLog, JointBuffer
 from app.session.config import PluginSpec, SessionConfig, resolve_session
-from app.session.files import EstimateFiles
-from app.session.summary import LatencyLog, SessionResult, rss_mb
+from app.session.summary import ESTIMATE_HISTORY, EVENT_HISTORY, LatencyLog, SessionResult, rss_mb
 
 log = logging.getLogger("app.session")
 
@@ -66,18 +68,20 @@ class LiveLoop:
         self.out = config.out
         if self.out is not None:
             self.out.mkdir(parents=True, exist_ok=True)
-        self.events = EventLog(self.clock, self.out / "events.csv" if self.out else None, self.lc.event_repeat_s)
+        self.events = EventLog(self.clock, self.out / "events.csv" if self.out else None, self.lc.event_repeat_s,
+                               history=EVENT_HISTORY)
         self.camera = registry.create("camera", config.camera.name, config.camera.params, "camera")
         self.robot = registry.create("robot", config.robot.name, config.robot.params, "robot")
         self.sinks: list = []
         self.tracker = None
         self.estimate_files: EstimateFiles | None = None
+        self.core = FrameCore(None, [], now=self.clock.now)   # wired in open(): tracker, files + output sinks
         self.bus: Bus | None = None
         self.ctx: dict = {}
         self.started: list = []
         self.statuses: Counter = Counter()
         self.latency = LatencyLog()
-        self.estimates: collections.deque = collections.deque(maxlen=100_000)
+        self.estimates: collections.deque = collections.deque(maxlen=ESTIMATE_HISTORY)
         self.rss: dict = {}
         self.t_start = self.clock.now()
 
@@ -101,17 +105,19 @@ class LiveLoop:
                    image_streams=defaults.get("image_streams"))
         self.ctx = ctx
         if config.tracker is not None:
-            self.tracker = self._create_tracker(mesh)
+            self.tracker = self.core.tracker = self._create_tracker(mesh)
         self._open_sinks()
+        use_projector_plan(self.tracker, self.sinks)   # the status bounds the plan's template points
         if self.out is not None and self.tracker is not None:
             self.estimate_files = EstimateFiles(self.out)
+        self.core.sinks = [self.estimate_files, *self.sinks] if self.estimate_files is not None else list(self.sinks)
         joints = JointBuffer(self.lc.joint_buffer_s, self.lc.max_joint_gap_s)
         self.bus = Bus(ctx["camera"], self.events, joints, self.sinks, self.lc.tracker_queue)
 
     def _create_tracker(self, mesh):
         if mesh is None:
             raise ConfigError("bone.mesh", "missing: the tracker needs the bone mesh")
-        if self.ctx["initial_pose"] is None:
+        if self.ctx["initial_pose"] is None and self.ctx.get("point_prior") is None:
             raise ConfigError("bone.initial_pose", "missing: the tracker starts from a coarse 4x4 T_base_bone")
         spec = self.config.tracker
         return registry.create("tracker", spec.name, spec.params, "tracker", mesh=mesh, camera=self.ctx["camera"],
@@ -130,7 +136,7 @@ class LiveLoop:
     def start(self) -> None:
         """Start the tracker and the sources (robot first); the duration counts from here."""
         if self.tracker is not None:
-            self.tracker.start(np.asarray(self.ctx["initial_pose"], float))
+            start_tracker(self.tracker, self.ctx["initial_pose"], self.ctx.get("point_prior"))
         self.robot.start(self.bus.push_joints)
         self.started.append(self.robot)
         self.t_sources = self.clock.now()
@@ -177,19 +183,20 @@ class LiveLoop:
                 sink.on_estimate(est)
 
     def process(self, frame: DepthFrame, t_pop: float) -> None:
-        """One frame (popped at ``t_pop``): camera pose, tracker, estimate, sinks, latency."""
+        """One frame (popped at ``t_pop``): camera pose, then the core (tracker, estimate, sinks), latency."""
         if self.stalled:
             self.events.emit("session", "camera_recovered", f"frames again after {t_pop - self.last_frame_host:.2f} s")
             self.stalled = False
         self.last_frame_host = t_pop
         T_base_camera, reasons = self._camera_pose(frame, t_pop)
-        est, t_estimate = self._estimate(frame, T_base_camera, reasons, t_pop)
+        floor = None
+        if T_base_camera is None:   # capped without a camera pose: uncertain, lost after robot_lost_s
+            floor = "lost" if t_pop - self.last_pose_host > self.lc.robot_lost_s else "uncertain"
+        est = self.core.process(frame, T_base_camera, reasons, floor)
         self.statuses[est.status] += 1
         self.estimates.append(_light(est))
-        for sink in self.sinks:
-            sink.on_estimate(est)
-        if t_estimate is not None:
-            self.latency.add(frame, t_pop, t_estimate, self.clock.now())
+        if self.core.t_estimate is not None:
+            self.latency.add(frame, t_pop, self.core.t_estimate, self.clock.now())
         if self.progress:
             self.progress(est)
 
@@ -204,45 +211,15 @@ class LiveLoop:
         self.last_pose_host = now
         return forward_kinematics(self.ctx["dh"], q) @ self.ctx["T_flange_camera"], []
 
-    def _estimate(self, frame: DepthFrame, T_base_camera, reasons: list[str], now: float):
-        """The tracker's estimate of ``frame`` (status capped without a camera pose) and its host time."""
-        if self.tracker is None:
-            return Estimate(frame.stamp, frame.frame_id, None, "lost", T_base_camera, self.clock.now() - frame.stamp,
-                            ("not tracking",)), None
-        if hasattr(self.tracker, "on_frame_images"):   # a tracker that reads the camera's images (marker_imu)
-            self.tracker.on_frame_images(frame.infrared, frame.color)
-        result = self.tracker.process(frame.depth_m, frame.stamp, T_base_camera)
-        status = result.status
-        if T_base_camera is None:
-            floor = "lost" if now - self.last_pose_host > self.lc.robot_lost_s else "uncertain"
-            status = max(status, floor, key=STATUS_RANK.get)
-        t_estimate = self.clock.now()
-        est = Estimate(frame.stamp, frame.frame_id, np.asarray(result.T_base_bone, float), status, T_base_camera,
-                       t_estimate - frame.stamp, tuple(reasons),
-                       {"ess_ratio": getattr(result, "ess_ratio", None),
-                        "position_spread": getattr(result, "position_spread", None),
-                        "rotation_spread": getattr(result, "rotation_spread", None),
-                        "frame": frame})
-        if self.estimate_files is not None:
-            self.estimate_files.write(est)
-        return est, t_estimate
-
     # ------------------------------------------------------------------ shutdown
     def close(self) -> dict:
         """Stop the sources, close sinks and files, release the tracker; the summary (also summary.json)."""
         for source in reversed(self.started):
             source.stop()
-        sink_reports = {}
-        for sink in self.sinks:
-            try:
-                sink_reports[type(sink).__name__] = sink.close()
-            except Exception as exc:
-                log.exception("closing an output failed")
-                sink_reports[type(sink).__name__] = {"error": str(exc)}
-        if self.estimate_files is not None:
-            self.estimate_files.close()
-        if self.tracker is not None:
-            self.tracker.release()
+        if not self.core.sinks:                 # open() stopped before wiring the core: close what it opened
+            self.core.sinks = list(self.sinks)
+        sink_reports = self.core.close()        # the outputs (last first), the files, then the tracker
+        sink_reports.pop("EstimateFiles", None)
         summary = self.summary(sink_reports)
         if self.out is not None:
             (self.out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
@@ -264,12 +241,14 @@ class LiveLoop:
             "events": dict(self.events.counts),
             "rss_mb": {**self.rss, "end": rss_mb()},
             "outputs": sink_reports,
+            **tracker_report(self.tracker),     # re-initialisations, template points (app/pipeline/tracker.py)
         }
 
 
 def _light(est: Estimate) -> Estimate:
-    """The estimate without its depth image (kept in memory for the whole session)."""
-    diag = {k: v for k, v in est.diagnostics.items() if k != "frame"}
+    """The estimate without its images, tracker result and particles (the loop keeps the last
+    ESTIMATE_HISTORY in memory)."""
+    diag = {k: v for k, v in est.diagnostics.items() if k not in ("frame", "result", "particles", "T_base_bone_true")}
     return Estimate(est.stamp, est.frame_id, est.T_base_bone, est.status, est.T_base_camera, est.latency_s,
                     est.reasons, diag)
 

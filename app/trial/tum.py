@@ -33,6 +33,11 @@ def format_tum_row(stamp: float, T: np.ndarray) -> str:
     return f"{float(stamp):.9f} " + " ".join(f"{v:.9f}" for v in values) + "\n"
 
 
+def format_status_row(stamp: float, status: str) -> str:
+    """One ``status.csv`` line (with its newline): ``stamp,status``."""
+    return f"{float(stamp):.9f},{status}\n"
+
+
 def write_tum(path: str | Path, stamps: np.ndarray, T: np.ndarray) -> None:
     """Write poses ``T`` (N, 4, 4) at ``stamps`` (N,) seconds to a TUM file with its header."""
     stamps = np.asarray(stamps, dtype=float).reshape(-1)
@@ -94,7 +99,7 @@ def write_status_csv(path: str | Path, stamps: np.ndarray, statuses) -> None:
     bad = sorted({s for s in statuses if s not in STATUSES})
     if bad:
         raise ValueError(f"write_status_csv: unknown status {bad}; expected one of {', '.join(STATUSES)}")
-    lines = [STATUS_HEADER + "\n"] + [f"{s:.9f},{status}\n" for s, status in zip(stamps, statuses)]
+    lines = [STATUS_HEADER + "\n"] + [format_status_row(s, status) for s, status in zip(stamps, statuses)]
     Path(path).write_text("".join(lines))
 
 

@@ -1,0 +1,274 @@
+"""Automatic recovery of a lost track: when to re-initialise the filter, and around what.
+
+Import as ``from app.filter.recovery import RecoveryPolicy``. Wired in
+:class:`app.pipeline.tracker.DepthTracker` (issue 12, item 4), so replay, ``osteonav track`` and the
+bench all get it with ``recovery.enabled: true``. **Off by default**: on the eight CT crests under an
+80 % hand (BENCHMARKS.md §6b) it found no lost track that the tracker did not find by itself, and it
+lost two tracks that held without it (crest_right_04 and crest_right_05: 0 -> 37-39 % of the frames
+lost, and 81 frames ok while > 5 mm off on crest_right_05): re-spread while most of the crest is
+hidden, the filter and the refinement settle on a wrong fit of the visible part, which then passes
+the status rules.
+
+**Trigger.** A frame is *bad* when its status is lost, or (with the refinement on) it was weighed
+and the refined fit no longer confirms the visible bone: not refined at all (refine_track.py kept no
+fit confirming ``refine.keep_fitness``) or its fitness is below ``status.min_fitness`` (the status
+rule's 0.6; a crest turned 90 deg on the synthetic trial of tests/test_recovery.py stayed refined at
+a lower fit, uncertain, never lost). A weighed frame that is neither resets the count; a frame that
+was not weighed and not lost (the bone hidden by a hand, no camera pose) neither counts nor resets:
+the particles are held there (particle_filter.py), and the recovery waits for the bone to be
+visible. After ``after_lost_frames`` bad frames in a row a re-initialisation is due. A second,
+slower trigger: ``after_uncertain_frames`` weighed frames in a row that are not ok while the
+estimate is still (0 = off): on the CT crests under a rising hand the filter and the refinement slid
+together along the crest to 47 mm off with a fit of 0.65-0.9, uncertain (the predicted template
+error), never lost (BENCHMARKS.md §6b). The estimate is still when it moved less than
+``status.uncertain_speed`` / ``uncertain_angular_speed`` over ``STILL_WINDOW_S`` = 0.5 s (longer
+than the status's 0.2 s: a wrong track's refined pose jumps a few millimetres between frames, which
+over 0.2 s read as motion and kept the count at 0 on crest_left_02 while 64-100 mm off); a moving
+estimate restarts that count: a bone being repositioned is uncertain for seconds (status.py's motion
+rule), and a re-spread around its pose before the move would lose it. The low-fit and the slow
+trigger also need the estimate more than ``FAR_M`` / ``FAR_RAD`` = 5 mm / 5 deg (refine_track.py's
+competitor gap) from the last confident pose: under an 80 % hand a correct track is uncertain for
+seconds (the predicted template error), and re-initialising it there raised crest_left_05's lost
+share from 1.6 to 16 %. It did not save crest_right_04 / _05, whose tracks had been > 5 mm off for a
+moment (and came back by themselves without recovery; BENCHMARKS.md §6b). The re-initialisation
+runs on the next frame that has a camera pose and valid depth.
+
+**What.** Attempts since the last ok frame are numbered k = 0, 1, ...; attempt k is
+
+- a *re-spread* when k mod (``respreads`` + 1) < ``respreads``: the particles drawn around the last
+  confident (ok) pose, wider than the start (``respread_sigma_p`` per axis; a rotation
+  r ~ N(0, ``respread_sigma_r``² I) about the bone's centroid c in the base frame, so that
+  p' = c + R(r)(p - c) + ε, q' = exp(r) ⊗ q: turning about the bone frame's origin, which need not
+  lie on the bone, would throw the crest centimetres away); cheap: no extra likelihood evaluation.
+  Not around the current estimate too: on crest_left_03 (static_occluded) half of the particles
+  there kept a wrong pose 105 mm off alive, and the filter and the refinement went back to it
+  after the re-spread had found the bone (0.2 mm);
+- else the *one-point SMC initialiser* (app/filter/smc_init.py) around a point on the bone: the
+  trial's / session's ``point_prior`` when given, else the last confident pose's surface point
+  nearest the bone's centroid; its budget is ``smc_evaluations`` pose likelihood evaluations
+  (work, never seconds).
+
+Without any ok frame yet, the last confident pose is the start pose. After attempt k the next one
+waits at least ``cooldown_frames`` · 2^min(k, 3) frames (a scene that can never be tracked, e.g. a
+crest buried in tissue, is not re-initialised every few frames).
+
+**Honesty.** For ``hold_frames`` weighed frames after a re-initialisation the status is at most
+uncertain, whatever the rules say; then the usual rules (status.py, with the refinement's fit,
+predicted template error and competitor check) decide. That is not enough: on crest_right_05 the
+wrong pose a re-spread settled on was ok in 81 frames after the hold (BENCHMARKS.md §6b).
+
+Each re-initialisation is recorded as (stamp, kind, reason); :meth:`RecoveryPolicy.report` gives
+them for the summaries.
+"""
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from app.filter.motion import ParticleState
+from app.filter.status import TrackingStatus
+from app.filter.weights import uniform_log_weights
+from app.geometry import quaternion as quat
+
+RESPREAD, SMC = "respread", "smc"
+MAX_BACKOFF_DOUBLINGS = 3
+FAR_M, FAR_RAD = 0.005, math.radians(5.0)
+STILL_WINDOW_S = 0.5
+
+
+@dataclass
+class RecoveryConfig:
+    """``recovery.*`` of the configuration (module docstring). enabled; after_lost_frames (bad frames
+    in a row before a re-initialisation); after_uncertain_frames (weighed frames not ok in a row
+    before one; 0 = off); respread_sigma_p (m) / respread_sigma_r (rad); respreads
+    (re-spreads before each SMC attempt); smc_evaluations (the initialiser's likelihood evaluations);
+    hold_frames (weighed frames capped at uncertain after one); cooldown_frames (frames between two)."""
+
+    enabled: bool = False
+    after_lost_frames: int = 10
+    after_uncertain_frames: int = 90
+    respread_sigma_p: float = 0.015
+    respread_sigma_r: float = math.radians(10.0)
+    respreads: int = 2
+    smc_evaluations: int = 30_000
+    hold_frames: int = 15
+    cooldown_frames: int = 15
+
+
+@dataclass
+class Reinitialisation:
+    """One re-initialisation: stamp (s, the frame it ran on), kind ('respread' | 'smc'), reason."""
+
+    stamp: float
+    kind: str
+    reason: str
+
+
+class RecoveryPolicy:
+    """The policy of the module docstring; the tracker asks it each frame.
+
+    Parameters
+    ----------
+    config : RecoveryConfig
+    centroid_bone : (3,) m, the bone's centroid in the bone frame (the re-spread's centre of rotation)
+    surface_point_bone : (3,) m, a point on the bone surface near the centroid (bone frame)
+    refine_enabled : whether an unrefined weighed frame counts as bad
+    min_fitness : a refined fit below this counts as bad (status.min_fitness)
+    still : (speed m/s, angular speed rad/s, window s) below which the estimate is still
+        (status.uncertain_speed, uncertain_angular_speed, motion_window_s; the window at least STILL_WINDOW_S)
+    """
+
+    def __init__(self, config: RecoveryConfig, centroid_bone: np.ndarray, surface_point_bone: np.ndarray,
+                 refine_enabled: bool, min_fitness: float = 0.6,
+                 still: tuple[float, float, float] = (0.03, math.radians(20.0), 0.2)):
+        self.config = config
+        self.centroid_bone = np.asarray(centroid_bone, float).reshape(3)
+        self.surface_point_bone = np.asarray(surface_point_bone, float).reshape(3)
+        self.refine_enabled = refine_enabled
+        self.min_fitness = min_fitness
+        self.still = still
+        self._recent: collections.deque = collections.deque()   # (stamp, T_base_bone) over the window
+        self.point_prior: np.ndarray | None = None
+        self.T_base_bone_confident: np.ndarray | None = None
+        self.events: list[Reinitialisation] = []
+        self.pending: str | None = None        # the reason of a due re-initialisation
+        self._bad = 0
+        self._not_ok = 0                       # weighed frames not ok in a row
+        self._attempts = 0                     # since the last ok frame
+        self._since = 10**9                    # frames since the last re-initialisation
+        self._hold = 0
+
+    # -- inputs ------------------------------------------------------------------------------
+    def set_start(self, T_base_bone: np.ndarray) -> None:
+        """The start pose: the confident pose until a frame is ok."""
+        self.T_base_bone_confident = np.array(T_base_bone, float)
+
+    def set_point_prior(self, point_base: np.ndarray | None) -> None:
+        """A point on the bone in the base frame (m; trial or session ``point_prior``), or None."""
+        self.point_prior = None if point_base is None else np.asarray(point_base, float).reshape(3)
+
+    # -- per frame ---------------------------------------------------------------------------
+    def update(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float,
+               T_base_bone: np.ndarray, stamp: float) -> TrackingStatus:
+        """One frame's final status in, the status to report out (capped at uncertain while holding);
+        remembers the confident pose and decides whether a re-initialisation is due (``pending``)."""
+        self._since += 1
+        if self._hold > 0 and status == TrackingStatus.OK:
+            status = TrackingStatus.UNCERTAIN
+        if self._hold > 0 and weighed:
+            self._hold -= 1
+        if status == TrackingStatus.OK:
+            self.T_base_bone_confident = np.array(T_base_bone, float)
+            self._attempts, self._bad, self._not_ok = 0, 0, 0
+            return status
+        moving = self._moving(stamp, T_base_bone)
+        self._not_ok = 0 if moving else (self._not_ok + 1 if weighed else self._not_ok)
+        reason = self._bad_reason(status, weighed, refined, fitness, T_base_bone)
+        if reason is not None:
+            self._bad += 1
+        elif weighed:
+            self._bad = 0
+        c = self.config
+        if reason is not None and self._bad >= c.after_lost_frames:
+            self._due(f"{reason} for {self._bad} frames")
+        elif c.after_uncertain_frames and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone):
+            self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
+        return status
+
+    def _gap(self, T_base_bone: np.ndarray) -> tuple[float, float]:
+        T0 = self.T_base_bone_confident
+        dist = float(np.linalg.norm(T_base_bone[:3, 3] - T0[:3, 3]))
+        cos = (np.trace(T0[:3, :3].T @ T_base_bone[:3, :3]) - 1.0) / 2.0
+        return dist, float(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+    def _far(self, T_base_bone: np.ndarray) -> bool:
+        """Whether the estimate lies more than FAR_M / FAR_RAD from the last confident pose."""
+        if self.T_base_bone_confident is None:
+            return True
+        dist, angle = self._gap(T_base_bone)
+        return dist > FAR_M or angle > FAR_RAD
+
+    def _gap_text(self, T_base_bone: np.ndarray) -> str:
+        dist, angle = self._gap(T_base_bone) if self.T_base_bone_confident is not None else (math.nan, math.nan)
+        return f"{1e3 * dist:.0f} mm / {math.degrees(angle):.0f} deg"
+
+    def _moving(self, stamp: float, T_base_bone: np.ndarray) -> bool:
+        """Whether the estimate moved faster than ``still`` over the window (ending at this frame)."""
+        speed, angular, window = self.still
+        window = max(window, STILL_WINDOW_S)
+        self._recent.append((float(stamp), np.array(T_base_bone, float)))
+        while len(self._recent) > 2 and stamp - self._recent[1][0] >= window:
+            self._recent.popleft()
+        t0, T0 = self._recent[0]
+        dt = stamp - t0
+        if dt <= 0:
+            return False
+        dist = float(np.linalg.norm(T_base_bone[:3, 3] - T0[:3, 3]))
+        cos = (np.trace(T0[:3, :3].T @ T_base_bone[:3, :3]) - 1.0) / 2.0
+        angle = float(np.arccos(np.clip(cos, -1.0, 1.0)))
+        return dist / dt > speed or angle / dt > angular
+
+    def _due(self, reason: str) -> None:
+        if self._since >= self._cooldown() and self.pending is None:
+            self.pending = reason
+
+    def _bad_reason(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float,
+                    T_base_bone: np.ndarray) -> str | None:
+        if status == TrackingStatus.LOST:
+            return "lost"
+        if weighed and self.refine_enabled and not refined:
+            return "refined track broken while the bone is visible"
+        if weighed and self.refine_enabled and not fitness >= self.min_fitness and self._far(T_base_bone):
+            return f"refined fit {fitness:.2f} below {self.min_fitness:.2f}"
+        return None
+
+    def _cooldown(self) -> int:
+        k = max(self._attempts - 1, 0)
+        return self.config.cooldown_frames * 2 ** min(k, MAX_BACKOFF_DOUBLINGS)
+
+    def next_kind(self) -> str:
+        """The kind of the due attempt (module docstring)."""
+        c = self.config
+        return RESPREAD if self._attempts % (c.respreads + 1) < c.respreads else SMC
+
+    def smc_point(self) -> np.ndarray:
+        """The point on the bone (base frame) the one-point initialiser starts from."""
+        if self.point_prior is not None:
+            return self.point_prior
+        T = self.T_base_bone_confident
+        return T[:3, :3] @ self.surface_point_bone + T[:3, 3]
+
+    def done(self, stamp: float, kind: str) -> None:
+        """Record the re-initialisation that just ran; hold the status and restart the counts."""
+        self.events.append(Reinitialisation(float(stamp), kind, self.pending or ""))
+        self.pending = None
+        self._attempts += 1
+        self._since, self._bad, self._not_ok = 0, 0, 0
+        self._recent.clear()
+        self._hold = self.config.hold_frames
+
+    # -- the re-spread -----------------------------------------------------------------------
+    def respread_state(self, n: int, rng: np.random.Generator) -> ParticleState:
+        """n particles around the last confident pose (module docstring: rotations about the bone's
+        centroid), at rest, equally weighted."""
+        p, q = self._around(self.T_base_bone_confident, n, rng)
+        return ParticleState(p, np.zeros((n, 3)), q, np.zeros((n, 3)), uniform_log_weights(n))
+
+    def _around(self, T_base_bone: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """p' = c + R(r)(t - c) + ε, q' = exp(r) ⊗ q0 with c the centroid in the base frame."""
+        c = self.config
+        R0, t0 = T_base_bone[:3, :3], T_base_bone[:3, 3]
+        centre = R0 @ self.centroid_bone + t0
+        dq = quat.exp_map(rng.normal(0.0, c.respread_sigma_r, (n, 3)))
+        p = centre[None] + quat.rotate(dq, np.broadcast_to(t0 - centre, (n, 3)))
+        p = p + rng.normal(0.0, c.respread_sigma_p, (n, 3))
+        q = quat.normalize(quat.multiply(dq, np.broadcast_to(quat.from_matrix(R0), (n, 4))))
+        return p, q
+
+    def report(self) -> dict:
+        """The re-initialisations for the summaries: count, stamps, kinds and reasons."""
+        return {"enabled": self.config.enabled, "reinitialisations": len(self.events),
+                "events": [{"stamp": e.stamp, "kind": e.kind, "reason": e.reason} for e in self.events]}

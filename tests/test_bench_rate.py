@@ -1,0 +1,59 @@
+"""The rate benchmark's table (app/bench/rate.py): the refinement's stage and what it adds to a frame."""
+from __future__ import annotations
+
+import pytest
+
+from app.bench import rate
+
+
+def _row(backend, fps, refine_ms=None):
+    """A row as ``rate.measure`` makes it; CPU per frame = wall per frame here, refinement CPU = its wall."""
+    stages = {"predict": 0.3, "likelihood": 10.0, "weight": 0.1, "resample": 0.2, "estimate": 1.0}
+    if refine_ms is not None:
+        stages["refine"] = refine_ms
+    frame_ms = 1e3 / fps
+    return {"backend": backend, "particles": 200, "resolution": "160x120", "fps": fps, "full_frame_ms": frame_ms,
+            "process_cpu_ms": frame_ms, "backend_ms": 9.0, "stages_ms": stages, "refine_ms": refine_ms,
+            "refine_cpu_ms": refine_ms, "refine_added": rate._refine_added(refine_ms, frame_ms)}
+
+
+def test_refine_added_is_the_refinement_over_the_rest_of_the_frame():
+    assert rate._refine_added(3.0, 13.0) == pytest.approx(0.3)          # 10 ms of filter + 3 ms of refinement
+    assert rate._refine_added(None, 13.0) is None                       # refinement off
+    assert rate._refine_added(5.0, 4.0) is None                         # inconsistent timings: no claim
+
+
+def test_the_table_shows_the_refine_column_only_when_a_row_refines():
+    without = rate.table([_row("cpu", 80.0), _row("gl", 10.0)])
+    assert "refine" not in without
+    text = rate.table([_row("cpu", 50.0, refine_ms=4.0), _row("gl", 10.0)])
+    header, _, cpu_line, gl_line = text.splitlines()
+    assert header.split()[-2:] == ["refine", "+%cpu"]
+    cpu = cpu_line.split()
+    assert float(cpu[-2]) == pytest.approx(4.0) and cpu[-1] == "25"   # 4 / (20 - 4) = 25 %
+    assert float(cpu[4]) == pytest.approx(5.0)                          # x gl: 50 / 10 frames/s
+    assert gl_line.split()[-2:] == ["nan", "-"]
+
+
+def test_the_refinement_cpu_wrapper_passes_calls_through_and_adds_up_their_cpu_time():
+    import numpy as np
+
+    class Track:
+        def __init__(self):
+            self.calls = []
+
+        def update(self, depth, T_base_camera, T_guess):
+            self.calls.append((depth, T_base_camera, T_guess))
+            np.linalg.svd(np.random.default_rng(0).normal(size=(200, 200)))   # some CPU work
+            return "fit"
+
+    class Tracker:
+        refined_track = Track()
+
+    tracker = Tracker()
+    total = rate._time_refinement_cpu(tracker)
+    assert tracker.refined_track.update(1, 2, T_guess=3) == "fit"
+    assert tracker.refined_track.calls == [(1, 2, 3)]
+    assert total[0] > 0.0
+    Tracker.refined_track = None
+    assert rate._time_refinement_cpu(Tracker()) == [0.0]

@@ -1,0 +1,225 @@
+"""The automatic recovery of a lost track (app/filter/recovery.py, wired in app/pipeline/tracker.py).
+
+A simulated static trial is tracked until ok, then the track is deliberately knocked off: the
+particle cloud and the refinement's own track are shifted 20 mm away. With recovery the bone is
+found again (ADD < 2 mm) within 2 s, and no frame is ok while more than 5 mm off; with
+``recovery.enabled: false`` the track stays off and nothing is re-initialised (the behaviour
+before). Frames are taken every 3rd (30 Hz) to keep the test short; budgets count frames.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from app import metrics
+from app.config import config_from_dict, load_config
+from app.errors import ConfigError
+from app.filter.recovery import RecoveryConfig, RecoveryPolicy
+from app.filter.status import TrackingStatus
+from app.geometry import se3
+
+KNOCK_S = 1.2          # the track is knocked off here (ok well before: the start converges in ~0.5 s)
+EVERY = 3              # every 3rd frame of the 90 Hz trial
+KNOCK_M = np.array([0.0, 0.0, 0.0])
+KNOCK_RAD = np.array([0.0, 0.0, np.pi / 2])   # a quarter turn about the bone's centroid (base frame)
+
+
+@pytest.fixture(scope="module")
+def trial(tmp_path_factory):
+    from app.sim.simulator import simulate
+
+    out = tmp_path_factory.mktemp("recovery") / "trial"
+    simulate(out, scenario_name="static_clear", seconds=3.4, seed=7)
+    return out
+
+
+def _knock(tracker, T_base_bone: np.ndarray) -> None:
+    """Shift the cloud and the refinement's track 20 mm away (base frame)."""
+    centre = se3.transform_points(T_base_bone, tracker.mesh_vertices.mean(axis=0)[None])[0]
+    turn = se3.from_rotvec_trans(KNOCK_RAD, centre - se3.from_rotvec_trans(KNOCK_RAD, np.zeros(3))[:3, :3] @ centre)
+    T_off = turn @ T_base_bone
+    T_off[:3, 3] += KNOCK_M
+    tracker.filter.shift_to(T_off, T_base_bone)
+    if tracker.refined_track is not None and tracker.refined_track.T_base_bone is not None:
+        tracker.refined_track.T_base_bone = T_off
+
+
+def _track(trial_dir, config):
+    """(stamps s from the start, ADD mm, statuses, reinitialised flags, tracker.report())."""
+    from app.pipeline.tracker import DepthTracker
+    from app.trial.reader import open_trial
+
+    reader = open_trial(trial_dir)
+    mesh = reader.load_mesh()
+    points = np.asarray(mesh.vertices)
+    tracker = DepthTracker(config, mesh, reader.meta.camera)
+    tracker.start(reader.meta.initial_pose)
+    T_base_camera, valid = reader.camera_poses()
+    stamps, add, statuses, reinit, knocked = [], [], [], [], False
+    for frame in reader.iter_frames():
+        i = frame.index
+        if i % EVERY:
+            continue
+        t = frame.stamp - reader.stamps[0]
+        if t >= KNOCK_S and not knocked:
+            assert statuses[-1] == "ok", "the test needs an ok track before knocking it off"
+            _knock(tracker, result.T_base_bone)
+            knocked = True
+        result = tracker.process(frame.depth_m, frame.stamp, T_base_camera[i] if valid[i] else None)
+        stamps.append(t)
+        add.append(1e3 * metrics.add(result.T_base_bone, reader.groundtruth[i], points))
+        statuses.append(result.status)
+        reinit.append(result.reinitialised)
+    report = tracker.report()
+    tracker.release()
+    return np.array(stamps), np.array(add), np.array(statuses), np.array(reinit), report
+
+
+def _enabled():
+    config = load_config(None)
+    return replace(config, recovery=replace(config.recovery, enabled=True))
+
+
+def test_recovery_is_off_by_default():
+    assert not load_config(None).recovery.enabled      # BENCHMARKS.md §6b: it lost tracks on CT crests
+
+
+def test_a_knocked_off_track_is_found_again_within_2_s_and_never_ok_while_off(trial):
+    stamps, add, statuses, reinit, report = _track(trial, _enabled())
+    after = stamps >= KNOCK_S
+    assert add[after][0] > 10.0                                  # the knock took the track off
+    found = np.nonzero(after & (add < 2.0))[0]
+    assert found.size and stamps[found[0]] - KNOCK_S <= 2.0     # found again within 2 s
+    assert np.median(add[stamps >= stamps[found[0]] + 0.3]) < 2.0   # and stays found
+    ok = statuses == "ok"
+    assert not np.any(ok & (add > 5.0))                          # never ok while > 5 mm off
+    assert report["recovery"]["reinitialisations"] >= 1 and reinit.sum() == report["recovery"]["reinitialisations"]
+    first = report["recovery"]["events"][0]
+    assert first["kind"] == "respread" and first["stamp"] >= KNOCK_S
+    # the hold: no ok on the first frames after a re-initialisation
+    k = int(np.argmax(reinit))
+    assert not np.any(ok[k:k + load_config(None).recovery.hold_frames])
+    assert report["template_points"] == "mesh_vertices"
+
+
+def test_recovery_disabled_keeps_a_knocked_off_track_off(trial):
+    config = load_config(None)
+    config = replace(config, recovery=replace(config.recovery, enabled=False))
+    stamps, add, statuses, reinit, report = _track(trial, config)
+    assert report["recovery"] == {"enabled": False, "reinitialisations": 0, "events": []}
+    assert not reinit.any()
+    assert np.median(add[stamps >= stamps[-1] - 0.5]) > 5.0      # today's behaviour: not found again
+    assert not np.any((statuses == "ok") & (add > 5.0))
+
+
+# -- the policy alone -----------------------------------------------------------------------------
+
+def _policy(**kw) -> RecoveryPolicy:
+    policy = RecoveryPolicy(RecoveryConfig(**kw), np.zeros(3), np.array([0.0, 0.0, 0.01]), refine_enabled=True)
+    policy.set_start(np.eye(4))
+    return policy
+
+
+def test_policy_counts_bad_frames_waits_while_hidden_and_holds_after():
+    policy = _policy(after_lost_frames=3, hold_frames=2, cooldown_frames=1)
+    lost, unc = TrackingStatus.LOST, TrackingStatus.UNCERTAIN
+    for _ in range(2):
+        policy.update(lost, True, False, 0.9, np.eye(4), 0.0)
+    policy.update(unc, False, False, 0.9, np.eye(4), 0.0)             # hidden: neither counts nor resets
+    assert policy.pending is None
+    policy.update(unc, True, False, 0.9, np.eye(4), 0.0)              # weighed, not refined: the track broken
+    assert policy.pending is not None and policy.next_kind() == "respread"
+    policy.done(1.0, "respread")
+    assert policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0) == unc       # held
+    assert policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0) == unc
+    assert policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0) == TrackingStatus.OK
+    policy.update(unc, True, True, 0.9, np.eye(4), 0.0)               # a weighed, refined frame resets the count
+    assert policy._bad == 0
+
+
+def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
+    policy = _policy(after_lost_frames=1, respreads=2, cooldown_frames=4)
+    T = se3.from_rotvec_trans(np.array([0.0, 0.0, 0.3]), np.array([0.1, 0.2, 0.3]))
+    policy.set_start(T)
+    np.testing.assert_allclose(policy.smc_point(), T[:3, :3] @ [0, 0, 0.01] + T[:3, 3])
+    policy.set_point_prior(np.array([1.0, 2.0, 3.0]))
+    np.testing.assert_allclose(policy.smc_point(), [1.0, 2.0, 3.0])
+    kinds, frames = [], 0
+    while len(kinds) < 4 and frames < 400:
+        policy.update(TrackingStatus.LOST, True, False, float("nan"), T, 0.01 * frames)
+        frames += 1
+        if policy.pending:
+            kinds.append(policy.next_kind())
+            policy.done(float(frames), kinds[-1])
+    assert kinds == ["respread", "respread", "smc", "respread"]
+    gaps = np.diff([e.stamp for e in policy.events])
+    assert gaps[1] > gaps[0]                                # the cooldown doubles
+
+
+def test_a_moving_estimate_is_not_reinitialised_for_being_uncertain():
+    """The slow trigger (not ok for after_uncertain_frames) counts only while the estimate is still:
+    a bone being repositioned is uncertain for seconds."""
+    unc = TrackingStatus.UNCERTAIN
+    policy = _policy(after_uncertain_frames=20)
+    for k in range(100):                                    # 5 cm/s, 90 frames/s, refined at a good fit
+        policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.05 * k / 90, 0, 0])), k / 90)
+    assert policy.pending is None
+    for k in range(100, 190):                               # at rest (after the 0.5 s window), still not ok
+        policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.05 * 99 / 90, 0, 0])), k / 90)
+    assert policy.pending is not None and "not ok" in policy.pending
+
+
+def test_respread_is_about_the_bone_centroid_with_the_configured_spread(rng):
+    centroid = np.array([0.3, 0.0, 0.0])                    # far from the bone frame's origin
+    policy = RecoveryPolicy(RecoveryConfig(respread_sigma_p=0.01, respread_sigma_r=0.2), centroid, centroid, True)
+    T = np.eye(4)
+    policy.set_start(T)
+    state = policy.respread_state(4000, rng)
+    c_base = se3.from_quat_trans(state.q, state.p) @ np.append(centroid, 1.0)
+    # the centroid moves only by the position noise (3-D std 0.01 * sqrt(3)), not by the rotation's lever arm
+    assert np.sqrt(np.mean(np.sum((c_base[:, :3] - centroid) ** 2, axis=1))) == pytest.approx(0.01 * np.sqrt(3), rel=0.1)
+    angles = np.array([se3.rotation_angle(np.eye(4), se3.from_quat_trans(q, np.zeros(3))) for q in state.q[:500]])
+    assert np.sqrt(np.mean(angles ** 2)) == pytest.approx(0.2 * np.sqrt(3), rel=0.15)
+    np.testing.assert_allclose(np.exp(state.lw).sum(), 1.0)
+
+
+# -- configuration ----------------------------------------------------------------------------------
+
+def test_recovery_keys_are_checked_and_named_with_the_fix():
+    config = config_from_dict({"recovery": {"enabled": True, "after_lost_frames": 5, "smc_evaluations": 2000}})
+    assert config.recovery == RecoveryConfig(enabled=True, after_lost_frames=5, smc_evaluations=2000)
+    with pytest.raises(ConfigError, match=r"recovery\.after_lost_frame.*did you mean 'recovery\.after_lost_frames'"):
+        config_from_dict({"recovery": {"after_lost_frame": 5}})
+    with pytest.raises(ConfigError, match=r"recovery\.after_lost_frames.*integer"):
+        config_from_dict({"recovery": {"after_lost_frames": 2.5}})
+    with pytest.raises(ConfigError, match=r"recovery\.respread_sigma_p.*outside"):
+        config_from_dict({"recovery": {"respread_sigma_p": 0.0}})
+    with pytest.raises(ConfigError, match=r"recovery\.enabled.*true or false"):
+        config_from_dict({"recovery": {"enabled": "yes"}})
+
+
+def test_default_yaml_documents_every_recovery_key():
+    from app.config import DEFAULT_CONFIG_PATH, KEYS
+
+    assert load_config(DEFAULT_CONFIG_PATH).recovery == RecoveryConfig()
+    text = DEFAULT_CONFIG_PATH.read_text()
+    for key in (k for k in KEYS if k.startswith("recovery.")):
+        assert f"  {key.split('.', 1)[1]}:" in text
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="not met (BENCHMARKS.md §6b): on crest_left_02 the turned track stays "
+                   "refined at a fit >= 0.6, 50-60 mm off, uncertain; nothing triggers within 2 s")
+def test_a_knocked_off_track_is_found_again_on_a_ct_crest(tmp_path, crest_mesh_path):
+    """The same knock on a shared CT crest (static_clear): found again within 2 s, never ok while off."""
+    from app.sim.simulator import simulate
+
+    simulate(tmp_path / "trial", mesh_path=crest_mesh_path, scenario_name="static_clear", seconds=3.4, seed=5)
+    stamps, add, statuses, reinit, report = _track(tmp_path / "trial", _enabled())
+    after = stamps >= KNOCK_S
+    found = np.nonzero(after & (add < 2.0))[0]
+    assert add[after][0] > 10.0 and report["recovery"]["reinitialisations"] >= 1
+    assert found.size and stamps[found[0]] - KNOCK_S <= 2.0
+    assert not np.any((statuses == "ok") & (add > 5.0))
