@@ -7,7 +7,7 @@ Usage (from the repository root; short trials, run with nice on the shared machi
 
 For each crest x scenario x seed it simulates a trial (cached under --cache), replays it with each
 variant (``off``: the default tracker without refinement; ``on``: with it; ``nofeedback``: refined,
-the cloud not shifted) and prints one row per run plus the median / worst per variant and scenario:
+the cloud not shifted; ``nobehind``: without the status's behind-the-model rule) and prints one row per run plus the median / worst per variant and scenario:
 ADD median / p95 / max (mm), rotation median (deg), the ok share, the dangerous frames (status ok
 while ADD > 5 mm), the lost fraction and the refinement's share of the frame time, and the ok share after the first second (the start converges from 5 mm / 3 deg and
 settles for 0.3 s). Writes the rows
@@ -34,9 +34,11 @@ def variant_config(name: str):
         return replace(config, refine=replace(config.refine, enabled=False))
     if name == "nofeedback":
         return replace(config, refine=replace(config.refine, feedback=False))
+    if name == "nobehind":
+        return replace(config, status=replace(config.status, max_behind_share=float("inf")))
     if name == "on":
         return config
-    raise SystemExit(f"unknown variant {name!r}: off | on | nofeedback")
+    raise SystemExit(f"unknown variant {name!r}: off | on | nofeedback | nobehind")
 
 
 def trial_path(cache: Path, crest: Path, scenario: str, seconds: float, seed: int) -> Path:
@@ -55,11 +57,14 @@ def run(trial: Path, variant: str) -> dict:
     s = result.summary
     late = np.asarray(result.stamps) - result.stamps[0] >= 1.0
     ok_late = float(np.mean([st == "ok" for st, keep in zip(result.statuses, late) if keep])) if late.any() else float("nan")
+    add = np.asarray(result.errors["add_mm"])
+    ok = np.asarray(result.statuses) == "ok"
     t = s["timings_ms"]
     total = sum(v for k, v in t.items() if not k.startswith("gl_"))
     return {"add_med": s["add_mm"]["median"], "add_p95": s["add_mm"]["p95"], "add_max": s["add_mm"]["max"],
             "rot_med": s["rotation_deg"]["median"], "ok": s["status_fraction"]["ok"], "ok_after_1s": ok_late,
-            "dangerous": s["dangerous_frames"], "lost": s["lost_fraction"], "frames": s["frames"],
+            "dangerous": s["dangerous_frames"],
+            "ok_over_1mm": int(np.sum(ok & (add > 1.0))), "ok_over_2mm": int(np.sum(ok & (add > 2.0))), "lost": s["lost_fraction"], "frames": s["frames"],
             "refine_ms": t.get("refine", 0.0), "frame_ms": total}
 
 

@@ -239,3 +239,62 @@ def test_recorded_trials_cut_to_seconds_and_need_ground_truth(bench_run, tmp_pat
     (copy / "groundtruth.txt").unlink()
     with pytest.raises(TrialFormatError, match="ground truth"):
         bench.recorded_trials([copy])
+
+
+# --------------------------------------------------------------------------- the issue-12 matrix: seeds, lengths, summary
+
+def test_seconds_per_scenario_keep_the_plain_duration_for_the_others():
+    from app.commands.bench import parse_seconds
+    from app.sim.scenarios import SCENARIOS
+
+    assert parse_seconds(None) is None
+    assert parse_seconds(["2.5"]) == 2.5
+    by_name = parse_seconds(["3", "bone_moves=4.5"])
+    assert by_name["bone_moves"] == 4.5 and by_name["static_clear"] == 3.0 and set(by_name) == set(SCENARIOS)
+    assert parse_seconds(["dropouts=4"])["static_occluded"] == SCENARIOS["static_occluded"].seconds
+    for bad in (["-1"], ["bone_moves=0"], ["nosuch=3"], ["x"]):
+        with pytest.raises(ConfigError, match="--seconds"):
+            parse_seconds(bad)
+
+
+def test_seeds_give_one_lazy_trial_per_seed_scenario_and_mesh(tmp_path):
+    from app.sim.simulator import DEFAULT_MESH
+
+    specs = bench.standard_trials(tmp_path, ["static_clear", "bone_moves"], seconds={"static_clear": 1.0, "bone_moves": 2.0},
+                                  meshes=[DEFAULT_MESH], seeds=[0, 3], lazy=True)
+    assert [(s.seed, s.scenario) for s in specs] == [(0, "static_clear"), (0, "bone_moves"), (3, "static_clear"),
+                                                      (3, "bone_moves")]
+    assert not any(tmp_path.iterdir())                       # nothing simulated yet
+    assert specs[2].path == str(tmp_path / DEFAULT_MESH.stem / "static_clear_seed3") and specs[2].name.endswith("/seed3")
+    assert specs[2].simulation["seed"] == 3 and specs[3].simulation["seconds"] == 2.0
+    assert specs[1].frames == 180                            # estimated until simulated (90 Hz)
+
+
+def test_after_rest_is_the_error_from_0_3_s_after_the_last_move():
+    t = np.arange(0.0, 2.0, 0.1)
+    T_gt = np.repeat(np.eye(4)[None], len(t), axis=0)
+    T_gt[:, 0, 3] = np.minimum(t, 1.0) * 0.01                 # moves until t = 1.0, then rests
+    add = np.where(t < 1.25, 5.0, 0.5)
+    add[-1] = 0.9
+    out = bench.after_rest(T_gt, t, add)
+    assert out["rest_s"] == pytest.approx(1.0) and out["frames"] == int(np.sum(t >= 1.3 - 1e-9))
+    assert out["max_add_mm"] == pytest.approx(0.9) and out["median_add_mm"] == pytest.approx(0.5)
+    assert bench.after_rest(np.repeat(np.eye(4)[None], 5, axis=0), t[:5], add[:5]) is None   # never moves
+
+
+def _row(mesh, seed, add_med, ok, danger, rest=None):
+    return {"config": "c", "scenario": "s", "mesh": mesh, "seed": seed, "add_mm": {"median": add_med, "p95": 2 * add_med},
+            "rotation_deg": {"median": add_med / 2}, "lost_pct": 0.0, "status_pct": {"ok": ok},
+            "dangerous_frames": danger, "after_rest": None if rest is None else {"max_add_mm": rest}}
+
+
+def test_summary_gives_the_median_and_names_the_worst_run():
+    rows = [_row("a", 0, 0.2, 90.0, 0), _row("b", 0, 0.9, 40.0, 3, rest=0.8), _row("a", 1, 0.4, 80.0, 0, rest=1.5)]
+    (s,) = bench.summary(rows)
+    assert s["runs"] == 3 and s["add_median"]["median"] == pytest.approx(0.4)
+    assert s["add_median"]["worst"] == pytest.approx(0.9) and s["add_median"]["worst_run"] == "b#0"
+    assert s["ok_pct"]["worst"] == pytest.approx(40.0) and s["ok_pct"]["worst_run"] == "b#0"   # least ok is worst
+    assert s["dangerous_frames"] == 3 and s["dangerous_runs"] == ["b#0"]
+    assert s["after_rest_max_add"]["worst"] == pytest.approx(1.5) and s["after_rest_max_add"]["worst_run"] == "a#1"
+    text = bench.summary_table(rows, markdown=True)
+    assert "0.40 / 0.90 (b#0)" in text and "3 (b#0)" in text

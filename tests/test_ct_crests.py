@@ -28,17 +28,17 @@ SETTLE_S = 0.5
 MEDIAN_ADD_MM = 1.0
 
 
-def _track(mesh: Path, tmp_path: Path, seconds: float, seed: int):
+def _track(mesh: Path, tmp_path: Path, seconds: float, seed: int, scenario: str = "static_clear"):
     from app.config import load_config
     from app.pipeline.replay import replay
     from app.sim.simulator import simulate
 
-    simulate(tmp_path / "trial", mesh_path=mesh, scenario_name="static_clear", seconds=seconds, seed=seed)
+    simulate(tmp_path / "trial", mesh_path=mesh, scenario_name=scenario, seconds=seconds, seed=seed)
     result = replay(tmp_path / "trial", tmp_path / "out", load_config(None), rrd=False, projector=False)
     add = np.asarray(result.errors["add_mm"])
     statuses = np.asarray(result.statuses)
     t = np.asarray(result.stamps) - result.stamps[0]
-    print(f"\n{mesh.stem} seed {seed}: {len(add)} frames, ADD median {np.median(add):.2f} mm, p95 "
+    print(f"\n{mesh.stem} {scenario} seed {seed}: {len(add)} frames, ADD median {np.median(add):.2f} mm, p95 "
           f"{np.percentile(add, 95):.2f}, max {add.max():.2f}; ok {np.mean(statuses == 'ok'):.0%}; "
           f"dangerous {int(np.sum((statuses == 'ok') & (add > DANGEROUS_ADD_MM)))}")
     return add, statuses, t
@@ -64,3 +64,30 @@ def test_one_ct_crest_is_tracked_safely(tmp_path):
 @pytest.mark.parametrize("seed", [0, 1])
 def test_every_ct_crest_is_tracked_safely(mesh, seed, tmp_path):
     _check(*_track(mesh, tmp_path, seconds=4.0, seed=seed))
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not CRESTS, reason=f"no CT crest meshes at {PELVIS}")
+@pytest.mark.parametrize("mesh", CRESTS, ids=[m.stem for m in CRESTS])
+def test_every_ct_crest_is_back_within_1mm_0_3s_after_the_bone_comes_to_rest(mesh, tmp_path):
+    """Issue 12's moving-bone target (bone_moves: 5 cm and 30 deg at up to ~5 cm/s, at rest from 3.5 s):
+    ADD < 1 mm on every frame from 0.3 s after rest. Measured (BENCHMARKS.md §6, 4.5 s, seed 0, b8db850):
+    max ADD after rest + 0.3 s 0.26-0.89 mm over the eight crests, 0 frames ok while > 5 mm off."""
+    add, statuses, t = _track(mesh, tmp_path, seconds=4.5, seed=0, scenario="bone_moves")
+    assert not np.any((statuses == "ok") & (add > DANGEROUS_ADD_MM))
+    late = t >= 3.5 + 0.3
+    assert late.sum() > 30 and add[late].max() < 1.0, f"max ADD after rest + 0.3 s: {add[late].max():.2f} mm"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not CRESTS, reason=f"no CT crest meshes at {PELVIS}")
+@pytest.mark.parametrize("mesh", CRESTS, ids=[m.stem for m in CRESTS])
+def test_under_residual_tissue_the_status_is_rarely_ok_while_off(mesh, tmp_path):
+    """or_deep_tissue (3 mm tissue on a third of the ridge): the refined fit ends 1.2-2.1 mm off; before
+    the behind-the-model rule (status.max_behind_share) it was ok on 89-93 of 134 frames per crest while
+    > 1 mm off; with it 0-14 (BENCHMARKS.md §6). Asserted: never ok while > 5 mm off, and ok while
+    > 1 mm off on at most 15 % of the frames."""
+    add, statuses, t = _track(mesh, tmp_path, seconds=1.5, seed=0, scenario="or_deep_tissue")
+    ok = statuses == "ok"
+    assert not np.any(ok & (add > DANGEROUS_ADD_MM))
+    assert np.mean(ok & (add > 1.0)) <= 0.15, f"ok while > 1 mm off on {np.mean(ok & (add > 1.0)):.0%} of the frames"

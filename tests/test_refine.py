@@ -128,3 +128,64 @@ def test_exp_se3_is_rigid_and_first_order(rng):
     assert se3.is_rigid(T)
     p = rng.normal(size=(5, 3))
     np.testing.assert_allclose(se3.transform_points(T, p), p + np.cross(delta[:3], p) + delta[3:], atol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def ct_crest_frame(gl_ctx):
+    """A shared CT crest (crest_left_02) in its tissue at 0.42 m as the simulator renders it, with the
+    simulator's sensor noise (app/sim/sensor.py: σ = 0.0015 z² + 0.0003 m); skipped without the crests."""
+    from pathlib import Path
+
+    from app.render.scene import SceneRenderer
+    from app.sim.sensor import SensorModel
+
+    path = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "pelvis" / "crest_left_02.ply"
+    if not path.is_file():
+        pytest.skip(f"no CT crest at {path}")
+    mesh = trimesh.load(path)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    tissue = world.soft_tissue_mesh(trimesh.Trimesh(vertices, faces), np.random.default_rng(0))
+    scene = SceneRenderer(gl_ctx, D415_640x480)
+    scene.add_mesh("bone", vertices, faces, label=1)
+    scene.add_mesh("tissue", np.asarray(tissue.vertices), np.asarray(tissue.faces), label=2)
+    centre = vertices.mean(axis=0)
+    T_camera_bone = se3.from_rotvec_trans(np.array([np.pi, 0.1, 0.1]), np.zeros(3))
+    T_camera_bone[:3, 3] = np.array([0.0, 0.0, 0.42]) - T_camera_bone[:3, :3] @ centre
+    depth, labels = scene.render({"bone": T_camera_bone, "tissue": T_camera_bone})
+    scene.release()
+    z = depth.astype(float)
+    noise = SensorModel().sigma(z) * np.random.default_rng(2).standard_normal(z.shape)
+    return vertices, faces, T_camera_bone, z, np.where(z > 0, z + noise, 0.0), labels
+
+
+def test_a_fit_slid_onto_a_tissue_patch_leaves_measurements_behind_the_model(ct_crest_frame):
+    """3 mm of tissue on a third of the crest (or_deep_tissue's patch): the fit chained from the truth
+    slides part of the way onto it, and the seen surface then lies inside the refined model on more of
+    the bone (RefineResult.behind, status.max_behind_share) than at the truth or on the clear frame."""
+    from app.filter.status import StatusThresholds
+
+    vertices, faces, T_true, _, measured, labels = ct_crest_frame
+    refiner = Refiner(vertices, faces, D415_640x480, RefineParams())
+    limit = StatusThresholds().max_behind_share
+    clear = refiner.refine(measured, T_true, start_width=0.0)
+    assert clear.behind < limit
+    patched = measured.copy()
+    rows, cols = np.nonzero((labels == 1) & (measured > 0))
+    left = cols < np.quantile(cols, 0.33)
+    patched[rows[left], cols[left]] -= 0.003
+    T = T_true
+    for _ in range(5):                                 # the own track: refined again from its last pose
+        slid = refiner.refine(patched, T, start_width=0.0)
+        T = slid.T_camera_bone
+    at_truth = refiner.refine(patched, T_true, start_width=0.0)
+    print(f"slid {1e3 * metrics.add(T, T_true, vertices):.2f} mm: behind {slid.behind:.3f}; clear {clear.behind:.3f}")
+    assert metrics.add(T, T_true, vertices) > 0.0005    # it does slide (the failure the rule is for)
+    assert slid.behind > limit > clear.behind
+    assert at_truth.behind < limit                       # the patch alone is in front: not evidence against the truth
+    from app.filter.status import RefinementEvidence, TrackingStatus, with_refinement
+
+    def status(r):
+        return with_refinement(TrackingStatus.OK, RefinementEvidence(r.fitness, 0.0003, False, r.behind), StatusThresholds())
+
+    assert slid.fitness > 0.6 and status(slid) == TrackingStatus.UNCERTAIN   # the fit alone would have been ok
+    assert status(clear) == TrackingStatus.OK

@@ -90,6 +90,15 @@ def test_refinement_rules(fitness, std, competitor, expected):
     assert with_refinement(TrackingStatus.OK, evidence, StatusThresholds()) == expected
 
 
+def test_measurements_behind_the_refined_model_are_not_ok():
+    """status.max_behind_share: more of the seen bone inside the model than the noise's tail."""
+    t = StatusThresholds()
+    assert with_refinement(TrackingStatus.OK, RefinementEvidence(0.9, 0.0003, False, 0.5 * t.max_behind_share), t) == "ok"
+    assert with_refinement(TrackingStatus.OK, RefinementEvidence(0.9, 0.0003, False, 2 * t.max_behind_share), t) \
+        == TrackingStatus.UNCERTAIN
+    assert with_refinement(TrackingStatus.OK, RefinementEvidence(0.9, 0.0003, False), t) == "ok"   # unknown: no rule
+
+
 def test_the_refinement_never_raises_the_filters_status():
     good = RefinementEvidence(0.95, 0.0001, False)
     for status in (TrackingStatus.UNCERTAIN, TrackingStatus.LOST):

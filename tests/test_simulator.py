@@ -112,3 +112,24 @@ def test_unknown_scenario_lists_the_valid_ones():
     with pytest.raises(ValueError, match="static_clear"):
         get_scenario("nope")
     assert {"static_clear", "static_occluded", "bone_moves", "dropouts"} <= set(SCENARIOS)
+
+
+def test_far_view_shrinks_the_bone_by_the_square_of_the_distance_and_other_side_turns_it(tmp_path):
+    """static_far puts the bone 0.65 m from the camera (0.42 m otherwise): its pixels shrink about as
+    (0.42 / 0.65)²; static_other_side turns it 180 deg about its crest-up axis (same seed, same place)."""
+    import csv
+
+    from app.trial.reader import open_trial
+
+    pixels, T0 = {}, {}
+    for name in ("static_clear", "static_far", "static_other_side"):
+        simulate(tmp_path / name, scenario_name=name, seconds=0.03, seed=5)
+        pixels[name] = np.mean([float(r["bone_pixels"]) for r in csv.DictReader(open(tmp_path / name / "simulation.csv"))])
+        T0[name] = open_trial(tmp_path / name).groundtruth[0]
+    assert pixels["static_far"] / pixels["static_clear"] == pytest.approx((0.42 / 0.65) ** 2, rel=0.25)
+    assert pixels["static_other_side"] > 0.5 * pixels["static_clear"]
+    R_turn = T0["static_clear"][:3, :3].T @ T0["static_other_side"][:3, :3]   # tiltᵀ R_z(180°) tilt
+    assert np.trace(R_turn) == pytest.approx(-1.0, abs=1e-9)                  # a half turn
+    axis = np.linalg.eigh(R_turn + R_turn.T)[1][:, -1]                         # its axis: near the crest-up z
+    assert abs(axis[2]) > np.cos(np.deg2rad(40.0))
+    np.testing.assert_allclose(T0["static_other_side"][:3, 3], T0["static_clear"][:3, 3], atol=1e-12)

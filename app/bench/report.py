@@ -44,6 +44,61 @@ def table(rows: list[dict], markdown: bool = False) -> str:
     return "\n".join(lines)
 
 
+SUMMARY_COLUMNS = ("config", "scenario", "runs", "ADD med: median / worst", "ADD p95: median / worst",
+                   "rot med: median / worst", "lost %: median / worst", "ok %: median / min", "danger (total)",
+                   "after rest + 0.3 s: max ADD worst")
+
+
+def summary(rows: list[dict]) -> list[dict]:
+    """Per configuration x scenario, over meshes and seeds: the median run and the worst run (named
+    ``mesh#seed``) of ADD median / p95, rotation median, lost %, ok % (worst = least), the dangerous
+    frames in total and, for a moving bone, the worst max ADD from 0.3 s after it comes to rest."""
+    out = []
+    for key in dict.fromkeys((r["config"], r["scenario"]) for r in rows):
+        rs = [r for r in rows if (r["config"], r["scenario"]) == key]
+        who = [f"{r['mesh']}#{r.get('seed', 0)}" for r in rs]
+
+        def stat(values, worst=np.nanargmax):
+            v = np.asarray(values, float)
+            if not np.isfinite(v).any():
+                return {"median": float("nan"), "worst": float("nan"), "worst_run": None}
+            k = int(worst(v))
+            return {"median": float(np.nanmedian(v)), "worst": float(v[k]), "worst_run": who[k]}
+
+        rest = [r["after_rest"]["max_add_mm"] if r.get("after_rest") else np.nan for r in rs]
+        out.append({"config": key[0], "scenario": key[1], "runs": len(rs),
+                    "add_median": stat([r["add_mm"]["median"] for r in rs]),
+                    "add_p95": stat([r["add_mm"]["p95"] for r in rs]),
+                    "rot_median": stat([r["rotation_deg"]["median"] for r in rs]),
+                    "lost_pct": stat([r["lost_pct"] for r in rs]),
+                    "ok_pct": stat([r["status_pct"]["ok"] for r in rs], worst=np.nanargmin),
+                    "dangerous_frames": int(sum(r["dangerous_frames"] for r in rs)),
+                    "dangerous_runs": [w for w, r in zip(who, rs) if r["dangerous_frames"]],
+                    "after_rest_max_add": stat(rest)})
+    return out
+
+
+def summary_table(rows: list[dict], markdown: bool = False) -> str:
+    """:func:`summary` as a table: 'median / worst (worst run)' per cell."""
+    def cell(st, digits=2):
+        if st["worst_run"] is None:
+            return "-"
+        return f"{st['median']:.{digits}f} / {st['worst']:.{digits}f} ({st['worst_run']})"
+
+    lines = []
+    for s in summary(rows):
+        danger = str(s["dangerous_frames"]) + (f" ({', '.join(s['dangerous_runs'])})" if s["dangerous_runs"] else "")
+        rest = "-" if s["after_rest_max_add"]["worst_run"] is None else \
+            f"{s['after_rest_max_add']['worst']:.2f} ({s['after_rest_max_add']['worst_run']})"
+        lines.append([s["config"], s["scenario"], str(s["runs"]), cell(s["add_median"]), cell(s["add_p95"]),
+                      cell(s["rot_median"]), cell(s["lost_pct"], 1), cell(s["ok_pct"], 1), danger, rest])
+    header = list(SUMMARY_COLUMNS)
+    if markdown:
+        return "\n".join(["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+                         + ["| " + " | ".join(c) + " |" for c in lines])
+    return "\n".join([" | ".join(header)] + [" | ".join(c) for c in lines])
+
+
 def write_json(rows: list[dict], path: str | Path, meta: dict | None = None) -> None:
     """The rows (with per-frame series) and run information as JSON."""
     path = Path(path)
@@ -58,12 +113,14 @@ def write_json(rows: list[dict], path: str | Path, meta: dict | None = None) -> 
             return [clean(v) for v in x]
         return x
 
-    path.write_text(json.dumps(clean({"meta": meta or {}, "columns": {
+    tmp = path.with_suffix(path.suffix + ".part")   # written whole, then renamed: a partial matrix stays readable
+    tmp.write_text(json.dumps(clean({"meta": meta or {}, "summary": summary(rows), "columns": {
         "fps": "processed frames per second of the replay loop (wall time) on this machine",
         "add_mm": "ADD, mm", "rotation_deg": "rotation error, deg", "vsd_recall": "fraction of frames with e_VSD < 0.3 (tau 20 mm)",
         "lost_pct": f"% frames with ADD > {LOST_ADD_MM} mm", "dangerous_frames": f"frames with status ok and ADD > {DANGEROUS_ADD_MM} mm",
         "jitter": "RMS frame-to-frame change of the estimate while the ground truth is static (after settling)",
     }, "rows": rows}), indent=1))
+    tmp.replace(path)
 
 
 def plot(rows: list[dict], folder: str | Path) -> list[Path]:

@@ -9,7 +9,7 @@ import numpy as np
 
 from app.bench.configs import BenchConfig
 from app.bench.parallel import pmap
-from app.bench.scoring import jitter, static_pairs, vsd_series
+from app.bench.scoring import after_rest, jitter, static_pairs, vsd_series
 from app.bench.trials import TrialSpec
 from app.metrics import DANGEROUS_ADD_MM, LOST_ADD_MM
 
@@ -29,6 +29,7 @@ def run_one(config: BenchConfig, trial: TrialSpec, out_dir: str | Path | None = 
         params = config.icp
         make_tracker = lambda mesh, camera: ICPTracker(params, mesh, camera)  # noqa: E731
         tracker_config = load_config(None)
+    trial.ensure()
     t0 = time.perf_counter()
     result = replay(trial.path, out_dir, tracker_config, rrd=False, progress=progress,
                     max_frames=trial.max_frames, make_tracker=make_tracker)
@@ -47,7 +48,7 @@ def run_one(config: BenchConfig, trial: TrialSpec, out_dir: str | Path | None = 
     row = {
         "config": config.name, "config_description": config.describe(), "config_source": config.source,
         "tracker": config.kind, "trial": trial.name, "trial_path": trial.path, "mesh": trial.mesh,
-        "scenario": trial.scenario, "frames": n,
+        "scenario": trial.scenario, "seed": trial.seed, "frames": n,
         "fps": result.summary["processing_rate_hz"], "wall_s": wall, "gl": result.summary.get("gl"),
         "timings_ms": result.summary.get("timings_ms", {}),
         "add_mm": metrics.summarise(add_mm), "add_s_mm": metrics.summarise(1e3 * add_s),
@@ -58,6 +59,7 @@ def run_one(config: BenchConfig, trial: TrialSpec, out_dir: str | Path | None = 
         "status_pct": {s: float(100 * np.mean(statuses == s)) for s in ("ok", "uncertain", "lost")},
         "dangerous_frames": int(np.sum(ok & (add_mm > DANGEROUS_ADD_MM))),
         "jitter": jitter(T_est, static_pairs(T_gt, result.stamps)),
+        "after_rest": after_rest(T_gt, t_rel, add_mm),
         "series": {"t": t_rel.round(4).tolist(), "add_mm": np.round(add_mm, 4).tolist(),
                    "rot_deg": np.round(result.errors["rot_deg"], 4).tolist(),
                    "vsd": [None if not np.isfinite(v) else round(float(v), 4) for v in vsd],
@@ -73,9 +75,10 @@ def _run_task(task: dict) -> dict:
 
 
 def run_bench(configs: list[BenchConfig], trials: list[TrialSpec], jobs: int = 1, out_dir: str | Path | None = None,
-              with_vsd: bool = True, progress: bool = True) -> list[dict]:
+              with_vsd: bool = True, progress: bool = True, on_row=None) -> list[dict]:
     """Every configuration on every trial; rows ordered by trial, then configuration.
 
+    ``on_row(rows)`` is called with the rows so far after each run (to write a partial matrix).
     With ``jobs`` > 1 the runs go to a spawned process pool (each process opens its own GL
     context); frames/s then measure a shared CPU. ``out_dir`` keeps each run's estimate.txt and
     status.csv under ``<out_dir>/<config>/<mesh>/<scenario>``.
@@ -83,18 +86,22 @@ def run_bench(configs: list[BenchConfig], trials: list[TrialSpec], jobs: int = 1
     tasks = []
     for trial in trials:
         for config in configs:
-            task_out = str(Path(out_dir) / config.name / trial.mesh / trial.scenario) if out_dir else None
+            task_out = str(Path(out_dir) / config.name / trial.name) if out_dir else None
             tasks.append({"config": config, "trial": trial, "out_dir": task_out, "with_vsd": with_vsd})
     weights = [max(t["trial"].max_frames or t["trial"].frames, 1) for t in tasks]
     if jobs <= 1:
-        rows = _run_serial(tasks, weights, progress)
+        rows = _run_serial(tasks, weights, progress, on_row)
     else:
-        rows = list(pmap(_run_task, tasks, jobs, desc="bench", unit="frame", progress=progress, weights=weights))
+        rows = []
+        for row in pmap(_run_task, tasks, jobs, desc="bench", unit="frame", progress=progress, weights=weights):
+            rows.append(row)
+            if on_row:
+                on_row(rows)
     order = {(t["trial"].name, t["config"].name): k for k, t in enumerate(tasks)}
     return sorted(rows, key=lambda r: order[(r["trial"], r["config"])])
 
 
-def _run_serial(tasks, weights, progress: bool) -> list[dict]:
+def _run_serial(tasks, weights, progress: bool, on_row=None) -> list[dict]:
     from tqdm import tqdm
 
     rows = []
@@ -108,5 +115,7 @@ def _run_serial(tasks, weights, progress: bool) -> list[dict]:
                 done[0] = i
 
             rows.append(run_one(task["config"], task["trial"], task["out_dir"], progress=step, with_vsd=task["with_vsd"]))
+            if on_row:
+                on_row(rows)
             bar.update(w - done[0])
     return rows

@@ -26,6 +26,25 @@ def static_pairs(T_gt: np.ndarray, stamps: np.ndarray, settle_s: float = JITTER_
     return mask
 
 
+REST_DELAY_S = 0.3   # issue 12: back within 1 mm ADD 0.3 s after the bone comes to rest
+
+
+def after_rest(T_gt: np.ndarray, t: np.ndarray, add_mm: np.ndarray, delay_s: float = REST_DELAY_S) -> dict | None:
+    """The error once a moved bone has come to rest: ``rest_s`` (time of the last frame whose
+    ground truth differs from the previous one), and the max / median ADD over the frames from
+    ``rest_s + delay_s`` on. None when the bone never moves (or is still moving at the end)."""
+    moving = ~static_pairs(T_gt, np.asarray(t), settle_s=0.0)
+    moving[0] = False
+    if not moving.any():
+        return None
+    rest_s = float(t[np.nonzero(moving)[0][-1]])
+    late = np.asarray(t) >= rest_s + delay_s
+    if not late.any():
+        return None
+    return {"rest_s": rest_s, "delay_s": delay_s, "max_add_mm": float(np.max(add_mm[late])),
+            "median_add_mm": float(np.median(add_mm[late])), "frames": int(late.sum())}
+
+
 def jitter(T_est: np.ndarray, pairs: np.ndarray) -> dict:
     """RMS frame-to-frame change of the estimate over ``pairs`` (frames k with k-1): mm and deg."""
     from app.geometry import se3

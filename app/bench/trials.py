@@ -49,10 +49,21 @@ class TrialSpec:
     scenario: str
     frames: int = 0
     max_frames: int | None = None
+    seed: int = 0
+    simulation: dict | None = None   # set by standard_trials(lazy=True): simulated just before its first run
 
     @property
     def name(self) -> str:
-        return f"{self.mesh}/{self.scenario}"
+        return f"{self.mesh}/{self.scenario}" + (f"/seed{self.seed}" if self.seed else "")
+
+    def ensure(self) -> None:
+        """Simulate the trial now if it was left for later (lazy), and count its frames."""
+        if self.simulation is not None:
+            from app.trial.reader import open_trial
+
+            _simulate_task(self.simulation)
+            self.simulation = None
+            self.frames = len(open_trial(self.path))
 
 
 def pelvis_crest_meshes(folder: Path = PELVIS_DIR) -> list[Path]:
@@ -88,16 +99,26 @@ def _simulate_task(task: dict) -> dict:
     return {"out": task["out"], "frames": summary.frames}
 
 
+def trial_dir(cache: str | Path, mesh: Path, scenario: str, seed: int) -> Path:
+    """``<cache>/<mesh stem>/<scenario>`` for seed 0, ``.../<scenario>_seed<N>`` for another seed."""
+    return Path(cache) / mesh.stem / (scenario if seed == 0 else f"{scenario}_seed{seed}")
+
+
 def standard_trials(cache: str | Path = DEFAULT_CACHE, scenarios=None, seconds: float | dict | None = None,
-                    meshes=None, seed: int = 0, jobs: int = 1, progress: bool = True) -> list[TrialSpec]:
-    """Simulate (or reuse from ``cache``) the standard scenarios for each mesh.
+                    meshes=None, seed: int = 0, jobs: int = 1, progress: bool = True, seeds=None,
+                    lazy: bool = False) -> list[TrialSpec]:
+    """Simulate (or reuse from ``cache``) the standard scenarios for each mesh (and seed).
 
     Parameters
     ----------
-    cache : folder of the cached trials, ``<cache>/<mesh stem>/<scenario>``
+    cache : folder of the cached trials, :func:`trial_dir`
     scenarios : scenario names, default :data:`app.sim.scenarios.STANDARD`
     seconds : duration of each trial (or a mapping scenario -> duration), default each scenario's own
     meshes : mesh paths, default the project's mesh and the pelvis crest meshes found
+    seeds : simulation seeds (default ``[seed]``); the specs are ordered seed, scenario, mesh, so that
+        the first runs of a long matrix cover every scenario once
+    lazy : do not simulate now; each spec simulates itself on :meth:`TrialSpec.ensure` (a long
+        matrix then starts running at once and a partial run leaves no unused simulations)
     """
     from app.sim.scenarios import STANDARD, get_scenario
     from app.sim.simulator import DEFAULT_MESH
@@ -113,13 +134,19 @@ def standard_trials(cache: str | Path = DEFAULT_CACHE, scenarios=None, seconds: 
         if not m.is_file():
             raise ConfigError("--meshes", f"no such mesh file: {m}")
     specs, todo = [], []
-    for mesh in meshes:
+    for s in (seeds if seeds is not None else [seed]):
         for name in scenarios:
             duration = _seconds_for(seconds, name) or get_scenario(name).seconds
-            out = Path(cache) / mesh.stem / name
-            specs.append(TrialSpec(str(out), mesh.stem, name))
-            if not _cache_valid(out, name, duration, seed, mesh):
-                todo.append({"out": str(out), "mesh": str(mesh), "scenario": name, "seconds": duration, "seed": seed})
+            for mesh in meshes:
+                out = trial_dir(cache, mesh, name, s)
+                spec = TrialSpec(str(out), mesh.stem, name, seed=int(s))
+                specs.append(spec)
+                if not _cache_valid(out, name, duration, s, mesh):
+                    task = {"out": str(out), "mesh": str(mesh), "scenario": name, "seconds": duration, "seed": int(s)}
+                    if lazy:
+                        spec.simulation, spec.frames = task, int(round(duration * 90))
+                    else:
+                        todo.append(task)
     if todo:
         log.info("simulating %d trials into %s", len(todo), cache)
         for _ in pmap(_simulate_task, todo, jobs, desc="simulating", unit="trial", progress=progress):
@@ -127,7 +154,8 @@ def standard_trials(cache: str | Path = DEFAULT_CACHE, scenarios=None, seconds: 
     from app.trial.reader import open_trial
 
     for spec in specs:
-        spec.frames = len(open_trial(spec.path))
+        if spec.simulation is None:
+            spec.frames = len(open_trial(spec.path))
     return specs
 
 

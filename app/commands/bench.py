@@ -16,11 +16,18 @@ def register(subparsers) -> None:
                    "thesis_joint thesis_complex icp) or YAML files; default: all built-ins")
     p.add_argument("--json", metavar="OUT", default="recordings/bench/bench.json", help="results JSON (default: %(default)s)")
     p.add_argument("--plots", metavar="DIR", help="write PNG plots (error over time per trial, rate per configuration)")
-    p.add_argument("--seconds", type=float, help="seconds per trial (simulated: duration; recorded: the first S seconds)")
+    p.add_argument("--seconds", nargs="+", metavar="S|NAME=S", help="seconds per trial (simulated: duration; recorded: "
+                   "the first S seconds); NAME=S for one scenario, e.g. --seconds 3 bone_moves=4.5")
+    p.add_argument("--seeds", nargs="+", type=int, metavar="N", help="simulation seeds (default: 0); several seeds: "
+                   "trials of seed N are cached in <cache>/<mesh>/<scenario>_seedN, each simulated just before its "
+                   "first run, and the JSON is rewritten after every run (a partial matrix stays usable)")
     p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1: frames/s are then not shared)")
     p.add_argument("--quick", action="store_true", help="a short run (minutes): 3 configurations (osteonav_default, A_cpu, "
                    "icp) on static_clear (1.5 s) and bone_moves (3.5 s, until its move ends), the default mesh only")
-    p.add_argument("--scenarios", nargs="+", help="simulated scenarios (default: the standard four)")
+    from app.sim.scenarios import SCENARIOS, STANDARD
+
+    p.add_argument("--scenarios", nargs="+", metavar="NAME", help=f"simulated scenarios (default: the standard four, "
+                   f"{' '.join(STANDARD)}); all: {' '.join(SCENARIOS)}")
     p.add_argument("--meshes", nargs="+", help="meshes to simulate (default: the project's and the pelvis crests)")
     p.add_argument("--cache", default="recordings/bench", help="where simulated trials are cached (default: %(default)s)")
     p.add_argument("--out", help="keep each run's estimate.txt / status.csv under OUT/<config>/<mesh>/<scenario>")
@@ -28,6 +35,34 @@ def register(subparsers) -> None:
     p.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     add_overwrite_argument(p, "the --plots and --out folders' earlier contents")
     p.set_defaults(func=run)
+
+
+def parse_seconds(items) -> float | dict | None:
+    """``--seconds``: None, one duration for every trial, or (with NAME=S items) a duration per scenario
+    name (every registered scenario: the plain S given, else its own length)."""
+    from app.errors import ConfigError
+    from app.sim.scenarios import SCENARIOS
+
+    if not items:
+        return None
+    default, by_name = None, {}
+    for item in items:
+        name, _, value = item.rpartition("=")
+        try:
+            s = float(value)
+        except ValueError:
+            s = -1.0
+        if s <= 0:
+            raise ConfigError("--seconds", f"expected S or NAME=S with a duration > 0 s, got '{item}'")
+        if not name:
+            default = s
+        elif name not in SCENARIOS:
+            raise ConfigError("--seconds", f"unknown scenario '{name}' in '{item}'; valid: {', '.join(SCENARIOS)}")
+        else:
+            by_name[name] = s
+    if not by_name:
+        return default
+    return {name: by_name.get(name, default if default else scenario.seconds) for name, scenario in SCENARIOS.items()}
 
 
 def run(args) -> int:
@@ -40,8 +75,7 @@ def run(args) -> int:
 
     if args.jobs < 1:
         raise ConfigError("--jobs", f"expected an integer >= 1, got {args.jobs}")
-    if args.seconds is not None and args.seconds <= 0:
-        raise ConfigError("--seconds", f"expected a duration > 0 s, got {args.seconds}")
+    args.seconds = parse_seconds(args.seconds)
     configs = bench.resolve_configs(args.configs or (bench.QUICK_CONFIGS if args.quick else None))
     if args.plots:
         prepare_dir(args.plots, args.overwrite, PLOTS, "--plots")
@@ -57,22 +91,28 @@ def run(args) -> int:
         meshes = args.meshes or ([DEFAULT_MESH] if args.quick else None)
         if not args.meshes and not args.quick and not bench.pelvis_crest_meshes():
             logging.getLogger(__name__).warning("no pelvis crest meshes at %s: the default mesh only", bench.PELVIS_DIR)
-        trials = bench.standard_trials(args.cache, scenarios, seconds, meshes, jobs=args.jobs)
+        trials = bench.standard_trials(args.cache, scenarios, seconds, meshes, jobs=args.jobs, seeds=args.seeds,
+                                       lazy=bool(args.seeds))
     print(f"{len(configs)} configurations x {len(trials)} trials "
           f"({sum(t.max_frames or t.frames for t in trials)} frames each configuration), {args.jobs} process(es)")
     for c in configs:
         print(f"  {c.name:<18} {c.describe()}")
+    meta = {"machine": platform.platform(), "processor": platform.processor(), "jobs": args.jobs,
+            "seconds": seconds, "seeds": args.seeds or [0], "configs": {c.name: c.describe() for c in configs},
+            "planned_runs": len(configs) * len(trials)}
     t0 = time.perf_counter()
-    rows = bench.run_bench(configs, trials, jobs=args.jobs, out_dir=args.out, with_vsd=not args.no_vsd)
+    on_row = (lambda rows: bench.write_json(rows, args.json, {**meta, "partial": True})) if args.seeds else None
+    rows = bench.run_bench(configs, trials, jobs=args.jobs, out_dir=args.out, with_vsd=not args.no_vsd, on_row=on_row)
     elapsed = time.perf_counter() - t0
     gl = next((r["gl"] for r in rows if r["tracker"] == "particle_filter" and r.get("gl")), None)
     print(f"\n{gl or ''}  ({platform.processor() or platform.machine()}, {elapsed:.0f} s)\n")
     print(bench.table(rows, markdown=args.markdown))
+    if len(rows) > len({(r["config"], r["scenario"]) for r in rows}):
+        print("\nper scenario over meshes and seeds: median / worst (worst run: mesh#seed)\n")
+        print(bench.summary_table(rows, markdown=args.markdown))
     print("\nADD, rot: median / p95 of every frame (mm, deg); VSD rec: e_VSD < 0.3 (tau 20 mm); lost %: ADD > 10 mm; "
           "danger: status ok with ADD > 5 mm; jit: RMS frame-to-frame change while the bone is static")
-    meta = {"gl": gl, "machine": platform.platform(), "processor": platform.processor(), "jobs": args.jobs,
-            "seconds": seconds, "elapsed_s": elapsed, "configs": {c.name: c.describe() for c in configs}}
-    bench.write_json(rows, args.json, meta)
+    bench.write_json(rows, args.json, {**meta, "gl": gl, "elapsed_s": elapsed})
     print(f"wrote {args.json}")
     if args.plots:
         written = bench.plot(rows, args.plots)

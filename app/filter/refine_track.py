@@ -64,7 +64,8 @@ class RefineConfig:
 class RefineOutcome:
     """One frame: T_base_bone (the refined pose, or None when no fit was kept); fitness (NaN when not
     refined); template_std (m, inf when not refined); competitor : a competing pose fits about as
-    well; competitor_fitness; source : 'track' | 'filter' | ''; seconds : time spent."""
+    well; competitor_fitness; source : 'track' | 'filter' | ''; seconds : time spent; behind : the kept
+    fit's share of measurements inside the model (RefineResult.behind)."""
 
     T_base_bone: np.ndarray | None
     fitness: float
@@ -73,6 +74,7 @@ class RefineOutcome:
     competitor_fitness: float
     source: str
     seconds: float
+    behind: float = float("nan")
 
 
 def pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
@@ -150,4 +152,5 @@ class RefinedTrack:
             self.reset()
         std = template_std(best.H, self.plan_points, self.inflation)
         kept = T_best if best.fitness >= c.keep_fitness else None
-        return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0)
+        return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0,
+                             best.behind)

@@ -173,7 +173,7 @@ class DepthTracker:
         if (c.feedback and converged and out.T_base_bone is not None
                 and out.fitness >= c.feedback_fitness and not out.competitor):
             self.filter.shift_to(out.T_base_bone, result.T_base_bone)
-        status = with_refinement(result.status, RefinementEvidence(out.fitness, out.template_std, out.competitor),
+        status = with_refinement(result.status, RefinementEvidence(out.fitness, out.template_std, out.competitor, out.behind),
                                  self.config.status)
         timings = {**result.timings, "refine": out.seconds}
         T_base_bone = out.T_base_bone if out.T_base_bone is not None else result.T_base_bone

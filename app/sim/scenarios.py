@@ -4,7 +4,9 @@ Each scenario is a :class:`Scenario` (plain parameters, no behaviour) registered
 ``SCENARIOS``; :func:`get_scenario` raises a ``ValueError`` listing the valid names. The
 standard four (issue 2) are ``static_clear``, ``static_occluded`` (hand occlusion rising to 80 %
 and back), ``bone_moves`` (up to 5 cm/s and 30 deg/s, then rest) and ``dropouts`` (300 ms gaps).
-The ``or_*`` scenarios reproduce DESIGN.md's "What the operating room does to the tracker".
+The ``or_*`` scenarios reproduce DESIGN.md's "What the operating room does to the tracker";
+``static_far`` (0.65 m instead of 0.42 m) and ``static_other_side`` (the bone turned 180 deg about its
+crest-up axis) complete issue 12's static scenes.
 """
 from __future__ import annotations
 
@@ -43,6 +45,8 @@ class Scenario:
     tissue_patch_m: float = 0.0             # residual soft tissue thickness on part of the crest
     graft_cut_at_s: float | None = None     # time a 20x10x10 mm graft is cut out of the crest
     full_occlusion: tuple[float, float] | None = None   # (start, duration): a hand over everything
+    camera_distance_m: float = 0.42         # bone origin in front of the camera's start pose (world.CAMERA_TO_BONE_M)
+    bone_yaw_deg: float = 0.0               # bone turned about its crest-up axis: 180 = seen from the other side
     extra: dict = field(default_factory=dict)
 
 
@@ -79,6 +83,11 @@ _register(Scenario("or_coarse_start", "initial alignment off by 15 mm and 12 deg
 _register(Scenario("or_deep_tissue", "static; the crest stands only ~10 mm out of the soft tissue (world.TISSUE_PROTRUSION_M) "
                    "and 3 mm of residual tissue lies on a third of the ridge (issue 12)",
                    seconds=6.0, tissue_patch_m=0.003, instrument=False))
+
+_register(Scenario("static_far", "static bone seen from 0.65 m (the crest covers ~2k of the 307k pixels), no occluders",
+                   seconds=6.0, instrument=False, camera_distance_m=0.65))
+_register(Scenario("static_other_side", "static bone seen from the other side of the table (turned 180 deg about its "
+                   "crest-up axis), no occluders", seconds=6.0, instrument=False, bone_yaw_deg=180.0))
 
 STANDARD = ("static_clear", "static_occluded", "bone_moves", "dropouts")
 DEFAULT_SCENARIO = "static_occluded"

@@ -149,7 +149,7 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
     check_units(bone, mesh_path)
     dh = UR_MODELS["ur5e"]
     T_flange_camera = world.T_FLANGE_CAMERA
-    T_base_bone0 = world.initial_bone_pose(dh, T_flange_camera, rng)
+    T_base_bone0 = world.initial_bone_pose(dh, T_flange_camera, rng, scenario.camera_distance_m, scenario.bone_yaw_deg)
     frame_ids, stamps = frame_schedule(scenario, rng)
     t_rel = stamps - CLOCK_START
     T_base_bone = world.bone_trajectory(t_rel, T_base_bone0, scenario.bone_motion)

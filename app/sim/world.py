@@ -45,16 +45,19 @@ def joint_trajectory(t: np.ndarray, q0: np.ndarray = Q0_UR5E) -> np.ndarray:
     return q0 + JOINT_AMPLITUDE * np.sin(2.0 * np.pi * JOINT_FREQUENCY * t + JOINT_PHASE)
 
 
-def initial_bone_pose(dh: DHParameters, T_flange_camera: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """T_base_bone at t = 0: in front of the camera, bone z (crest up) towards the lens, tilted a little."""
+def initial_bone_pose(dh: DHParameters, T_flange_camera: np.ndarray, rng: np.random.Generator,
+                      distance_m: float = CAMERA_TO_BONE_M, yaw_deg: float = 0.0) -> np.ndarray:
+    """T_base_bone at t = 0: ``distance_m`` in front of the camera, bone z (crest up) towards the lens,
+    turned ``yaw_deg`` about bone z (180: seen from the other side), tilted a little."""
     T_base_camera = forward_kinematics(dh, joint_trajectory(np.zeros(1))[0]) @ T_flange_camera
     z_camera = T_base_camera[:3, 2]
-    p_base_bone = T_base_camera[:3, 3] + CAMERA_TO_BONE_M * z_camera
+    p_base_bone = T_base_camera[:3, 3] + distance_m * z_camera
     # bone z axis opposite the optical axis; bone x roughly along the camera's x
     z_bone = -z_camera
     x_bone = T_base_camera[:3, 0] - z_bone * (T_base_camera[:3, 0] @ z_bone)
     x_bone /= np.linalg.norm(x_bone)
     R = np.column_stack([x_bone, np.cross(z_bone, x_bone), z_bone])
+    R = R @ quat.to_matrix(quat.exp_map(np.array([0.0, 0.0, np.deg2rad(yaw_deg)])))
     tilt = quat.to_matrix(quat.exp_map(rng.normal(0.0, np.deg2rad(8.0), 3)))
     return se3.make_pose(R @ tilt, p_base_bone)
 
