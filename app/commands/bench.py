@@ -1,7 +1,9 @@
 """``osteonav bench``: every configuration on every trial, one table (see :mod:`app.bench.bench`)."""
 from __future__ import annotations
 
-from app.commands.outdir import PLOTS, add_overwrite_argument, prepare_dir
+from app.commands.outdir import PLOTS, add_overwrite_argument, prepare_dir, results_file
+
+DEFAULT_JSON = "recordings/bench/bench.json"
 
 
 def register(subparsers) -> None:
@@ -14,7 +16,8 @@ def register(subparsers) -> None:
     p.add_argument("--trials", nargs="+", metavar="DIR", help="trial directories with groundtruth.txt (default: simulate)")
     p.add_argument("--configs", nargs="+", metavar="NAME", help="built-in names (A_cpu A_cadaver thesis_blockwise "
                    "thesis_joint thesis_complex icp) or YAML files; default: all built-ins")
-    p.add_argument("--json", metavar="OUT", default="recordings/bench/bench.json", help="results JSON (default: %(default)s)")
+    p.add_argument("--json", metavar="OUT", help=f"results JSON (an existing one needs --overwrite; default: {DEFAULT_JSON}, "
+                   "or a dated name beside it when that exists)")
     p.add_argument("--plots", metavar="DIR", help="write PNG plots (error over time per trial, rate per configuration)")
     p.add_argument("--seconds", nargs="+", metavar="S|NAME=S", help="seconds per trial (simulated: duration; recorded: "
                    "the first S seconds); NAME=S for one scenario, e.g. --seconds 3 bone_moves=4.5")
@@ -33,7 +36,7 @@ def register(subparsers) -> None:
     p.add_argument("--out", help="keep each run's estimate.txt / status.csv under OUT/<config>/<mesh>/<scenario>")
     p.add_argument("--no-vsd", action="store_true", help="skip VSD (saves two renderings per frame)")
     p.add_argument("--markdown", action="store_true", help="print the table as Markdown")
-    add_overwrite_argument(p, "the --plots and --out folders' earlier contents")
+    add_overwrite_argument(p, "the --json file and the --plots and --out folders' earlier contents")
     p.set_defaults(func=run)
 
 
@@ -76,6 +79,7 @@ def run(args) -> int:
     if args.jobs < 1:
         raise ConfigError("--jobs", f"expected an integer >= 1, got {args.jobs}")
     args.seconds = parse_seconds(args.seconds)
+    args.json = str(results_file(args.json, DEFAULT_JSON, args.overwrite))
     configs = bench.resolve_configs(args.configs or (bench.QUICK_CONFIGS if args.quick else None))
     if args.plots:
         prepare_dir(args.plots, args.overwrite, PLOTS, "--plots")

@@ -2,6 +2,8 @@
 :mod:`app.marker.bench`): mean absolute inclination / anteversion errors and update rates."""
 from __future__ import annotations
 
+from app.commands.outdir import add_overwrite_argument, results_file
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("bench-marker", help="marker + IMU (publication C): errors and rates of marker-only, "
@@ -13,11 +15,14 @@ def register(subparsers) -> None:
     p.add_argument("--camera-fps", type=float, default=10.0, help="camera (marker) rate, Hz")
     p.add_argument("--imu-rate", type=float, default=100.0, help="IMU rate, Hz")
     p.add_argument("--yaw-drift", type=float, default=None, help="IMU yaw drift, deg/s (default: the simulator's)")
-    p.add_argument("--json", default="recordings/bench_marker.json", help="where to write the results")
+    p.add_argument("--json", help="where to write the results (an existing file needs --overwrite; default: "
+                   "recordings/bench_marker.json, or a dated name beside it when that exists)")
+    add_overwrite_argument(p, "the --json file")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
+    args.json = str(results_file(args.json, "recordings/bench_marker.json", args.overwrite))
     import json
     from pathlib import Path
 
@@ -45,7 +50,6 @@ def run(args) -> int:
     print(f"\nfused: marker found by region {fused['paths']['roi']}, by the whole image {fused['paths']['full']}, "
           f"not found {fused['paths']['none']}; calibration error "
           f"{np.mean([r['calibration']['error_deg'] for r in runs]):.2f} deg")
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps({"mean": mean, "runs": runs}, indent=2, default=str))
     print(f"wrote {args.json}")
     return 0

@@ -1,6 +1,8 @@
 """``osteonav bench-rate``: the filter's frame rate and stage split per likelihood backend (see :mod:`app.bench.rate`)."""
 from __future__ import annotations
 
+from app.commands.outdir import add_overwrite_argument, results_file
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("bench-rate", help="frames/s of the particle filter per backend, particle count and resolution")
@@ -9,7 +11,9 @@ def register(subparsers) -> None:
     p.add_argument("--resolutions", nargs="+", default=None, help="WxH, default: 80x60 100x75 160x120")
     p.add_argument("--frames", type=int, default=30, help="frames timed per configuration")
     p.add_argument("--config", help="tracker YAML whose other settings to use")
-    p.add_argument("--json", default="recordings/bench_rate.json", help="where to write the results")
+    p.add_argument("--json", help="where to write the results (an existing file needs --overwrite; default: "
+                   "recordings/bench_rate.json, or a dated name beside it when that exists)")
+    add_overwrite_argument(p, "the --json file")
     p.set_defaults(func=run)
 
 
@@ -36,6 +40,7 @@ def _parse(args):
 
 
 def run(args) -> int:
+    args.json = str(results_file(args.json, "recordings/bench_rate.json", args.overwrite))
     import json
     from pathlib import Path
 
@@ -54,7 +59,6 @@ def run(args) -> int:
               "not included in the rates")
     print()
     print(rate.table(results))
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(results, indent=2))
     print(f"\nwrote {args.json}")
     return 0

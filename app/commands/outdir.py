@@ -104,6 +104,21 @@ def prepare_file(path: "str | Path", overwrite: bool, flag: str = "--out") -> Pa
     return path
 
 
+def results_file(path: "str | None", default: str, overwrite: bool, flag: str = "--json") -> Path:
+    """Where a benchmark writes its results file: ``path`` when given (:func:`prepare_file`: an
+    existing file needs ``--overwrite``); without it ``default``, or, when ``default`` already exists
+    and ``overwrite`` is not given, ``<stem>-<date>-<time><suffix>`` beside it, so a second run never
+    replaces the first one's results (the same rule as a session's rerun log)."""
+    if path is not None:
+        return prepare_file(path, overwrite, flag)
+    target = Path(default)
+    if target.exists() and not overwrite:
+        import time
+
+        target = target.with_name(f"{target.stem}-{time.strftime('%Y%m%d-%H%M%S')}{target.suffix}")
+    return prepare_file(target, True, flag)
+
+
 def add_overwrite_argument(parser, what: str = "the outputs") -> None:
     """The one ``--overwrite`` flag, worded the same for every command."""
     parser.add_argument("--overwrite", action="store_true",
