@@ -62,7 +62,7 @@ class TrackerConfig(FilterConfig):
         GPU), 'gl' or 'cpu' (app/render/backends.py)
     seed : seed of the filter's np.random.Generator (a replay with one seed is reproducible)
     init_method : 'pose' (particles around the coarse initial pose) or 'point' (the one-point SMC
-        initialiser of DESIGN.md on the first frame, from a point on the bone, app/filter/smc_init.py)
+        initialiser of DESIGN.md on the first frame, from a point on the bone, app/filter/smc_init/)
     init_point_sigma : m, σ_t, how far the pointed point may lie off the bone's surface
     init_restarts, init_budget_s : independent runs of the initialiser (the most likely kept), and
         a wall-time safety net only (s; the budget is counted in likelihood evaluations, smc_init.py)

@@ -1,6 +1,6 @@
 """How often the one-point initialiser finds the bone: ``python -m app.bench.init_point TRIAL... [--seeds N]``.
 
-For each trial (with ground truth and ``point_prior``), the sampler (app/filter/smc_init.py, the
+For each trial (with ground truth and ``point_prior``), the sampler (app/filter/smc_init/, the
 default settings and the default tracker's backend) runs ``--seeds`` times on the first frame with
 different seeds (settings: the default tracker config's ``init.*``); a run succeeds when its pose is within 5 mm ADD and 5 degrees of the truth.
 Prints a table (success count, ADD median, wall and process-CPU time medians, evaluations) and

@@ -43,7 +43,7 @@ runs on the next frame that has a camera pose and valid depth.
   Not around the current estimate too: on crest_left_03 (static_occluded) half of the particles
   there kept a wrong pose 105 mm off alive, and the filter and the refinement went back to it
   after the re-spread had found the bone (0.2 mm);
-- else the *one-point SMC initialiser* (app/filter/smc_init.py) around a point on the bone: the
+- else the *one-point SMC initialiser* (app/filter/smc_init/) around a point on the bone: the
   trial's / session's ``point_prior`` when given, else the last confident pose's surface point
   nearest the bone's centroid; its budget is ``smc_evaluations`` pose likelihood evaluations
   (work, never seconds).

@@ -67,9 +67,10 @@ then lowered to UNCERTAIN, never raised, when
 - the largest predicted standard deviation of the template's points, from the refinement's
   information matrix (Σ = ``covariance_inflation`` H⁻¹, inflated for correlated pixels and model
   error), exceeds ``max_template_std`` = 1 mm, the clinical tolerance (DESIGN.md): too little of
-  the bone is seen to place the template. The points are the mesh's vertices (the tracker is not
-  given the plan), a conservative bound. The inflation, 6, is calibrated against the measured
-  error of the same points (scripts/template_coverage.py, BENCHMARKS.md §6: 1,521 refined frames of
+  the bone is seen to place the template. The points are the plan's template points when the tracker
+  is given a plan (replay with its projector plan, a session with a projector output), else 300 of
+  the mesh's vertices, a conservative bound (the summary's ``template_points`` says which). The inflation, 6, is calibrated against the measured
+  error of 300 mesh vertices (scripts/template_coverage.py, BENCHMARKS.md §6: 1,521 refined frames of
   eleven trials, eight crests): the predicted bound covers the measured worst-point error on 90 %
   of the frames with inflation 2.9 on clear views at 0.42 m and 5.3 under a hand rising to 80 %;
   at 0.65 m the error is mostly a bias (1.4-3.3x the predicted std) that 12.7 would be needed

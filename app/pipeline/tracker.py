@@ -102,7 +102,7 @@ class DepthTracker:
 
     def start_from_point(self, point_base: np.ndarray) -> None:
         """Start from one point on the bone (base frame, m): the one-point SMC initialiser runs on the
-        first frame that has a camera pose and valid depth (app/filter/smc_init.py); frames before it
+        first frame that has a camera pose and valid depth (app/filter/smc_init/); frames before it
         are reported lost.
 
         Experimental: on a CT crest in soft tissue the one-frame likelihood can prefer a wrong pose
