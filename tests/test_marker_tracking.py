@@ -131,7 +131,7 @@ def test_bench_marker_command_writes_json_and_meets_targets(tmp_path, capsys):
 
     out = tmp_path / "bench.json"
     args = types.SimpleNamespace(seconds=10.0, seeds=[5], camera_fps=10.0, imu_rate=100.0, yaw_drift=None,
-                                 json=str(out))
+                                 json=str(out), overwrite=False)
     assert bench_marker.run(args) == 0
     printed = capsys.readouterr().out
     assert "| fused (Kalman) |" in printed
