@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from refine_crests import PELVIS, trial_path  # noqa: E402
+from refine_crests import selected_crests, trial_path  # noqa: E402
 
 
 def variant_config(name: str):
@@ -94,11 +94,7 @@ def main() -> None:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/osteonav_refine_trials"))
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
-    crests = sorted(PELVIS.glob("crest_*.ply"))
-    if args.crests:
-        crests = [c for c in crests if c.stem in args.crests]
-    if not crests:
-        raise SystemExit(f"no crest_*.ply in {PELVIS}")
+    crests = selected_crests(args.crests)
     rows = []
     for seed in args.seeds:
         for crest in crests:

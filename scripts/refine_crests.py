@@ -82,6 +82,16 @@ def summarise(rows: list[dict]) -> None:
               f"{np.median(a('refine_ms')):.0f} / {np.median(a('frame_ms')):.0f}")
 
 
+def selected_crests(stems: list[str] | None) -> list[Path]:
+    """The crest_*.ply of ../shared/data/pelvis, only ``stems`` when given; exits when there is none."""
+    crests = sorted(PELVIS.glob("crest_*.ply"))
+    if stems:
+        crests = [c for c in crests if c.stem in stems]
+    if not crests:
+        raise SystemExit(f"no crest_*.ply in {PELVIS}")
+    return crests
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenarios", nargs="+", default=["static_clear"])
@@ -92,11 +102,7 @@ def main() -> None:
     ap.add_argument("--cache", type=Path, default=Path("/tmp/osteonav_refine_trials"))
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
-    crests = sorted(PELVIS.glob("crest_*.ply"))
-    if args.crests:
-        crests = [c for c in crests if c.stem in args.crests]
-    if not crests:
-        raise SystemExit(f"no crest_*.ply in {PELVIS}")
+    crests = selected_crests(args.crests)
     rows = []
     for scenario in args.scenarios:
         for seed in args.seeds:

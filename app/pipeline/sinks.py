@@ -26,6 +26,7 @@ from typing import Protocol
 import numpy as np
 
 from app import metrics
+from app.geometry import se3
 from app.interfaces import Estimate, result_scalars
 from app.trial import tum
 
@@ -120,8 +121,6 @@ class EstimateFiles:
             self.tum.write(tum.format_tum_row(est.stamp, est.T_base_bone))
         self.status.write(tum.format_status_row(est.stamp, est.status))
 
-    write = on_estimate
-
     def close(self) -> dict:
         self.tum.close()
         self.status.close()
@@ -146,6 +145,7 @@ class RerunSink:
     def __init__(self, log, T_flange_camera: np.ndarray | None = None, depth_every: int = 3,
                  bone_when: tuple[str, ...] = ("ok",)):
         self.log, self.T_flange_camera = log, T_flange_camera
+        self.T_camera_flange = None if T_flange_camera is None else se3.inverse(np.asarray(T_flange_camera, float))
         self.depth_every, self.bone_when = max(int(depth_every), 1), tuple(bone_when)
         self._frame_id, self._n = 0, 0
 
@@ -173,8 +173,8 @@ class RerunSink:
         depth_now = frame is not None and self._n % self.depth_every == 0
         self._n += 1
         T_base_flange = None
-        if est.T_base_camera is not None and self.T_flange_camera is not None:
-            T_base_flange = est.T_base_camera @ np.linalg.inv(self.T_flange_camera)
+        if est.T_base_camera is not None and self.T_camera_flange is not None:
+            T_base_flange = est.T_base_camera @ self.T_camera_flange
         self.log.log_camera(T_base_flange, est.T_base_camera, frame.depth_m if depth_now else None)
         if depth_now:
             self.log.log_images(frame.infrared, frame.color)

@@ -119,24 +119,32 @@ class DepthTracker:
             self.recovery.set_point_prior(point)
 
     def _initialise_from_point(self, depth_small: np.ndarray, T_base_camera: np.ndarray) -> None:
-        from app.filter.smc_init import OnePointInitialiser, seed_state, smc_config_for
+        from app.filter.smc_init import smc_config_for
 
-        initialiser = OnePointInitialiser(self.backend, self.camera, self.mesh_vertices, self.mesh_faces,
-                                          smc_config_for(self.config), self.filter.rng)
-        self.init_result = initialiser.run(depth_small, T_base_camera, self._pending_point)
-        self.filter.set_state(seed_state(self.init_result, self.config.particles, self.filter.rng))
+        self.init_result = self._run_smc(self._pending_point, depth_small, T_base_camera, smc_config_for(self.config))
         self._pending_point = None
+
+    def _run_smc(self, point_base: np.ndarray, depth_small: np.ndarray, T_base_camera: np.ndarray, smc):
+        """The one-point SMC initialiser (app/filter/smc_init/) with config ``smc`` around ``point_base``
+        on this frame; the particles are seeded from its result, which is returned."""
+        from app.filter.smc_init import OnePointInitialiser, seed_state
+
+        initialiser = OnePointInitialiser(self.backend, self.camera, self.mesh_vertices, self.mesh_faces, smc,
+                                          self.filter.rng)
+        result = initialiser.run(depth_small, T_base_camera, point_base)
+        self.filter.set_state(seed_state(result, self.config.particles, self.filter.rng))
+        return result
 
     def process(self, depth_m: np.ndarray, stamp: float, T_base_camera: np.ndarray | None) -> FilterOutput:
         """One frame: full-resolution depth (H, W) metres, its stamp (s) and camera pose (None = unknown)."""
         width, height = self.config.resolution
         depth_small = downsample_nearest(depth_m, width, height)
-        usable = T_base_camera is not None and bool(np.any(np.isfinite(depth_small) & (depth_small > 0)))
         if self._pending_point is not None:
-            if not usable:
+            if not _usable(depth_small, T_base_camera):
                 return self._not_started(stamp)
             self._initialise_from_point(depth_small, T_base_camera)
-        reinitialised = self.recovery is not None and self.recovery.pending is not None and usable
+        reinitialised = (self.recovery is not None and self.recovery.pending is not None
+                         and _usable(depth_small, T_base_camera))
         if reinitialised:
             self._reinitialise(depth_small, T_base_camera, stamp)
         result = self.filter.step(depth_small, stamp, T_base_camera)
@@ -201,14 +209,11 @@ class DepthTracker:
 
     def _smc_from(self, point_base: np.ndarray, depth_small: np.ndarray, T_base_camera: np.ndarray) -> None:
         """The one-point initialiser with the recovery's budget (likelihood evaluations), one run."""
-        from app.filter.smc_init import OnePointInitialiser, seed_state, smc_config_for
+        from app.filter.smc_init import smc_config_for
 
         budget = self.config.recovery.smc_evaluations
         smc = smc_config_for(self.config, max_evaluations=budget, prior_draws=max(budget // 3, 1), restarts=1)
-        initialiser = OnePointInitialiser(self.backend, self.camera, self.mesh_vertices, self.mesh_faces, smc,
-                                          self.filter.rng)
-        result = initialiser.run(depth_small, T_base_camera, point_base)
-        self.filter.set_state(seed_state(result, self.config.particles, self.filter.rng))
+        self._run_smc(point_base, depth_small, T_base_camera, smc)
 
     def report(self) -> dict:
         """For the summaries: the re-initialisations (count, stamps, kinds, reasons) and which points
@@ -236,6 +241,12 @@ class DepthTracker:
 
     def release(self) -> None:
         self.backend.release()
+
+
+def _usable(depth_small: np.ndarray, T_base_camera: np.ndarray | None) -> bool:
+    """A frame an initialiser can use: a camera pose and at least one valid depth pixel (only
+    checked when an initialisation is due, not every frame)."""
+    return T_base_camera is not None and bool(np.any(np.isfinite(depth_small) & (depth_small > 0)))
 
 
 PLAN_POINTS = 300   # mesh vertices standing in for the template's points in the status's error bound
