@@ -53,11 +53,14 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from app.filter import refine_kernels as kernels
 from app.geometry import se3
 from app.geometry.camera import PinholeCamera
 
 TUKEY_C = 3.0   # Tukey's constant in σ(z): 4.685 is the 95 %-efficiency value; 3 measured less biased by tissue
 RENDER_LEVER = 0.05   # m, radius at which a rotation step is compared with rerender_step
+FINE_BELOW = 1400     # silhouette cells at ``stride`` under which a frame is refined at stride 1 (module docstring)
+GRID_CELL = 0.001     # m, cell of the samples' grid for the numba nearest-sample search (~2.5 samples per occupied cell)
 
 
 @dataclass
@@ -90,6 +93,9 @@ class RefineParams:
     stop_translation: float = 1e-4
     rerender_step: float = 5e-4
     stop_rotation: float = 5e-4
+    fine_below: int = FINE_BELOW
+    pair_radius: float = 0.005
+    backend: str = "numba"
 
 
 @dataclass
@@ -115,10 +121,6 @@ class RefineResult:
     behind: float = float("nan")
 
 
-def _skew(a: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-
-
 def exp_se3(delta: np.ndarray) -> np.ndarray:
     """exp of δ = (ω, v) as a 4x4 (Rodrigues for R; the translation taken as v, first order)."""
     T = se3.from_rotvec_trans(np.asarray(delta[:3], float), np.asarray(delta[3:], float))
@@ -141,29 +143,38 @@ class Refiner:
         import trimesh
 
         self.params = params or RefineParams()
+        if self.params.backend not in ("numba", "numpy"):
+            raise ValueError(f"refine backend {self.params.backend!r}: numba | numpy")
         self.camera = camera
         mesh = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces), process=False)
         points, face_idx = trimesh.sample.sample_surface(mesh, self.params.samples, seed=seed)
         self.points = np.asarray(points, float)
         self.normals = np.asarray(mesh.face_normals[face_idx], float)
-        self.tree = cKDTree(self.points)
+        self.tree = cKDTree(self.points) if self.params.backend == "numpy" else None
         self.center = self.points.mean(axis=0)
+        self.grid = kernels.build_grid(self.points, self.normals, GRID_CELL) if self.params.backend == "numba" else None
 
     def sigma(self, z: np.ndarray) -> np.ndarray:
         """σ(z) = k z² + σ_base (DESIGN.md's sensor model), metres."""
         return self.params.k * z * z + self.params.sigma_base
 
-    def model_depth(self, T_camera_bone: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    def model_depth(self, T_camera_bone: np.ndarray, stride: int | None = None) -> tuple[np.ndarray, tuple[int, int, int, int]]:
         """z-buffer of the camera-facing samples on the crop grid: (h, w) depth (inf = not covered)
-        and the crop (x0, y0, x1, y1) in full-resolution pixels (grid step ``stride``)."""
-        s, cam = self.params.stride, self.camera
+        and the crop (x0, y0, x1, y1) in full-resolution pixels (grid step ``stride``, default the params')."""
+        s, cam = stride or self.params.stride, self.camera
         R, t = T_camera_bone[:3, :3], T_camera_bone[:3, 3]
+        w_grid, h_grid = (cam.width + s - 1) // s, (cam.height + s - 1) // s
+        if self.grid is not None:
+            zbuf, c0, r0 = kernels.zbuffer(self.points, self.normals, np.ascontiguousarray(R), np.ascontiguousarray(t),
+                                           cam.fx, cam.fy, cam.cx, cam.cy, s, w_grid, h_grid)
+            if zbuf.size == 0:
+                return zbuf, (0, 0, 0, 0)
+            return zbuf, (c0 * s, r0 * s, (c0 + zbuf.shape[1]) * s, (r0 + zbuf.shape[0]) * s)
         p_cam = self.points @ R.T + t
         n_cam = self.normals @ R.T
         facing = (np.einsum("ij,ij->i", n_cam, p_cam) < 0) & (p_cam[:, 2] > 0)
         uv, z = cam.project(p_cam[facing])
         col, row = np.round(uv[:, 0] / s).astype(int), np.round(uv[:, 1] / s).astype(int)
-        w_grid, h_grid = (cam.width + s - 1) // s, (cam.height + s - 1) // s
         inside = (col >= 0) & (col < w_grid) & (row >= 0) & (row < h_grid)
         if not inside.any():
             return np.full((0, 0), np.inf), (0, 0, 0, 0)
@@ -177,12 +188,16 @@ class Refiner:
         zbuf = np.where(np.isfinite(zbuf), zbuf, filled)
         return zbuf, (c0 * s, r0 * s, c1 * s, r1 * s)
 
-    def measurements(self, depth: np.ndarray, T_camera_bone: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Camera-frame points y_i (M, 3) of the silhouette's usable pixels and their z*_i (M,)."""
-        s = self.params.stride
-        zbuf, (x0, y0, x1, y1) = self.model_depth(T_camera_bone)
+    def measurements(self, depth: np.ndarray, T_camera_bone: np.ndarray,
+                     stride: int | None = None, rendered=None) -> tuple[np.ndarray, np.ndarray]:
+        """Camera-frame points y_i (M, 3) of the silhouette's usable pixels and their z*_i (M,);
+        ``rendered``: :meth:`model_depth`'s result at this pose and stride when already computed."""
+        s, cam = stride or self.params.stride, self.camera
+        zbuf, (x0, y0, x1, y1) = rendered if rendered is not None else self.model_depth(T_camera_bone, s)
         if zbuf.size == 0:
             return np.zeros((0, 3)), np.zeros(0)
+        if self.grid is not None:
+            return kernels.measurements(depth, zbuf, x0, y0, s, cam.fx, cam.fy, cam.cx, cam.cy, self.params.occluder_margin)
         z = np.asarray(depth[y0:y1:s, x0:x1:s], float)[:zbuf.shape[0], :zbuf.shape[1]]
         zbuf = zbuf[:z.shape[0], :z.shape[1]]
         with np.errstate(invalid="ignore"):
@@ -190,19 +205,54 @@ class Refiner:
         rows, cols = np.nonzero(usable)
         zi = z[rows, cols]
         u, v = x0 + cols * s, y0 + rows * s
-        cam = self.camera
         y = np.column_stack([(u - cam.cx) / cam.fx * zi, (v - cam.cy) / cam.fy * zi, zi])
         return y, zbuf[rows, cols]
+
+    def choose_stride(self, T_camera_bone: np.ndarray):
+        """(stride, rendered): the grid step of this frame, ``params.stride``, or 1 when the bone's
+        silhouette at that step has fewer than ``fine_below`` cells (a far or small view: four times
+        the points; module docstring); ``rendered`` the z-buffer at that stride when it was computed."""
+        s = self.params.stride
+        if s == 1 or self.params.fine_below <= 0:
+            return s, None
+        rendered = self.model_depth(T_camera_bone, s)
+        if np.count_nonzero(np.isfinite(rendered[0])) < self.params.fine_below:
+            return 1, None
+        return s, rendered
 
     def _associate(self, y_cam: np.ndarray, T_camera_bone: np.ndarray):
         """Bone-frame points p_i, nearest samples' x_i, n_i and point distances d_i."""
         p = se3.transform_points(se3.inverse(T_camera_bone), y_cam)
-        d, j = self.tree.query(p)
-        return p, self.points[j], self.normals[j], d
+        if self.grid is None:
+            d, j = self.tree.query(p, distance_upper_bound=self.params.pair_radius)
+            far = j >= len(self.points)            # none within pair_radius: not associated (NaN residual)
+            j[far] = 0
+            x, n = self.points[j], self.normals[j]
+            x[far], n[far] = np.nan, np.nan
+            return p, x, n, d
+        g = self.grid
+        j, d = kernels.nearest(np.ascontiguousarray(p), g.points, g.start, g.empty, g.origin, g.cell, g.dims,
+                               self.params.pair_radius)
+        x, n = g.points[j], g.normals[j]
+        x[j < 0], n[j < 0] = np.nan, np.nan
+        return p, x, n, d
 
     def _gn_step(self, p, x, n, d, sigma, width, in_front):
         """One weighted GN system: returns (δ, H, used, weighted rms). ``in_front`` (M,) m: how far
         each measurement lies in front of the model's depth z* (z* − z)."""
+        prm = self.params
+        if self.grid is not None:
+            H, g, used, num, den = kernels.normal_equations(p, x, n, d, sigma, in_front, self.center, float(width),
+                                                            prm.tukey_c, prm.front_sigmas)
+        else:
+            H, g, used, num, den = self._normal_equations(p, x, n, d, sigma, width, in_front)
+        if used < prm.min_points:
+            return None, H, used, float("nan")
+        delta = -np.linalg.solve(H + 1e-12 * np.eye(6), g)
+        return delta, H, used, float(np.sqrt(num / max(den, 1e-30)))
+
+    def _normal_equations(self, p, x, n, d, sigma, width, in_front):
+        """The numpy reference of :func:`app.filter.refine_kernels.normal_equations` (steps 4-6)."""
         r = np.einsum("ij,ij->i", n, p - x)
         s = np.maximum(self.params.tukey_c * sigma, width)
         buried = in_front > np.maximum(self.params.front_sigmas * sigma, width)
@@ -212,40 +262,47 @@ class Refiner:
         J = np.column_stack([np.cross(p[keep] - self.center, n[keep]), n[keep]])
         H = (J * w[:, None]).T @ J
         g = (J * w[:, None]).T @ r[keep]
-        used = int(keep.sum())
-        if used < self.params.min_points:
-            return None, H, used, float("nan")
-        delta = -np.linalg.solve(H + 1e-12 * np.eye(6), g)
-        rms = float(np.sqrt(np.sum(w * sigma[keep] ** 2 * r[keep] ** 2) / max(np.sum(w * sigma[keep] ** 2), 1e-30)))
-        return delta, H, used, rms
+        wsig = w * sigma[keep] ** 2
+        return H, g, int(keep.sum()), float(np.sum(wsig * r[keep] ** 2)), float(np.sum(wsig))
 
     def refine(self, depth: np.ndarray, T_camera_bone: np.ndarray, start_width: float | None = None) -> RefineResult:
         """Refine ``T_camera_bone`` (4, 4) on ``depth`` ((H, W) metres at the camera's resolution).
         ``start_width`` (m, default ``params.start_width``): the first Tukey width; 0 from a pose
-        already close (the track's last one), where a wide first step only lets the tissue pull."""
+        already close (the track's last one), where a wide first step only lets the tissue pull.
+        When the last step was below the stopping rule and the Tukey width had no effect any more
+        (<= front_sigmas σ), the statistics are those of that last association (step 8): a step of
+        < 0.1 mm / 0.03 deg does not change them, and a re-render and re-association cost as much as
+        an iteration."""
         prm = self.params
         start_width = prm.start_width if start_width is None else start_width
         T = np.array(T_camera_bone, dtype=float)
         H, used, rms, ok = np.zeros((6, 6)), 0, float("nan"), False
-        y = None
+        stride, rendered = self.choose_stride(T)
+        y, last = None, None
         for it in range(prm.iterations):
             if y is None:                          # re-render after a step that moved the model visibly
-                y, z_model = self.measurements(depth, T)
+                y, z_model = self.measurements(depth, T, stride, rendered)
+                rendered = None
+                sigma = self.sigma(y[:, 2])
             if len(y) < prm.min_points:
                 break
             p, x, n, d = self._associate(y, T)
             width = start_width * 0.5 ** it
-            delta, H, used, rms = self._gn_step(p, x, n, d, self.sigma(y[:, 2]), width, z_model - y[:, 2])
+            delta, H, used, rms = self._gn_step(p, x, n, d, sigma, width, z_model - y[:, 2])
             if delta is None:
                 break
             ok = True
             T = T @ se3.inverse(self._increment(delta))
             step_r, step_t = np.linalg.norm(delta[:3]), np.linalg.norm(delta[3:])
             if step_r < prm.stop_rotation and step_t < prm.stop_translation:
+                if width <= prm.front_sigmas * sigma.min():
+                    last = (p, x, n, d, sigma)
                 break
             if step_r * RENDER_LEVER > prm.rerender_step or step_t > prm.rerender_step:
                 y = None
-        return self._finish(depth, T if ok else np.array(T_camera_bone, float), H, used, rms, ok)
+        if last is not None:
+            return self._result(T, H, used, rms, ok, *last)
+        return self._finish(depth, T if ok else np.array(T_camera_bone, float), H, used, rms, ok, stride)
 
     def _increment(self, delta: np.ndarray) -> np.ndarray:
         """exp(δ) about the model's centre c (the Jacobian's origin): p ↦ c + R (p − c) + v."""
@@ -253,19 +310,26 @@ class Refiner:
         M[:3, 3] += self.center - M[:3, :3] @ self.center
         return M
 
-    def _finish(self, depth, T, H, used, rms, ok) -> RefineResult:
+    def _finish(self, depth, T, H, used, rms, ok, stride) -> RefineResult:
         """Fitness, counts and the information matrix at the final pose."""
-        y, z_model = self.measurements(depth, T)
+        y, z_model = self.measurements(depth, T, stride)
         if len(y) == 0:
             return RefineResult(T, H, float("nan"), 0, 0, used, rms, ok)
         p, x, n, d = self._associate(y, T)
         sigma = self.sigma(y[:, 2])
-        confirmed = int(np.sum(d < self.params.confirm_sigmas * sigma))
-        sharp = float(np.mean(d < self.params.sharp_sigmas * sigma))
-        behind = float(np.mean(np.einsum("ij,ij->i", n, p - x) < -self.params.behind_sigmas * sigma))
         if ok:
             _, H, used, rms = self._gn_step(p, x, n, d, sigma, 0.0, z_model - y[:, 2])
-        return RefineResult(T, H, confirmed / len(y), len(y), confirmed, used, rms, ok, sharp, behind)
+        return self._result(T, H, used, rms, ok, p, x, n, d, sigma)
+
+    def _result(self, T, H, used, rms, ok, p, x, n, d, sigma) -> RefineResult:
+        """Fitness, sharp and behind shares of one association (steps 7-8); unassociated points
+        (none within ``pair_radius``: d = inf, NaN residual) count as neither confirmed nor behind."""
+        prm = self.params
+        confirmed = int(np.sum(d < prm.confirm_sigmas * sigma))
+        sharp = float(np.mean(d < prm.sharp_sigmas * sigma))
+        with np.errstate(invalid="ignore"):
+            behind = float(np.mean(np.einsum("ij,ij->i", n, p - x) < -prm.behind_sigmas * sigma))
+        return RefineResult(T, H, confirmed / len(p), len(p), confirmed, used, rms, ok, sharp, behind)
 
 
 def template_std(H: np.ndarray, points_bone: np.ndarray, inflation: float = 1.0) -> float:
@@ -284,7 +348,8 @@ def template_std(H: np.ndarray, points_bone: np.ndarray, inflation: float = 1.0)
         return float("inf")
     t = np.asarray(points_bone, float).reshape(-1, 3)
     A = np.zeros((len(t), 3, 6))
-    A[:, :, :3] = -np.stack([_skew(ti) for ti in t])
+    A[:, 0, 1], A[:, 0, 2], A[:, 1, 0] = t[:, 2], -t[:, 1], -t[:, 2]     # −[t]ₓ
+    A[:, 1, 2], A[:, 2, 0], A[:, 2, 1] = t[:, 0], t[:, 1], -t[:, 0]
     A[:, :, 3:] = np.eye(3)
     cov = A @ sigma @ np.swapaxes(A, 1, 2)
     worst = float(np.linalg.eigvalsh(cov).max()) if len(t) else 0.0
