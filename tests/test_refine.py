@@ -163,14 +163,16 @@ def ct_crest_frame(gl_ctx):
 def test_a_fit_slid_onto_a_tissue_patch_leaves_measurements_behind_the_model(ct_crest_frame):
     """3 mm of tissue on a third of the crest (or_deep_tissue's patch): the fit chained from the truth
     slides part of the way onto it, and the seen surface then lies inside the refined model on more of
-    the bone (RefineResult.behind, status.max_behind_share) than at the truth or on the clear frame."""
+    the bone than the image's noise explains (RefineResult.behind beyond behind_allowed,
+    status.max_behind_excess), unlike at the truth or on the clear frame."""
+    from app.filter.refine_track import behind_excess
     from app.filter.status import StatusThresholds
 
     vertices, faces, T_true, _, measured, labels = ct_crest_frame
     refiner = Refiner(vertices, faces, D415_640x480, RefineParams())
-    limit = StatusThresholds().max_behind_share
+    limit = StatusThresholds().max_behind_excess
     clear = refiner.refine(measured, T_true, start_width=0.0)
-    assert clear.behind < limit
+    assert behind_excess(clear) < limit
     patched = measured.copy()
     rows, cols = np.nonzero((labels == 1) & (measured > 0))
     left = cols < np.quantile(cols, 0.33)
@@ -182,12 +184,44 @@ def test_a_fit_slid_onto_a_tissue_patch_leaves_measurements_behind_the_model(ct_
     at_truth = refiner.refine(patched, T_true, start_width=0.0)
     print(f"slid {1e3 * metrics.add(T, T_true, vertices):.2f} mm: behind {slid.behind:.3f}; clear {clear.behind:.3f}")
     assert metrics.add(T, T_true, vertices) > 0.0005    # it does slide (the failure the rule is for)
-    assert slid.behind > limit > clear.behind
-    assert at_truth.behind < limit                       # the patch alone is in front: not evidence against the truth
+    assert behind_excess(slid) > limit > behind_excess(clear)
+    assert behind_excess(at_truth) < limit                       # the patch alone is in front: not evidence against the truth
     from app.filter.status import RefinementEvidence, TrackingStatus, with_refinement
 
     def status(r):
-        return with_refinement(TrackingStatus.OK, RefinementEvidence(r.fitness, 0.0003, False, r.behind), StatusThresholds())
+        return with_refinement(TrackingStatus.OK, RefinementEvidence(r.fitness, 0.0003, False, behind_excess(r)), StatusThresholds())
 
     assert slid.fitness > 0.6 and status(slid) == TrackingStatus.UNCERTAIN   # the fit alone would have been ok
     assert status(clear) == TrackingStatus.OK
+
+
+def test_the_behind_bound_matches_the_binomial_closed_form():
+    """A plane seen head-on (|n·r̂| = 1): each point lies more than τ behind with e = Φ(−τ/σ_n); the
+    bound is e + z sqrt(e (1 − e) / M)."""
+    from scipy.stats import norm
+
+    from app.filter.refine import behind_bound
+
+    M, tau, noise = 2000, 0.0015, 0.001
+    p = np.column_stack([np.linspace(-0.01, 0.01, M), np.zeros(M), np.zeros(M)])
+    n = np.tile([0.0, 0.0, -1.0], (M, 1))
+    camera = np.array([0.0, 0.0, -1000.0])            # far away: rays along the normal
+    e = norm.cdf(-tau / noise)
+    assert behind_bound(p, n, np.full(M, tau), noise, camera, 3.0) == pytest.approx(e + 3 * np.sqrt(e * (1 - e) / M), rel=1e-6)
+    tilted = np.tile([0.0, np.sin(1.0), -np.cos(1.0)], (M, 1))   # 57 deg to the ray: the noise moves it cos 1 as far
+    assert behind_bound(p, tilted, np.full(M, tau), noise, camera, 0.0) == pytest.approx(norm.cdf(-tau / (noise * np.cos(1.0))), rel=1e-6)
+    assert np.isnan(behind_bound(p, n, np.full(M, tau), float("nan"), camera, 3.0))
+
+
+def test_image_noise_recovers_the_depth_noise_of_a_slanted_surface(rng):
+    """The row's second difference cancels the slope: σ̂_n of a slanted plane with noise σ_n = 0.9 mm."""
+    from app.filter.refine import image_noise
+
+    camera = D415_640x480
+    v, u = np.mgrid[0:480, 0:640]
+    z = 0.6 + 0.0004 * (u - 320) + 0.0002 * (v - 240)
+    depth = z + rng.normal(0, 0.0009, z.shape)
+    rows, cols = v[200:280, 250:390].ravel(), u[200:280, 250:390].ravel()
+    zz = depth[rows, cols]
+    y = np.column_stack([(cols - camera.cx) / camera.fx * zz, (rows - camera.cy) / camera.fy * zz, zz])
+    assert image_noise(depth, y, camera) == pytest.approx(0.0009, rel=0.05)

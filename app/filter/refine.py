@@ -95,6 +95,7 @@ class RefineParams:
     stop_rotation: float = 5e-4
     fine_below: int = FINE_BELOW
     pair_radius: float = 0.005
+    behind_z: float = 3.0
     backend: str = "numba"
 
 
@@ -119,6 +120,8 @@ class RefineResult:
     converged: bool
     sharp: float = float("nan")
     behind: float = float("nan")
+    behind_allowed: float = float("nan")
+    noise: float = float("nan")
 
 
 def exp_se3(delta: np.ndarray) -> np.ndarray:
@@ -296,12 +299,12 @@ class Refiner:
             step_r, step_t = np.linalg.norm(delta[:3]), np.linalg.norm(delta[3:])
             if step_r < prm.stop_rotation and step_t < prm.stop_translation:
                 if width <= prm.front_sigmas * sigma.min():
-                    last = (p, x, n, d, sigma)
+                    last = (y, p, x, n, d, sigma)
                 break
             if step_r * RENDER_LEVER > prm.rerender_step or step_t > prm.rerender_step:
                 y = None
         if last is not None:
-            return self._result(T, H, used, rms, ok, *last)
+            return self._result(depth, T, H, used, rms, ok, *last)
         return self._finish(depth, T if ok else np.array(T_camera_bone, float), H, used, rms, ok, stride)
 
     def _increment(self, delta: np.ndarray) -> np.ndarray:
@@ -319,9 +322,9 @@ class Refiner:
         sigma = self.sigma(y[:, 2])
         if ok:
             _, H, used, rms = self._gn_step(p, x, n, d, sigma, 0.0, z_model - y[:, 2])
-        return self._result(T, H, used, rms, ok, p, x, n, d, sigma)
+        return self._result(depth, T, H, used, rms, ok, y, p, x, n, d, sigma)
 
-    def _result(self, T, H, used, rms, ok, p, x, n, d, sigma) -> RefineResult:
+    def _result(self, depth, T, H, used, rms, ok, y, p, x, n, d, sigma) -> RefineResult:
         """Fitness, sharp and behind shares of one association (steps 7-8); unassociated points
         (none within ``pair_radius``: d = inf, NaN residual) count as neither confirmed nor behind."""
         prm = self.params
@@ -329,7 +332,46 @@ class Refiner:
         sharp = float(np.mean(d < prm.sharp_sigmas * sigma))
         with np.errstate(invalid="ignore"):
             behind = float(np.mean(np.einsum("ij,ij->i", n, p - x) < -prm.behind_sigmas * sigma))
-        return RefineResult(T, H, confirmed / len(p), len(p), confirmed, used, rms, ok, sharp, behind)
+        noise = image_noise(depth, y, self.camera)
+        allowed = behind_bound(p, n, sigma * prm.behind_sigmas, noise, se3.inverse(T)[:3, 3], prm.behind_z)
+        return RefineResult(T, H, confirmed / len(p), len(p), confirmed, used, rms, ok, sharp, behind, allowed, noise)
+
+
+def image_noise(depth: np.ndarray, y_cam: np.ndarray, camera: PinholeCamera) -> float:
+    """The depth noise σ̂_n (m) of the measured pixels ``y_cam`` (M, 3), from the image itself: the
+    second difference along the row, z(u−1) − 2 z(u) + z(u+1), has variance 6 σ_n² on a smooth surface
+    (its slope cancels); robust scale 1.4826 MAD / √6 over the pixels whose two neighbours are valid.
+    NaN with fewer than 30 such pixels. Spatially correlated noise makes it an underestimate (the
+    behind rule then only gets stricter)."""
+    u = np.rint(y_cam[:, 0] / y_cam[:, 2] * camera.fx + camera.cx).astype(int)
+    v = np.rint(y_cam[:, 1] / y_cam[:, 2] * camera.fy + camera.cy).astype(int)
+    inside = (u >= 1) & (u < depth.shape[1] - 1) & (v >= 0) & (v < depth.shape[0])
+    u, v = u[inside], v[inside]
+    left, mid, right = (np.asarray(depth[v, u + k], float) for k in (-1, 0, 1))
+    valid = (left > 0) & (right > 0) & (mid > 0) & np.isfinite(left) & np.isfinite(right) & np.isfinite(mid)
+    if valid.sum() < 30:
+        return float("nan")
+    dd = (left - 2 * mid + right)[valid]
+    return float(1.4826 * np.median(np.abs(dd - np.median(dd))) / np.sqrt(6.0))
+
+
+def behind_bound(p: np.ndarray, n: np.ndarray, threshold: np.ndarray, noise: float, camera_bone: np.ndarray,
+                 z: float) -> float:
+    """The largest share of measurements more than ``threshold`` (M,) behind a right pose that the
+    noise explains: each point's depth noise σ_n along its ray moves it by σ_n |n_i·r̂_i| along the
+    normal, so it lies behind with probability e_i = Φ(−threshold_i / (σ_n |n_i·r̂_i|)); the count is
+    Poisson-binomial with mean Σ e_i and variance Σ e_i (1 − e_i); the bound is the mean plus ``z``
+    standard deviations, over M. ``camera_bone``: the camera's centre in the bone frame. NaN when
+    the noise is unknown."""
+    from scipy.special import ndtr
+
+    if not np.isfinite(noise) or len(p) == 0:
+        return float("nan")
+    ray = p - camera_bone
+    with np.errstate(invalid="ignore"):
+        cos = np.abs(np.einsum("ij,ij->i", n, ray)) / np.linalg.norm(ray, axis=1)
+    e = np.where(np.isfinite(cos), ndtr(-threshold / (noise * np.maximum(cos, 1e-6))), 0.0)
+    return float((e.sum() + z * np.sqrt(np.sum(e * (1.0 - e)))) / len(p))
 
 
 def template_std(H: np.ndarray, points_bone: np.ndarray, inflation: float = 1.0) -> float:

@@ -117,7 +117,7 @@ UNCERTAIN_ANGULAR_SPEED_RAD_S = math.radians(20.0)
 MOTION_WINDOW_S = 0.2
 SETTLE_S = 0.3
 MIN_FITNESS = 0.6
-MAX_BEHIND_SHARE = 0.02
+MAX_BEHIND_EXCESS = 0.0
 MAX_TEMPLATE_STD_M = 0.001
 COVARIANCE_INFLATION = 6.0
 
@@ -149,7 +149,7 @@ class StatusThresholds:
     motion_window_s: float = MOTION_WINDOW_S
     settle_s: float = SETTLE_S
     min_fitness: float = MIN_FITNESS
-    max_behind_share: float = MAX_BEHIND_SHARE
+    max_behind_excess: float = MAX_BEHIND_EXCESS
     max_template_std: float = MAX_TEMPLATE_STD_M
     covariance_inflation: float = COVARIANCE_INFLATION
 
@@ -233,7 +233,8 @@ class RefinementEvidence:
     fitness : share of the bone's expected visible surface confirmed (NaN when not refined);
     template_std : m, largest predicted std of the template's points (inf when not refined);
     competitor : a pose > 5 mm / 5 deg away explains the image about as well;
-    behind : share of the measurements lying more than 1 σ inside the refined model (NaN: unknown).
+    behind : share of the measurements lying more than 1 σ inside the refined model in excess of the
+    share the image's noise explains (app/filter/refine_track.py ``behind_excess``; NaN: unknown).
     """
 
     fitness: float
@@ -251,8 +252,9 @@ def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
         reasons.append(f"predicted template error {1e3 * r.template_std:.2f} mm")
     if r.competitor:
         reasons.append("a competing pose explains the image about as well")
-    if r.behind > t.max_behind_share:
-        reasons.append(f"{100 * r.behind:.1f} % of the seen bone lies inside the refined model (slid onto tissue?)")
+    if r.behind > t.max_behind_excess:
+        reasons.append(f"{100 * r.behind:.1f} % more of the seen bone lies inside the refined model than the noise "
+                       "explains (slid onto tissue?)")
     return reasons
 
 
