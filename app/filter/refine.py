@@ -3,10 +3,15 @@
 Import as ``from app.filter.refine import Refiner``. DESIGN.md "Local refinement and the
 estimate's uncertainty". The particle filter at 160x120 is robust but imprecise; this refines its
 estimate T = ``T_camera_bone`` on the measured image at ``stride`` (1 = full, 2 = half sensor
-resolution) inside the bone's projected bounding box.
+resolution) inside the bone's projected bounding box. A small silhouette, fewer than
+``fine_below`` = 1,150 cells at ``stride`` (the eight CT crests at 0.65 m: 672-1,031 cells at stride
+2; at 0.42 m: 1,303-1,909), is refined at stride 1: four times the points where the bone is far
+(BENCHMARKS.md §6d).
 
-Model: the mesh sampled once, densely (``samples`` points x_j with normals n_j, bone frame), in a
-cKDTree. Per iteration, at the current pose:
+Model: the mesh sampled once, densely (``samples`` points x_j with normals n_j, bone frame; ~2.5 per
+mm² on a CT crest, 0.6 mm apart), sorted into a grid of 1 mm cells for the nearest-sample search
+(app/filter/refine_kernels.py; ``backend="numpy"`` keeps the cKDTree reference path, equal within
+float tolerance: tests/test_refine_kernels.py). Per iteration, at the current pose:
 
 1. Expected visible surface (again after any step over ``rerender_step``; the association in
    step 3 is redone every iteration): the samples that face the camera, projected into a z-buffer on the
@@ -15,7 +20,9 @@ cKDTree. Per iteration, at the current pose:
 2. Measurements: the silhouette pixels with a valid depth z_i that is not an occluder
    (z_i >= z*_i - ``occluder_margin``, the likelihood's rule, app/filter/likelihood_ref.py),
    back-projected (y_i = z_i K⁻¹(u, v, 1)) and moved into the bone frame p_i = T⁻¹ y_i.
-3. Association: the nearest model sample x_i, n_i (re-associated every iteration).
+3. Association: the nearest model sample x_i, n_i within ``pair_radius`` = 5 mm (re-associated every
+   iteration); a measurement with none as near (the background beside the bone's silhouette, tissue
+   far from it) is not associated: left out of the fit, never confirmed, never behind.
 4. Point-to-plane residual r_i = n_iᵀ (p_i − x_i) (Chen & Medioni 1991; the small-angle
    linearisation of Low 2004, as in Stoiber's ICG depth modality): with the increment
    δ = (ω, v) applied to the measurements about the model's centre c (CT meshes keep the
@@ -35,7 +42,13 @@ cKDTree. Per iteration, at the current pose:
    ever lie in front of the bone; a pose pushed part-way onto residual tissue passes through the
    seen surface elsewhere (measured on crest_left_02, or_deep_tissue, a 3 mm patch: the fit 1.5 mm
    off has 2.8-3.9 % behind, the truth 0.3-0.7 %; static_clear 0.5-0.7 % at 0.42 m, 0.9-1.7 % at
-   0.65 m where the sensor's noise is a larger part of σ). Used by the status (status.py).
+   0.65 m where the sensor's noise is a larger part of σ). Beside it ``behind_allowed``, the share
+   the image's own noise explains (:func:`behind_bound`, with σ_n from :func:`image_noise`): the
+   status compares the two (status.py).
+8. When the last step was below the stopping rule (``stop_translation`` / ``stop_rotation``) and the
+   annealed width no longer mattered, the statistics of step 7 and H are those of that last
+   association instead of a new render and association at the final pose (a step under 0.1 mm /
+   0.03 deg): one z-buffer and one association per frame fewer while tracking.
 
 Outputs (:class:`RefineResult`): the refined ``T_camera_bone``; H = Σ w_i J_iᵀJ_i / σ_i² (6x6, in
 the bone frame about ``Refiner.center``, order ω then v), the information the image carries about the pose; the fitness
@@ -59,7 +72,7 @@ from app.geometry.camera import PinholeCamera
 
 TUKEY_C = 3.0   # Tukey's constant in σ(z): 4.685 is the 95 %-efficiency value; 3 measured less biased by tissue
 RENDER_LEVER = 0.05   # m, radius at which a rotation step is compared with rerender_step
-FINE_BELOW = 1400     # silhouette cells at ``stride`` under which a frame is refined at stride 1 (module docstring)
+FINE_BELOW = 1150     # silhouette cells at ``stride`` under which a frame is refined at stride 1 (module docstring)
 GRID_CELL = 0.001     # m, cell of the samples' grid for the numba nearest-sample search (~2.5 samples per occupied cell)
 
 
@@ -162,34 +175,42 @@ class Refiner:
         return self.params.k * z * z + self.params.sigma_base
 
     def model_depth(self, T_camera_bone: np.ndarray, stride: int | None = None) -> tuple[np.ndarray, tuple[int, int, int, int]]:
-        """z-buffer of the camera-facing samples on the crop grid: (h, w) depth (inf = not covered)
-        and the crop (x0, y0, x1, y1) in full-resolution pixels (grid step ``stride``, default the params')."""
-        s, cam = stride or self.params.stride, self.camera
+        """z-buffer of the camera-facing samples, rendered at the full resolution and taken every
+        ``stride`` pixels (default the params'): (h, w) depth (inf = not covered) and the crop
+        (x0, y0, x1, y1) in full-resolution pixels. Rendering on the coarse grid instead (each cell the
+        nearest of the samples over s x s pixels) widens the silhouette by half a cell onto the
+        background and biases the fit: crest_right_03 static_clear, 14 frames refined from the truth,
+        rotation / ADD median 0.51 deg / 0.32 mm against 0.14 deg / 0.12 mm (BENCHMARKS.md §6d)."""
+        s = stride or self.params.stride
+        zbuf, x0, y0 = self._render(T_camera_bone)
+        if zbuf.size == 0:
+            return zbuf, (0, 0, 0, 0)
+        zbuf = np.ascontiguousarray(zbuf[::s, ::s])
+        return zbuf, (x0, y0, x0 + zbuf.shape[1] * s, y0 + zbuf.shape[0] * s)
+
+    def _render(self, T_camera_bone: np.ndarray) -> tuple[np.ndarray, int, int]:
+        """The full-resolution z-buffer of the crop around the silhouette and its corner (x0, y0)."""
+        cam = self.camera
         R, t = T_camera_bone[:3, :3], T_camera_bone[:3, 3]
-        w_grid, h_grid = (cam.width + s - 1) // s, (cam.height + s - 1) // s
         if self.grid is not None:
-            zbuf, c0, r0 = kernels.zbuffer(self.points, self.normals, np.ascontiguousarray(R), np.ascontiguousarray(t),
-                                           cam.fx, cam.fy, cam.cx, cam.cy, s, w_grid, h_grid)
-            if zbuf.size == 0:
-                return zbuf, (0, 0, 0, 0)
-            return zbuf, (c0 * s, r0 * s, (c0 + zbuf.shape[1]) * s, (r0 + zbuf.shape[0]) * s)
+            return kernels.zbuffer(self.points, self.normals, np.ascontiguousarray(R), np.ascontiguousarray(t),
+                                   cam.fx, cam.fy, cam.cx, cam.cy, 1, cam.width, cam.height)
         p_cam = self.points @ R.T + t
         n_cam = self.normals @ R.T
         facing = (np.einsum("ij,ij->i", n_cam, p_cam) < 0) & (p_cam[:, 2] > 0)
         uv, z = cam.project(p_cam[facing])
-        col, row = np.round(uv[:, 0] / s).astype(int), np.round(uv[:, 1] / s).astype(int)
-        inside = (col >= 0) & (col < w_grid) & (row >= 0) & (row < h_grid)
+        col, row = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
+        inside = (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
         if not inside.any():
-            return np.full((0, 0), np.inf), (0, 0, 0, 0)
+            return np.full((0, 0), np.inf), 0, 0
         col, row, z = col[inside], row[inside], z[inside]
-        c0, c1 = max(col.min() - 1, 0), min(col.max() + 2, w_grid)
-        r0, r1 = max(row.min() - 1, 0), min(row.max() + 2, h_grid)
+        c0, c1 = max(col.min() - 1, 0), min(col.max() + 2, cam.width)
+        r0, r1 = max(row.min() - 1, 0), min(row.max() + 2, cam.height)
         zbuf = np.full((r1 - r0, c1 - c0), np.inf)
         order = np.argsort(-z)                     # far to near: the nearest sample is written last
         zbuf[row[order] - r0, col[order] - c0] = z[order]
         filled = ndimage.minimum_filter(zbuf, size=3, mode="constant", cval=np.inf)
-        zbuf = np.where(np.isfinite(zbuf), zbuf, filled)
-        return zbuf, (c0 * s, r0 * s, c1 * s, r1 * s)
+        return np.where(np.isfinite(zbuf), zbuf, filled), int(c0), int(r0)
 
     def measurements(self, depth: np.ndarray, T_camera_bone: np.ndarray,
                      stride: int | None = None, rendered=None) -> tuple[np.ndarray, np.ndarray]:
