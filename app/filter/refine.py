@@ -391,7 +391,8 @@ def behind_bound(p: np.ndarray, n: np.ndarray, threshold: np.ndarray, noise: flo
     ray = p - camera_bone
     with np.errstate(invalid="ignore"):
         cos = np.abs(np.einsum("ij,ij->i", n, ray)) / np.linalg.norm(ray, axis=1)
-    e = np.where(np.isfinite(cos), ndtr(-threshold / (noise * np.maximum(cos, 1e-6))), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):   # σ_n = 0 (a noise-free image): nothing lies behind
+        e = np.where(np.isfinite(cos), ndtr(-threshold / (noise * np.maximum(cos, 1e-6))), 0.0)
     return float((e.sum() + z * np.sqrt(np.sum(e * (1.0 - e)))) / len(p))
 
 
