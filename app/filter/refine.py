@@ -73,7 +73,7 @@ from app.geometry.camera import PinholeCamera
 TUKEY_C = 3.0   # Tukey's constant in σ(z): 4.685 is the 95 %-efficiency value; 3 measured less biased by tissue
 RENDER_LEVER = 0.05   # m, radius at which a rotation step is compared with rerender_step
 FINE_BELOW = 1150     # silhouette cells at ``stride`` under which a frame is refined at stride 1 (module docstring)
-GRID_CELL = 0.001     # m, cell of the samples' grid for the numba nearest-sample search (~2.5 samples per occupied cell)
+GRID_CELL = 0.002     # m, cell of the samples' grid for the nearest-sample search: 2 mm took 0.6-0.7x the CPU of 1 mm (0.7 mm: 1.7x) on a CT crest at 0.42 and 0.65 m
 
 
 @dataclass
@@ -257,8 +257,7 @@ class Refiner:
         g = self.grid
         j, d = kernels.nearest(np.ascontiguousarray(p), g.points, g.start, g.empty, g.origin, g.cell, g.dims,
                                self.params.pair_radius)
-        x, n = g.points[j], g.normals[j]
-        x[j < 0], n[j < 0] = np.nan, np.nan
+        x, n = kernels.gather(j, g.points, g.normals)
         return p, x, n, d
 
     def _gn_step(self, p, x, n, d, sigma, width, in_front):

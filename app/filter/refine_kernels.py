@@ -191,6 +191,19 @@ def nearest(query, points, start, empty, origin, cell, dims, radius):
 
 
 @_njit()
+def gather(j, points, normals):
+    """(x, n) (Q, 3): the samples and normals of :func:`nearest`'s indices ``j``; NaN where j = -1."""
+    x = np.full((j.shape[0], 3), np.nan)
+    n = np.full((j.shape[0], 3), np.nan)
+    for q in range(j.shape[0]):
+        if j[q] >= 0:
+            for a in range(3):
+                x[q, a] = points[j[q], a]
+                n[q, a] = normals[j[q], a]
+    return x, n
+
+
+@_njit()
 def _cube_clearance(qx, qy, qz, ix, iy, iz, r, origin, cell):
     """Distance from the query to the outside of the cube of cells within r of its cell: no point
     outside the searched cube can be nearer than this (>= r · cell)."""
