@@ -73,8 +73,11 @@ then lowered to UNCERTAIN, never raised, when
   error of 300 mesh vertices (scripts/template_coverage.py, BENCHMARKS.md §6: 1,521 refined frames of
   eleven trials, eight crests): the predicted bound covers the measured worst-point error on 90 %
   of the frames with inflation 2.9 on clear views at 0.42 m and 5.3 under a hand rising to 80 %;
-  at 0.65 m the error is mostly a bias (1.4-3.3x the predicted std) that 12.7 would be needed
-  for, so there the bound is optimistic and the far view relies on the other rules. It measures
+  at 0.65 m the error was then mostly a bias (1.4-3.3x the predicted std) that 12.7 would have been
+  needed for; since the far view is refined at stride 1 on a full-resolution z-buffer (BENCHMARKS.md
+  §6d: 720 frames of the eight crests at 0.65 m) 5.8 covers 90 % there and 6 covers 91 %, the
+  worst-point error median 0.35 mm, the bound 0.45-0.7 mm; on two clear trials at 0.42 m 0.9
+  suffices now (6 is conservative there). It measures
   precision, not wrongness (issue 12: the smallest eigenvalue of H did not separate wrong from
   right poses at all);
 - a competing pose explains the image about as well: the refinements from the own track and from
