@@ -200,7 +200,7 @@ def test_the_behind_bound_matches_the_binomial_closed_form():
     bound is e + z sqrt(e (1 − e) / M)."""
     from scipy.stats import norm
 
-    from app.filter.refine import behind_bound
+    from app.filter.behind_noise import behind_bound
 
     M, tau, noise = 2000, 0.0015, 0.001
     p = np.column_stack([np.linspace(-0.01, 0.01, M), np.zeros(M), np.zeros(M)])
@@ -215,7 +215,7 @@ def test_the_behind_bound_matches_the_binomial_closed_form():
 
 def test_image_noise_recovers_the_depth_noise_of_a_slanted_surface(rng):
     """The row's second difference cancels the slope: σ̂_n of a slanted plane with noise σ_n = 0.9 mm."""
-    from app.filter.refine import image_noise
+    from app.filter.behind_noise import image_noise
 
     camera = D415_640x480
     v, u = np.mgrid[0:480, 0:640]

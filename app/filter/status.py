@@ -89,10 +89,10 @@ then lowered to UNCERTAIN, never raised, when
   of the bone, so a right pose leaves only the noise's tail behind it; a fit pulled part-way onto
   residual tissue, or slid along the crest under a hand, passes through the seen surface elsewhere.
   The noise's share is not a fixed number: σ_n is estimated from the depth image itself (the
-  second difference along the rows of the silhouette's pixels, refine.py ``image_noise``: 0.61 mm at
+  second difference along the rows of the silhouette's pixels, app/filter/behind_noise.py ``image_noise``: 0.61 mm at
   0.42 m and 0.97 mm at 0.65 m on the simulated D415, whose model says 0.57 / 0.93 mm), each
   measurement lies behind with probability e_i = Φ(−σ_i / (σ_n |n_i·r̂_i|)), and the bound is the
-  Poisson-binomial mean plus 3 standard deviations over the M measurements (refine.py
+  Poisson-binomial mean plus 3 standard deviations over the M measurements (behind_noise.py
   ``behind_bound``; app/filter/refine_track.py ``behind_excess``; the fixed 2 % when fewer than 30
   pixels estimate the noise). The 0.2 % margin covers what the noise model leaves out (the mesh's
   discretisation, the association): a right pose's share exceeds the bound by up to ~0.3 points.
