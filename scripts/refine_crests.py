@@ -35,7 +35,7 @@ def variant_config(name: str):
     if name == "nofeedback":
         return replace(config, refine=replace(config.refine, feedback=False))
     if name == "nobehind":
-        return replace(config, status=replace(config.status, max_behind_share=float("inf")))
+        return replace(config, status=replace(config.status, max_behind_excess=float("inf")))
     if name == "on":
         return config
     raise SystemExit(f"unknown variant {name!r}: off | on | nofeedback | nobehind")

@@ -91,12 +91,21 @@ def test_refinement_rules(fitness, std, competitor, expected):
 
 
 def test_measurements_behind_the_refined_model_are_not_ok():
-    """status.max_behind_share: more of the seen bone inside the model than the noise's tail."""
+    """status.max_behind_excess: more of the seen bone inside the model than the noise's bound explains."""
     t = StatusThresholds()
-    assert with_refinement(TrackingStatus.OK, RefinementEvidence(0.9, 0.0003, False, 0.5 * t.max_behind_share), t) == "ok"
-    assert with_refinement(TrackingStatus.OK, RefinementEvidence(0.9, 0.0003, False, 2 * t.max_behind_share), t) \
-        == TrackingStatus.UNCERTAIN
+    assert with_refinement(TrackingStatus.OK, RefinementEvidence(0.9, 0.0003, False, -0.004), t) == "ok"
+    assert with_refinement(TrackingStatus.OK, RefinementEvidence(0.9, 0.0003, False, 0.004), t) == TrackingStatus.UNCERTAIN
     assert with_refinement(TrackingStatus.OK, RefinementEvidence(0.9, 0.0003, False), t) == "ok"   # unknown: no rule
+
+
+def test_behind_excess_uses_the_noise_bound_or_the_fixed_share():
+    from app.filter.refine import RefineResult
+    from app.filter.refine_track import FALLBACK_BEHIND_SHARE, behind_excess
+
+    r = RefineResult(np.eye(4), np.eye(6), 0.9, 1000, 900, 900, 0.001, True, 0.6, behind=0.015, behind_allowed=0.02)
+    assert behind_excess(r) == pytest.approx(-0.005)
+    r.behind_allowed = float("nan")
+    assert behind_excess(r) == pytest.approx(0.015 - FALLBACK_BEHIND_SHARE)
 
 
 def test_the_refinement_never_raises_the_filters_status():

@@ -3,10 +3,15 @@
 Import as ``from app.filter.refine import Refiner``. DESIGN.md "Local refinement and the
 estimate's uncertainty". The particle filter at 160x120 is robust but imprecise; this refines its
 estimate T = ``T_camera_bone`` on the measured image at ``stride`` (1 = full, 2 = half sensor
-resolution) inside the bone's projected bounding box.
+resolution) inside the bone's projected bounding box. A small silhouette, fewer than
+``fine_below`` = 1,150 cells at ``stride`` (the eight CT crests at 0.65 m: 672-1,031 cells at stride
+2; at 0.42 m: 1,303-1,909), is refined at stride 1: four times the points where the bone is far
+(BENCHMARKS.md §6d).
 
-Model: the mesh sampled once, densely (``samples`` points x_j with normals n_j, bone frame), in a
-cKDTree. Per iteration, at the current pose:
+Model: the mesh sampled once, densely (``samples`` points x_j with normals n_j, bone frame; ~2.5 per
+mm² on a CT crest, 0.6 mm apart), sorted into a grid of 1 mm cells for the nearest-sample search
+(app/filter/refine_kernels.py; ``backend="numpy"`` keeps the cKDTree reference path, equal within
+float tolerance: tests/test_refine_kernels.py). Per iteration, at the current pose:
 
 1. Expected visible surface (again after any step over ``rerender_step``; the association in
    step 3 is redone every iteration): the samples that face the camera, projected into a z-buffer on the
@@ -15,7 +20,9 @@ cKDTree. Per iteration, at the current pose:
 2. Measurements: the silhouette pixels with a valid depth z_i that is not an occluder
    (z_i >= z*_i - ``occluder_margin``, the likelihood's rule, app/filter/likelihood_ref.py),
    back-projected (y_i = z_i K⁻¹(u, v, 1)) and moved into the bone frame p_i = T⁻¹ y_i.
-3. Association: the nearest model sample x_i, n_i (re-associated every iteration).
+3. Association: the nearest model sample x_i, n_i within ``pair_radius`` = 5 mm (re-associated every
+   iteration); a measurement with none as near (the background beside the bone's silhouette, tissue
+   far from it) is not associated: left out of the fit, never confirmed, never behind.
 4. Point-to-plane residual r_i = n_iᵀ (p_i − x_i) (Chen & Medioni 1991; the small-angle
    linearisation of Low 2004, as in Stoiber's ICG depth modality): with the increment
    δ = (ω, v) applied to the measurements about the model's centre c (CT meshes keep the
@@ -35,7 +42,13 @@ cKDTree. Per iteration, at the current pose:
    ever lie in front of the bone; a pose pushed part-way onto residual tissue passes through the
    seen surface elsewhere (measured on crest_left_02, or_deep_tissue, a 3 mm patch: the fit 1.5 mm
    off has 2.8-3.9 % behind, the truth 0.3-0.7 %; static_clear 0.5-0.7 % at 0.42 m, 0.9-1.7 % at
-   0.65 m where the sensor's noise is a larger part of σ). Used by the status (status.py).
+   0.65 m where the sensor's noise is a larger part of σ). Beside it ``behind_allowed``, the share
+   the image's own noise explains (:func:`behind_bound`, with σ_n from :func:`image_noise`): the
+   status compares the two (status.py).
+8. When the last step was below the stopping rule (``stop_translation`` / ``stop_rotation``) and the
+   annealed width no longer mattered, the statistics of step 7 and H are those of that last
+   association instead of a new render and association at the final pose (a step under 0.1 mm /
+   0.03 deg): one z-buffer and one association per frame fewer while tracking.
 
 Outputs (:class:`RefineResult`): the refined ``T_camera_bone``; H = Σ w_i J_iᵀJ_i / σ_i² (6x6, in
 the bone frame about ``Refiner.center``, order ω then v), the information the image carries about the pose; the fitness
@@ -53,11 +66,15 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from app.filter import refine_kernels as kernels
+from app.filter.behind_noise import behind_bound, image_noise
 from app.geometry import se3
 from app.geometry.camera import PinholeCamera
 
 TUKEY_C = 3.0   # Tukey's constant in σ(z): 4.685 is the 95 %-efficiency value; 3 measured less biased by tissue
 RENDER_LEVER = 0.05   # m, radius at which a rotation step is compared with rerender_step
+FINE_BELOW = 1150     # silhouette cells at ``stride`` under which a frame is refined at stride 1 (module docstring)
+GRID_CELL = 0.002     # m, cell of the samples' grid for the nearest-sample search: 2 mm took 0.6-0.7x the CPU of 1 mm (0.7 mm: 1.7x) on a CT crest at 0.42 and 0.65 m
 
 
 @dataclass
@@ -90,6 +107,10 @@ class RefineParams:
     stop_translation: float = 1e-4
     rerender_step: float = 5e-4
     stop_rotation: float = 5e-4
+    fine_below: int = FINE_BELOW
+    pair_radius: float = 0.005
+    behind_z: float = 3.0
+    backend: str = "numba"
 
 
 @dataclass
@@ -113,10 +134,8 @@ class RefineResult:
     converged: bool
     sharp: float = float("nan")
     behind: float = float("nan")
-
-
-def _skew(a: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    behind_allowed: float = float("nan")
+    noise: float = float("nan")
 
 
 def exp_se3(delta: np.ndarray) -> np.ndarray:
@@ -141,48 +160,69 @@ class Refiner:
         import trimesh
 
         self.params = params or RefineParams()
+        if self.params.backend not in ("numba", "numpy"):
+            raise ValueError(f"refine backend {self.params.backend!r}: numba | numpy")
         self.camera = camera
         mesh = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces), process=False)
         points, face_idx = trimesh.sample.sample_surface(mesh, self.params.samples, seed=seed)
         self.points = np.asarray(points, float)
         self.normals = np.asarray(mesh.face_normals[face_idx], float)
-        self.tree = cKDTree(self.points)
+        self.tree = cKDTree(self.points) if self.params.backend == "numpy" else None
         self.center = self.points.mean(axis=0)
+        self.grid = kernels.build_grid(self.points, self.normals, GRID_CELL) if self.params.backend == "numba" else None
 
     def sigma(self, z: np.ndarray) -> np.ndarray:
         """σ(z) = k z² + σ_base (DESIGN.md's sensor model), metres."""
         return self.params.k * z * z + self.params.sigma_base
 
-    def model_depth(self, T_camera_bone: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int, int]]:
-        """z-buffer of the camera-facing samples on the crop grid: (h, w) depth (inf = not covered)
-        and the crop (x0, y0, x1, y1) in full-resolution pixels (grid step ``stride``)."""
-        s, cam = self.params.stride, self.camera
+    def model_depth(self, T_camera_bone: np.ndarray, stride: int | None = None) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+        """z-buffer of the camera-facing samples, rendered at the full resolution and taken every
+        ``stride`` pixels (default the params'): (h, w) depth (inf = not covered) and the crop
+        (x0, y0, x1, y1) in full-resolution pixels. Rendering on the coarse grid instead (each cell the
+        nearest of the samples over s x s pixels) widens the silhouette by half a cell onto the
+        background and biases the fit: crest_right_03 static_clear, 14 frames refined from the truth,
+        rotation / ADD median 0.51 deg / 0.32 mm against 0.14 deg / 0.12 mm (BENCHMARKS.md §6d)."""
+        s = stride or self.params.stride
+        zbuf, x0, y0 = self._render(T_camera_bone)
+        if zbuf.size == 0:
+            return zbuf, (0, 0, 0, 0)
+        zbuf = np.ascontiguousarray(zbuf[::s, ::s])
+        return zbuf, (x0, y0, x0 + zbuf.shape[1] * s, y0 + zbuf.shape[0] * s)
+
+    def _render(self, T_camera_bone: np.ndarray) -> tuple[np.ndarray, int, int]:
+        """The full-resolution z-buffer of the crop around the silhouette and its corner (x0, y0)."""
+        cam = self.camera
         R, t = T_camera_bone[:3, :3], T_camera_bone[:3, 3]
+        if self.grid is not None:
+            return kernels.zbuffer(self.points, self.normals, np.ascontiguousarray(R), np.ascontiguousarray(t),
+                                   cam.fx, cam.fy, cam.cx, cam.cy, 1, cam.width, cam.height)
         p_cam = self.points @ R.T + t
         n_cam = self.normals @ R.T
         facing = (np.einsum("ij,ij->i", n_cam, p_cam) < 0) & (p_cam[:, 2] > 0)
         uv, z = cam.project(p_cam[facing])
-        col, row = np.round(uv[:, 0] / s).astype(int), np.round(uv[:, 1] / s).astype(int)
-        w_grid, h_grid = (cam.width + s - 1) // s, (cam.height + s - 1) // s
-        inside = (col >= 0) & (col < w_grid) & (row >= 0) & (row < h_grid)
+        col, row = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
+        inside = (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
         if not inside.any():
-            return np.full((0, 0), np.inf), (0, 0, 0, 0)
+            return np.full((0, 0), np.inf), 0, 0
         col, row, z = col[inside], row[inside], z[inside]
-        c0, c1 = max(col.min() - 1, 0), min(col.max() + 2, w_grid)
-        r0, r1 = max(row.min() - 1, 0), min(row.max() + 2, h_grid)
+        c0, c1 = max(col.min() - 1, 0), min(col.max() + 2, cam.width)
+        r0, r1 = max(row.min() - 1, 0), min(row.max() + 2, cam.height)
         zbuf = np.full((r1 - r0, c1 - c0), np.inf)
         order = np.argsort(-z)                     # far to near: the nearest sample is written last
         zbuf[row[order] - r0, col[order] - c0] = z[order]
         filled = ndimage.minimum_filter(zbuf, size=3, mode="constant", cval=np.inf)
-        zbuf = np.where(np.isfinite(zbuf), zbuf, filled)
-        return zbuf, (c0 * s, r0 * s, c1 * s, r1 * s)
+        return np.where(np.isfinite(zbuf), zbuf, filled), int(c0), int(r0)
 
-    def measurements(self, depth: np.ndarray, T_camera_bone: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Camera-frame points y_i (M, 3) of the silhouette's usable pixels and their z*_i (M,)."""
-        s = self.params.stride
-        zbuf, (x0, y0, x1, y1) = self.model_depth(T_camera_bone)
+    def measurements(self, depth: np.ndarray, T_camera_bone: np.ndarray,
+                     stride: int | None = None, rendered=None) -> tuple[np.ndarray, np.ndarray]:
+        """Camera-frame points y_i (M, 3) of the silhouette's usable pixels and their z*_i (M,);
+        ``rendered``: :meth:`model_depth`'s result at this pose and stride when already computed."""
+        s, cam = stride or self.params.stride, self.camera
+        zbuf, (x0, y0, x1, y1) = rendered if rendered is not None else self.model_depth(T_camera_bone, s)
         if zbuf.size == 0:
             return np.zeros((0, 3)), np.zeros(0)
+        if self.grid is not None:
+            return kernels.measurements(depth, zbuf, x0, y0, s, cam.fx, cam.fy, cam.cx, cam.cy, self.params.occluder_margin)
         z = np.asarray(depth[y0:y1:s, x0:x1:s], float)[:zbuf.shape[0], :zbuf.shape[1]]
         zbuf = zbuf[:z.shape[0], :z.shape[1]]
         with np.errstate(invalid="ignore"):
@@ -190,19 +230,53 @@ class Refiner:
         rows, cols = np.nonzero(usable)
         zi = z[rows, cols]
         u, v = x0 + cols * s, y0 + rows * s
-        cam = self.camera
         y = np.column_stack([(u - cam.cx) / cam.fx * zi, (v - cam.cy) / cam.fy * zi, zi])
         return y, zbuf[rows, cols]
+
+    def choose_stride(self, T_camera_bone: np.ndarray):
+        """(stride, rendered): the grid step of this frame, ``params.stride``, or 1 when the bone's
+        silhouette at that step has fewer than ``fine_below`` cells (a far or small view: four times
+        the points; module docstring); ``rendered`` the z-buffer at that stride when it was computed."""
+        s = self.params.stride
+        if s == 1 or self.params.fine_below <= 0:
+            return s, None
+        rendered = self.model_depth(T_camera_bone, s)
+        if np.count_nonzero(np.isfinite(rendered[0])) < self.params.fine_below:
+            return 1, None
+        return s, rendered
 
     def _associate(self, y_cam: np.ndarray, T_camera_bone: np.ndarray):
         """Bone-frame points p_i, nearest samples' x_i, n_i and point distances d_i."""
         p = se3.transform_points(se3.inverse(T_camera_bone), y_cam)
-        d, j = self.tree.query(p)
-        return p, self.points[j], self.normals[j], d
+        if self.grid is None:
+            d, j = self.tree.query(p, distance_upper_bound=self.params.pair_radius)
+            far = j >= len(self.points)            # none within pair_radius: not associated (NaN residual)
+            j[far] = 0
+            x, n = self.points[j], self.normals[j]
+            x[far], n[far] = np.nan, np.nan
+            return p, x, n, d
+        g = self.grid
+        j, d = kernels.nearest(np.ascontiguousarray(p), g.points, g.start, g.empty, g.origin, g.cell, g.dims,
+                               self.params.pair_radius)
+        x, n = kernels.gather(j, g.points, g.normals)
+        return p, x, n, d
 
     def _gn_step(self, p, x, n, d, sigma, width, in_front):
         """One weighted GN system: returns (δ, H, used, weighted rms). ``in_front`` (M,) m: how far
         each measurement lies in front of the model's depth z* (z* − z)."""
+        prm = self.params
+        if self.grid is not None:
+            H, g, used, num, den = kernels.normal_equations(p, x, n, d, sigma, in_front, self.center, float(width),
+                                                            prm.tukey_c, prm.front_sigmas)
+        else:
+            H, g, used, num, den = self._normal_equations(p, x, n, d, sigma, width, in_front)
+        if used < prm.min_points:
+            return None, H, used, float("nan")
+        delta = -np.linalg.solve(H + 1e-12 * np.eye(6), g)
+        return delta, H, used, float(np.sqrt(num / max(den, 1e-30)))
+
+    def _normal_equations(self, p, x, n, d, sigma, width, in_front):
+        """The numpy reference of :func:`app.filter.refine_kernels.normal_equations` (steps 4-6)."""
         r = np.einsum("ij,ij->i", n, p - x)
         s = np.maximum(self.params.tukey_c * sigma, width)
         buried = in_front > np.maximum(self.params.front_sigmas * sigma, width)
@@ -212,40 +286,47 @@ class Refiner:
         J = np.column_stack([np.cross(p[keep] - self.center, n[keep]), n[keep]])
         H = (J * w[:, None]).T @ J
         g = (J * w[:, None]).T @ r[keep]
-        used = int(keep.sum())
-        if used < self.params.min_points:
-            return None, H, used, float("nan")
-        delta = -np.linalg.solve(H + 1e-12 * np.eye(6), g)
-        rms = float(np.sqrt(np.sum(w * sigma[keep] ** 2 * r[keep] ** 2) / max(np.sum(w * sigma[keep] ** 2), 1e-30)))
-        return delta, H, used, rms
+        wsig = w * sigma[keep] ** 2
+        return H, g, int(keep.sum()), float(np.sum(wsig * r[keep] ** 2)), float(np.sum(wsig))
 
     def refine(self, depth: np.ndarray, T_camera_bone: np.ndarray, start_width: float | None = None) -> RefineResult:
         """Refine ``T_camera_bone`` (4, 4) on ``depth`` ((H, W) metres at the camera's resolution).
         ``start_width`` (m, default ``params.start_width``): the first Tukey width; 0 from a pose
-        already close (the track's last one), where a wide first step only lets the tissue pull."""
+        already close (the track's last one), where a wide first step only lets the tissue pull.
+        When the last step was below the stopping rule and the Tukey width had no effect any more
+        (<= front_sigmas σ), the statistics are those of that last association (step 8): a step of
+        < 0.1 mm / 0.03 deg does not change them, and a re-render and re-association cost as much as
+        an iteration."""
         prm = self.params
         start_width = prm.start_width if start_width is None else start_width
         T = np.array(T_camera_bone, dtype=float)
         H, used, rms, ok = np.zeros((6, 6)), 0, float("nan"), False
-        y = None
+        stride, rendered = self.choose_stride(T)
+        y, last = None, None
         for it in range(prm.iterations):
             if y is None:                          # re-render after a step that moved the model visibly
-                y, z_model = self.measurements(depth, T)
+                y, z_model = self.measurements(depth, T, stride, rendered)
+                rendered = None
+                sigma = self.sigma(y[:, 2])
             if len(y) < prm.min_points:
                 break
             p, x, n, d = self._associate(y, T)
             width = start_width * 0.5 ** it
-            delta, H, used, rms = self._gn_step(p, x, n, d, self.sigma(y[:, 2]), width, z_model - y[:, 2])
+            delta, H, used, rms = self._gn_step(p, x, n, d, sigma, width, z_model - y[:, 2])
             if delta is None:
                 break
             ok = True
             T = T @ se3.inverse(self._increment(delta))
             step_r, step_t = np.linalg.norm(delta[:3]), np.linalg.norm(delta[3:])
             if step_r < prm.stop_rotation and step_t < prm.stop_translation:
+                if width <= prm.front_sigmas * sigma.min():
+                    last = (y, p, x, n, d, sigma)
                 break
             if step_r * RENDER_LEVER > prm.rerender_step or step_t > prm.rerender_step:
                 y = None
-        return self._finish(depth, T if ok else np.array(T_camera_bone, float), H, used, rms, ok)
+        if last is not None:
+            return self._result(depth, T, H, used, rms, ok, *last)
+        return self._finish(depth, T if ok else np.array(T_camera_bone, float), H, used, rms, ok, stride)
 
     def _increment(self, delta: np.ndarray) -> np.ndarray:
         """exp(δ) about the model's centre c (the Jacobian's origin): p ↦ c + R (p − c) + v."""
@@ -253,19 +334,28 @@ class Refiner:
         M[:3, 3] += self.center - M[:3, :3] @ self.center
         return M
 
-    def _finish(self, depth, T, H, used, rms, ok) -> RefineResult:
+    def _finish(self, depth, T, H, used, rms, ok, stride) -> RefineResult:
         """Fitness, counts and the information matrix at the final pose."""
-        y, z_model = self.measurements(depth, T)
+        y, z_model = self.measurements(depth, T, stride)
         if len(y) == 0:
             return RefineResult(T, H, float("nan"), 0, 0, used, rms, ok)
         p, x, n, d = self._associate(y, T)
         sigma = self.sigma(y[:, 2])
-        confirmed = int(np.sum(d < self.params.confirm_sigmas * sigma))
-        sharp = float(np.mean(d < self.params.sharp_sigmas * sigma))
-        behind = float(np.mean(np.einsum("ij,ij->i", n, p - x) < -self.params.behind_sigmas * sigma))
         if ok:
             _, H, used, rms = self._gn_step(p, x, n, d, sigma, 0.0, z_model - y[:, 2])
-        return RefineResult(T, H, confirmed / len(y), len(y), confirmed, used, rms, ok, sharp, behind)
+        return self._result(depth, T, H, used, rms, ok, y, p, x, n, d, sigma)
+
+    def _result(self, depth, T, H, used, rms, ok, y, p, x, n, d, sigma) -> RefineResult:
+        """Fitness, sharp and behind shares of one association (steps 7-8); unassociated points
+        (none within ``pair_radius``: d = inf, NaN residual) count as neither confirmed nor behind."""
+        prm = self.params
+        confirmed = int(np.sum(d < prm.confirm_sigmas * sigma))
+        sharp = float(np.mean(d < prm.sharp_sigmas * sigma))
+        with np.errstate(invalid="ignore"):
+            behind = float(np.mean(np.einsum("ij,ij->i", n, p - x) < -prm.behind_sigmas * sigma))
+        noise = image_noise(depth, y, self.camera)
+        allowed = behind_bound(p, n, sigma * prm.behind_sigmas, noise, se3.inverse(T)[:3, 3], prm.behind_z)
+        return RefineResult(T, H, confirmed / len(p), len(p), confirmed, used, rms, ok, sharp, behind, allowed, noise)
 
 
 def template_std(H: np.ndarray, points_bone: np.ndarray, inflation: float = 1.0) -> float:
@@ -284,7 +374,8 @@ def template_std(H: np.ndarray, points_bone: np.ndarray, inflation: float = 1.0)
         return float("inf")
     t = np.asarray(points_bone, float).reshape(-1, 3)
     A = np.zeros((len(t), 3, 6))
-    A[:, :, :3] = -np.stack([_skew(ti) for ti in t])
+    A[:, 0, 1], A[:, 0, 2], A[:, 1, 0] = t[:, 2], -t[:, 1], -t[:, 2]     # −[t]ₓ
+    A[:, 1, 2], A[:, 2, 0], A[:, 2, 1] = t[:, 0], t[:, 1], -t[:, 0]
     A[:, :, 3:] = np.eye(3)
     cov = A @ sigma @ np.swapaxes(A, 1, 2)
     worst = float(np.linalg.eigvalsh(cov).max()) if len(t) else 0.0

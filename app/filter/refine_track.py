@@ -40,6 +40,8 @@ import numpy as np
 from app.filter.refine import Refiner, RefineResult, template_std
 from app.geometry import se3
 
+FALLBACK_BEHIND_SHARE = 0.02   # the former fixed share, when too few pixels estimate the noise
+
 
 @dataclass
 class RefineConfig:
@@ -65,7 +67,8 @@ class RefineOutcome:
     """One frame: T_base_bone (the refined pose, or None when no fit was kept); fitness (NaN when not
     refined); template_std (m, inf when not refined); competitor : a competing pose fits about as
     well; competitor_fitness; source : 'track' | 'filter' | ''; seconds : time spent; behind : the kept
-    fit's share of measurements inside the model (RefineResult.behind)."""
+    fit's share of measurements inside the model in excess of the noise's bound (:func:`behind_excess`;
+    <= 0 when the noise explains it)."""
 
     T_base_bone: np.ndarray | None
     fitness: float
@@ -75,6 +78,13 @@ class RefineOutcome:
     source: str
     seconds: float
     behind: float = float("nan")
+
+
+def behind_excess(result: RefineResult) -> float:
+    """The kept fit's share of measurements behind the model beyond what the image's noise explains
+    (``RefineResult.behind − behind_allowed``; against ``FALLBACK_BEHIND_SHARE`` when the noise is unknown)."""
+    allowed = result.behind_allowed if np.isfinite(result.behind_allowed) else FALLBACK_BEHIND_SHARE
+    return float(result.behind - allowed)
 
 
 def pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
@@ -153,4 +163,4 @@ class RefinedTrack:
         std = template_std(best.H, self.plan_points, self.inflation)
         kept = T_best if best.fitness >= c.keep_fitness else None
         return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0,
-                             best.behind)
+                             behind_excess(best))

@@ -1,0 +1,247 @@
+"""numba kernels of the local refinement's per-iteration work (app/filter/refine.py).
+
+Import as ``from app.filter import refine_kernels``. Each kernel computes exactly what the numpy
+reference path of :class:`app.filter.refine.Refiner` (``backend="numpy"``) computes, in one pass
+without temporaries (tests/test_refine_kernels.py compares both on random poses):
+
+- :func:`zbuffer`: the model's z-buffer on the crop grid (refine.py step 1): the camera-facing
+  samples (n·p < 0, z > 0) projected with u = fx x / z + cx, rounded to the grid of step ``stride``,
+  the nearest depth per cell, then the one-cell holes filled by the 3x3 minimum of the buffer;
+- :func:`measurements`: the silhouette's usable pixels back-projected, y = z K⁻¹ (u, v, 1) (step 2);
+- :func:`nearest`: the exact nearest model sample of each point (step 3) on a uniform grid of
+  cells (:class:`SampleGrid`): shells of cells at Chebyshev distance r = 0, 1, ... around the
+  query's cell are searched until the best distance is at most the query's distance to the outside
+  of the searched cube (no point outside it can be nearer) or the cube holds the ball of ``radius``
+  (then j = -1, d = inf: not associated, as the k-d tree's ``distance_upper_bound``); shells that
+  the grid's distance transform shows empty are skipped;
+- :func:`normal_equations`: the robust point-to-plane Gauss-Newton system (step 4-6):
+  r_i = n_iᵀ(p_i − x_i), Tukey's w_i = (1 − (r_i/s_i)²)² / σ_i², J_i = [((p_i − c) × n_i)ᵀ, n_iᵀ],
+  H = Σ w_i J_iᵀJ_i, g = Σ w_i J_iᵀ r_i.
+
+Numbers: float64, ``fastmath=False`` (results equal to the numpy path up to summation order).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from app.render.cpu_raster import _njit
+
+
+@dataclass
+class SampleGrid:
+    """The model samples sorted by a uniform grid of cubic cells (bone frame).
+
+    points, normals : (S, 3) sorted by cell; index : (S,) the original sample index of each;
+    start : (C + 1,) cell c holds points[start[c]:start[c + 1]]; empty : (C,) the chessboard distance
+    (in cells) from each cell to the nearest cell that holds a point (shells nearer are empty); origin (3,); cell (m);
+    dims (3,) int64 cells per axis (x fastest: c = ix + dims0 (iy + dims1 iz)).
+    """
+
+    points: np.ndarray
+    normals: np.ndarray
+    index: np.ndarray
+    start: np.ndarray
+    empty: np.ndarray
+    origin: np.ndarray
+    cell: float
+    dims: np.ndarray
+
+
+def build_grid(points: np.ndarray, normals: np.ndarray, cell: float, max_cells: int = 4_000_000) -> SampleGrid:
+    """Sort ``points`` (S, 3) into cells of ``cell`` metres (grown until the grid has <= max_cells)."""
+    points = np.asarray(points, float)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    while True:
+        dims = (np.floor((hi - lo) / cell).astype(np.int64) + 1)
+        if int(np.prod(dims)) <= max_cells:
+            break
+        cell *= 1.5
+    ijk = np.minimum(np.floor((points - lo) / cell).astype(np.int64), dims - 1)
+    ids = ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2])
+    order = np.argsort(ids, kind="stable")
+    start = np.zeros(int(np.prod(dims)) + 1, np.int64)
+    np.add.at(start, ids + 1, 1)
+    start = np.cumsum(start)
+    occupied = (np.diff(start) > 0).reshape(dims[2], dims[1], dims[0])
+    empty = ndimage.distance_transform_cdt(~occupied, metric="chessboard").astype(np.int64).ravel()
+    return SampleGrid(np.ascontiguousarray(points[order]), np.ascontiguousarray(np.asarray(normals, float)[order]),
+                      order.astype(np.int64), start, empty, lo.astype(float), float(cell), dims)
+
+
+@_njit()
+def zbuffer(points, normals, R, t, fx, fy, cx, cy, stride, w_grid, h_grid):
+    """(zbuf (h, w) with inf where empty, c0, r0) on the crop grid; zbuf.size == 0 when nothing projects."""
+    n = points.shape[0]
+    cols = np.empty(n, np.int64)
+    rows = np.empty(n, np.int64)
+    zs = np.empty(n)
+    m = 0
+    for i in range(n):
+        px = R[0, 0] * points[i, 0] + R[0, 1] * points[i, 1] + R[0, 2] * points[i, 2] + t[0]
+        py = R[1, 0] * points[i, 0] + R[1, 1] * points[i, 1] + R[1, 2] * points[i, 2] + t[1]
+        pz = R[2, 0] * points[i, 0] + R[2, 1] * points[i, 1] + R[2, 2] * points[i, 2] + t[2]
+        nx = R[0, 0] * normals[i, 0] + R[0, 1] * normals[i, 1] + R[0, 2] * normals[i, 2]
+        ny = R[1, 0] * normals[i, 0] + R[1, 1] * normals[i, 1] + R[1, 2] * normals[i, 2]
+        nz = R[2, 0] * normals[i, 0] + R[2, 1] * normals[i, 1] + R[2, 2] * normals[i, 2]
+        if not (nx * px + ny * py + nz * pz < 0.0 and pz > 0.0):
+            continue
+        col = np.round((fx * px / pz + cx) / stride)
+        row = np.round((fy * py / pz + cy) / stride)
+        if col < 0 or col >= w_grid or row < 0 or row >= h_grid:
+            continue
+        cols[m], rows[m], zs[m] = np.int64(col), np.int64(row), pz
+        m += 1
+    if m == 0:
+        return np.full((0, 0), np.inf), 0, 0
+    c0, c1 = max(cols[:m].min() - 1, 0), min(cols[:m].max() + 2, w_grid)
+    r0, r1 = max(rows[:m].min() - 1, 0), min(rows[:m].max() + 2, h_grid)
+    zbuf = np.full((r1 - r0, c1 - c0), np.inf)
+    for i in range(m):
+        if zs[i] < zbuf[rows[i] - r0, cols[i] - c0]:
+            zbuf[rows[i] - r0, cols[i] - c0] = zs[i]
+    return _fill_holes(zbuf), c0, r0
+
+
+@_njit()
+def _fill_holes(zbuf):
+    """Empty cells take the minimum of their 3x3 neighbourhood (scipy minimum_filter, cval inf)."""
+    h, w = zbuf.shape
+    out = zbuf.copy()
+    for r in range(h):
+        for c in range(w):
+            if zbuf[r, c] != np.inf:
+                continue
+            best = np.inf
+            for rr in range(max(r - 1, 0), min(r + 2, h)):
+                for cc in range(max(c - 1, 0), min(c + 2, w)):
+                    best = min(best, zbuf[rr, cc])
+            out[r, c] = best
+    return out
+
+
+@_njit()
+def measurements(depth, zbuf, x0, y0, stride, fx, fy, cx, cy, occluder_margin):
+    """(y (M, 3) camera-frame points, z* (M,)) of the crop cells with a model depth and a usable
+    measurement (finite, > 0, not an occluder: z >= z* − margin); row-major order like np.nonzero."""
+    h = min(zbuf.shape[0], (depth.shape[0] - y0 + stride - 1) // stride)
+    w = min(zbuf.shape[1], (depth.shape[1] - x0 + stride - 1) // stride)
+    y = np.empty((max(h, 0) * max(w, 0), 3))
+    zstar = np.empty(max(h, 0) * max(w, 0))
+    m = 0
+    for r in range(h):
+        v = y0 + r * stride
+        for c in range(w):
+            zm = zbuf[r, c]
+            u = x0 + c * stride
+            z = np.float64(depth[v, u])
+            if zm == np.inf or not (np.isfinite(z) and z > 0.0 and z >= zm - occluder_margin):
+                continue
+            y[m, 0] = (u - cx) / fx * z
+            y[m, 1] = (v - cy) / fy * z
+            y[m, 2] = z
+            zstar[m] = zm
+            m += 1
+    return y[:m], zstar[:m]
+
+
+@_njit()
+def nearest(query, points, start, empty, origin, cell, dims, radius):
+    """(j (Q,) index into the grid's sorted points, d (Q,)) of each query's nearest point; d = inf,
+    j = -1 where none lies within ``radius`` (module docstring). ``empty`` (C,): shells of cells
+    around each cell known to hold no point (:class:`SampleGrid`), skipped."""
+    nq = query.shape[0]
+    out_j = np.full(nq, -1, np.int64)
+    out_d = np.full(nq, np.inf)
+    max_shell = int(math.ceil(radius / cell))
+    for q in range(nq):
+        qx, qy, qz = query[q, 0], query[q, 1], query[q, 2]
+        ix = int(math.floor((qx - origin[0]) / cell))
+        iy = int(math.floor((qy - origin[1]) / cell))
+        iz = int(math.floor((qz - origin[2]) / cell))
+        outside = max(-ix, ix - dims[0] + 1, -iy, iy - dims[1] + 1, -iz, iz - dims[2] + 1, 0)
+        if outside == 0:
+            first = empty[ix + dims[0] * (iy + dims[1] * iz)]
+        else:
+            first = outside
+        best, best_j = np.inf, -1
+        for r in range(first, max_shell + 1):
+            for cz in range(max(iz - r, 0), min(iz + r + 1, dims[2])):
+                for cy in range(max(iy - r, 0), min(iy + r + 1, dims[1])):
+                    on_face = abs(cz - iz) == r or abs(cy - iy) == r
+                    step = 1 if on_face else 2 * r
+                    cx = ix - r
+                    while cx <= ix + r:
+                        if 0 <= cx < dims[0]:
+                            c = cx + dims[0] * (cy + dims[1] * cz)
+                            for k in range(start[c], start[c + 1]):
+                                dx, dy, dz = points[k, 0] - qx, points[k, 1] - qy, points[k, 2] - qz
+                                d2 = dx * dx + dy * dy + dz * dz
+                                if d2 < best:
+                                    best, best_j = d2, k
+                        cx += max(step, 1)
+            if best_j >= 0 and math.sqrt(best) <= _cube_clearance(qx, qy, qz, ix, iy, iz, r, origin, cell):
+                break
+        if best_j >= 0 and math.sqrt(best) <= radius:
+            out_j[q], out_d[q] = best_j, math.sqrt(best)
+    return out_j, out_d
+
+
+@_njit()
+def gather(j, points, normals):
+    """(x, n) (Q, 3): the samples and normals of :func:`nearest`'s indices ``j``; NaN where j = -1."""
+    x = np.full((j.shape[0], 3), np.nan)
+    n = np.full((j.shape[0], 3), np.nan)
+    for q in range(j.shape[0]):
+        if j[q] >= 0:
+            for a in range(3):
+                x[q, a] = points[j[q], a]
+                n[q, a] = normals[j[q], a]
+    return x, n
+
+
+@_njit()
+def _cube_clearance(qx, qy, qz, ix, iy, iz, r, origin, cell):
+    """Distance from the query to the outside of the cube of cells within r of its cell: no point
+    outside the searched cube can be nearer than this (>= r · cell)."""
+    lo_x, lo_y, lo_z = origin[0] + (ix - r) * cell, origin[1] + (iy - r) * cell, origin[2] + (iz - r) * cell
+    hi_x, hi_y, hi_z = lo_x + (2 * r + 1) * cell, lo_y + (2 * r + 1) * cell, lo_z + (2 * r + 1) * cell
+    return min(qx - lo_x, hi_x - qx, qy - lo_y, hi_y - qy, qz - lo_z, hi_z - qz)
+
+
+@_njit()
+def normal_equations(p, x, n, d, sigma, in_front, center, width, tukey_c, front_sigmas):
+    """(H (6, 6), g (6,), used, Σ w σ² r², Σ w σ²) of the robust GN system (module docstring); a pair is
+    used when |r| < s, d < 3 s and the measurement is not buried (z* − z <= max(front σ, width)),
+    s = max(tukey_c σ, width)."""
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    used = 0
+    num, den = 0.0, 0.0
+    J = np.empty(6)
+    for i in range(p.shape[0]):
+        s = max(tukey_c * sigma[i], width)
+        r = n[i, 0] * (p[i, 0] - x[i, 0]) + n[i, 1] * (p[i, 1] - x[i, 1]) + n[i, 2] * (p[i, 2] - x[i, 2])
+        if not (abs(r) < s and d[i] < 3.0 * s) or in_front[i] > max(front_sigmas * sigma[i], width):
+            continue
+        u = r / s
+        w = (1.0 - u * u) ** 2 / sigma[i] ** 2
+        ax, ay, az = p[i, 0] - center[0], p[i, 1] - center[1], p[i, 2] - center[2]
+        J[0] = ay * n[i, 2] - az * n[i, 1]
+        J[1] = az * n[i, 0] - ax * n[i, 2]
+        J[2] = ax * n[i, 1] - ay * n[i, 0]
+        J[3], J[4], J[5] = n[i, 0], n[i, 1], n[i, 2]
+        for a in range(6):
+            g[a] += w * J[a] * r
+            for b in range(a, 6):
+                H[a, b] += w * J[a] * J[b]
+        num += w * sigma[i] ** 2 * r * r
+        den += w * sigma[i] ** 2
+        used += 1
+    for a in range(6):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return H, g, used, num, den
