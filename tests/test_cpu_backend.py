@@ -104,3 +104,36 @@ def test_the_tracker_on_the_cpu_backend_tracks_a_static_bone(tmp_path):
     result, _ = _replay_on_cpu(tmp_path, 1.5)
     add = np.asarray(result.errors["add_mm"])
     assert np.median(add[45:]) < 2.5 and np.percentile(add[45:], 95) < 5.0
+
+
+@pytest.mark.parametrize("option", ["beam", "background_ratio", "ratio_classification"])
+def test_the_fused_evidence_counts_equal_depth_evidence_on_random_inputs(option, rng):
+    """CPULikelihoodBackend.evidence (one numba pass over the pose's pixel box) gives the same counts
+    as observation.depth_evidence on the backend's own float32 rendering, for random poses (behind the
+    camera, off screen, through the near plane, on the border) and measured images with noise,
+    occluders, invalid pixels and pixels exactly at the occluder and inlier thresholds."""
+    from app.filter.observation import depth_evidence
+    from app.render.cpu_likelihood import CPULikelihoodBackend
+    from tests.test_backend_conformance import CAMERAS, FAR, NEAR, OPTIONS as CASES, measured_image, random_poses, true_pose
+    from app.mesh import load_mesh, outward_wound, prepare_mesh
+    from app.sim.simulator import DEFAULT_MESH
+
+    mesh = prepare_mesh(load_mesh(DEFAULT_MESH), max_triangles=1000, center=False)
+    params = replace(LikelihoodParams(), **CASES[option])
+    backend = CPULikelihoodBackend(mesh.vertices, mesh.faces, CAMERAS["160x120"], 1, params, near=NEAR, far=FAR,
+                                   cull_back_faces=outward_wound(mesh))
+    truth = backend.render_depth(true_pose(mesh)[None])[0]
+    poses = random_poses(rng, 24, mesh)
+    for i in range(3):
+        depth = measured_image(truth, rng, params.z_max)
+        edge = rng.random(depth.shape) < 0.1            # exactly at the occluder threshold (float32, as numpy)
+        depth[edge & (truth > 0)] = (truth - np.float32(params.occluder_margin))[edge & (truth > 0)]
+        band = rng.random(depth.shape) < 0.1            # near the 3 σ inlier bound
+        sigma = likelihood_ref.noise_sigma(truth.astype(float), params)
+        depth[band & (truth > 0)] = (truth + 3.0 * sigma * rng.choice([-1.0, 1.0], truth.shape))[band & (truth > 0)]
+        counts = []
+        for T in poses:
+            want = depth_evidence(backend.render_depth, T, depth, params, 30)
+            assert backend.evidence(T, depth, 30) == want
+            counts.append(want.covered_pixels)
+        assert max(counts) > 300 and min(counts) == 0, "seen and unseen poses both tested"

@@ -45,16 +45,54 @@ def estimate(p: np.ndarray, q: np.ndarray, lw: np.ndarray) -> PoseEstimate:
     p : (N, 3) m, positions in the base frame
     q : (N, 4) unit quaternions (w, x, y, z), any signs
     lw : (N,) log-weights, not all -inf
+
+    Per frame, so written for speed: the quaternion mean, the angles and the pose are those of
+    quat.weighted_mean, quat.angle_between and se3.from_quat_trans with the same arithmetic (the
+    same values to the bit, tests/test_estimate_fast.py), without their validation and broadcasting.
     """
     W = normalised_weights(lw)
     p_mean = W @ p
     d = p - p_mean
     cov = np.einsum("n,ni,nj->ij", W, d, d)
-    q_mean = quat.weighted_mean(q, W)
-    theta = quat.angle_between(q, q_mean[None])
+    q_mean = _weighted_mean_quaternion(q, W)
+    theta = _angles_to(q, q_mean)
     return PoseEstimate(
-        T_base_bone=se3.from_quat_trans(q_mean, p_mean),
+        T_base_bone=_pose(q_mean, p_mean),
         position_spread=float(np.sqrt(max(np.trace(cov), 0.0))),
         position_std=np.sqrt(np.maximum(np.diag(cov), 0.0)),
         rotation_spread=float(np.sqrt(W @ theta**2)),
     )
+
+
+def _weighted_mean_quaternion(q: np.ndarray, W: np.ndarray) -> np.ndarray:
+    """quat.weighted_mean(q, W) for finite non-negative W with a positive sum (Markley et al. 2007)."""
+    if not np.all(np.isfinite(W)) or not W.sum() > 0:
+        return quat.weighted_mean(q, W)          # raises its clear error
+    M = np.einsum("n,ni,nj->ij", W / W.sum(), q, q)
+    mean = np.linalg.eigh(M)[1][:, -1]
+    return -mean if mean[0] < 0 else mean
+
+
+def _angles_to(q: np.ndarray, q_mean: np.ndarray) -> np.ndarray:
+    """(N,) quat.angle_between(q, q_mean[None]): 2 atan2(|vec(d)|, |scal(d)|), d = q_j* ⊗ q_mean."""
+    c = q * np.array([1.0, -1.0, -1.0, -1.0])
+    w1, x1, y1, z1 = c[:, 0], c[:, 1], c[:, 2], c[:, 3]
+    w2, x2, y2, z2 = (float(x) for x in q_mean)
+    vec = np.empty((len(q), 3))
+    vec[:, 0] = w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2
+    vec[:, 1] = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2
+    vec[:, 2] = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2
+    scal = w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2
+    return 2.0 * np.arctan2(np.linalg.norm(vec, axis=-1), np.abs(scal))
+
+
+def _pose(q: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """se3.from_quat_trans of one quaternion (4,) and translation (3,)."""
+    w, x, y, z = (float(v) for v in q)
+    T = np.zeros((4, 4))
+    T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                 [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                 [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]]
+    T[:3, 3] = t
+    T[3, 3] = 1.0
+    return T

@@ -77,8 +77,16 @@ class ParticleState:
                              uniform_log_weights(len(ancestors)))
 
     def poses(self) -> np.ndarray:
-        """(N, 4, 4) T_base_bone of the particles."""
-        return se3.from_quat_trans(self.q, self.p)
+        """(N, 4, 4) T_base_bone of the particles: se3.from_quat_trans(q, p), written out (per frame;
+        the same values to the bit, tests/test_estimate_fast.py)."""
+        w, x, y, z = self.q[:, 0], self.q[:, 1], self.q[:, 2], self.q[:, 3]
+        T = np.zeros((len(self.q), 4, 4))
+        T[:, 0, 0], T[:, 0, 1], T[:, 0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+        T[:, 1, 0], T[:, 1, 1], T[:, 1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+        T[:, 2, 0], T[:, 2, 1], T[:, 2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+        T[:, :3, 3] = self.p
+        T[:, 3, 3] = 1.0
+        return T
 
 
 def predict_position(state: ParticleState, dt: float, params: MotionParams,
@@ -95,10 +103,27 @@ def predict_orientation(state: ParticleState, dt: float, params: MotionParams,
     """Propagate (ω, q) one step: ω ← λ_v ω + ΔT w_ω, q ← exp(ΔT ω) ⊗ q (base-frame rate)."""
     w_omega = rng.normal(0.0, params.sigma_alpha, state.omega.shape)
     omega = params.lambda_v * state.omega + dt * w_omega
-    q = quat.multiply(quat.exp_map(dt * omega), state.q)
+    q = _rotate_left(dt * omega, state.q)
     # keep unit norm against the drift of repeated products
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     return replace(state, q=q, omega=omega)
+
+
+def _rotate_left(rotvec: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """quat.multiply(quat.exp_map(rotvec), q) for (N, 3) and (N, 4), written out (per frame; the same
+    values to the bit, tests/test_estimate_fast.py)."""
+    angle = np.linalg.norm(rotvec, axis=-1)
+    half = 0.5 * angle
+    small = angle < quat._SMALL
+    k = np.where(small, 0.5 - angle**2 / 48.0, np.sin(half) / np.where(small, 1.0, angle))
+    w1, x1, y1, z1 = np.cos(half), k * rotvec[:, 0], k * rotvec[:, 1], k * rotvec[:, 2]
+    w2, x2, y2, z2 = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    out = np.empty((len(q), 4))
+    out[:, 0] = w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2
+    out[:, 1] = w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2
+    out[:, 2] = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2
+    out[:, 3] = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2
+    return out
 
 
 def predict(state: ParticleState, dt: float, params: MotionParams, rng: np.random.Generator) -> ParticleState:

@@ -194,16 +194,18 @@ class ParticleFilter:
         finite = log_lik[np.isfinite(log_lik)]
         ll_max = float(finite.max()) if finite.size else float("nan")
         lw = self.state.lw + log_lik
-        if lw_ops.log_sum_exp(lw) == -np.inf:
+        lse = lw_ops.log_sum_exp(lw)
+        if lse == -np.inf:
             log.warning("every particle weight is zero after weighing: weights reset to uniform")
             lw = lw_ops.uniform_log_weights(len(lw))
-        self.state.lw = lw_ops.normalise_log_weights(lw)
+            lse = lw_ops.log_sum_exp(lw)
+        self.state.lw = lw - lse            # lw_ops.normalise_log_weights, its LSE computed once
         _tick(timings, "weight", t)
         return ll_max, n_nan
 
-    def _maybe_resample(self, timings: dict) -> bool:
+    def _maybe_resample(self, timings: dict, ess: float) -> bool:
+        """Resample when ``ess`` (of the current weights) is below the threshold."""
         t = time.perf_counter()
-        ess = lw_ops.ess(self.state.lw)
         resampled = ess < self.config.resample_threshold * self.state.n
         if resampled:
             self.state = self.state.take(rs.resample(self.config.resampling, self.state.lw, self.rng))
@@ -240,9 +242,10 @@ class ParticleFilter:
             raise RuntimeError("ParticleFilter.step needs particles: call initialise(T_base_bone) or set_state() first")
         timings = dict.fromkeys(STAGES, 0.0)
         dt = self._advance_clock(stamp, T_base_camera)
-        weighed, hidden = self._gate(depth_meas, T_base_camera)
+        T_camera_base = se3.inverse(T_base_camera) if T_base_camera is not None else None
+        weighed, hidden = self._gate(depth_meas, T_camera_base)
         if weighed:
-            update = self._weigh_blocks(depth_meas, T_base_camera, dt, timings)
+            update = self._weigh_blocks(depth_meas, T_camera_base, dt, timings)
         elif hidden:
             update = _Update(ess=lw_ops.ess(self.state.lw))      # hold the particles where they are
         else:
@@ -251,7 +254,7 @@ class ParticleFilter:
         t = time.perf_counter()
         pose = update.pose if update.pose is not None else estimate(self.state.p, self.state.q, self.state.lw)
         self._last_estimate = pose
-        evidence = self._evidence(pose, depth_meas, T_base_camera) if weighed else NO_EVIDENCE
+        evidence = self._evidence(pose, depth_meas, T_camera_base) if weighed else NO_EVIDENCE
         status = self._status(pose, update, evidence, depth_meas, stamp, weighed)
         _tick(timings, "estimate", t)
         return FilterOutput(
@@ -271,19 +274,18 @@ class ParticleFilter:
             self._last_pose_stamp = stamp
         return dt
 
-    def _gate(self, depth_meas: np.ndarray | None, T_base_camera: np.ndarray | None) -> tuple[bool, bool]:
+    def _gate(self, depth_meas: np.ndarray | None, T_camera_base: np.ndarray | None) -> tuple[bool, bool]:
         """(weighed, hidden): weigh when there is a camera pose and a measurement, unless occluders
         hide the last estimate (the occlusion hold of the module docstring)."""
-        if T_base_camera is None or depth_meas is None or not self.model.has_measurement(depth_meas):
+        if T_camera_base is None or depth_meas is None or not self.model.has_measurement(depth_meas):
             return False, False
         hidden = self._last_estimate is not None and self._evidence(
-            self._last_estimate, depth_meas, T_base_camera).bone_hidden
+            self._last_estimate, depth_meas, T_camera_base).bone_hidden
         return not hidden, hidden
 
-    def _weigh_blocks(self, depth_meas: np.ndarray, T_base_camera: np.ndarray, dt: float, timings: dict) -> _Update:
+    def _weigh_blocks(self, depth_meas: np.ndarray, T_camera_base: np.ndarray, dt: float, timings: dict) -> _Update:
         """predict → weigh → [resample] per block ('joint', or position then orientation); the
         estimate is taken after the last weighing, before its resampling."""
-        T_camera_base = se3.inverse(T_base_camera)
         blocks = ("joint",) if self.config.sampling == "joint" else ("position", "orientation")
         update = _Update(ess=float(self.state.n))
         for i, block in enumerate(blocks):
@@ -295,12 +297,12 @@ class ParticleFilter:
                 t = time.perf_counter()
                 update.pose = estimate(self.state.p, self.state.q, self.state.lw)
                 _tick(timings, "estimate", t)
-            update.resampled |= self._maybe_resample(timings)
+            update.resampled |= self._maybe_resample(timings, update.ess)
         return update
 
-    def _evidence(self, pose: PoseEstimate, depth_meas: np.ndarray, T_base_camera: np.ndarray) -> Evidence:
+    def _evidence(self, pose: PoseEstimate, depth_meas: np.ndarray, T_camera_base: np.ndarray) -> Evidence:
         """The observation model's evidence about ``pose`` in this frame (covered pixels, inliers, hidden)."""
-        T_camera_bone = se3.inverse(T_base_camera) @ pose.T_base_bone
+        T_camera_bone = T_camera_base @ pose.T_base_bone
         return self.model.evidence(T_camera_bone, depth_meas, self.config.status.min_covered_pixels)
 
     def _status(self, pose: PoseEstimate, update: _Update, evidence: Evidence, depth_meas: np.ndarray | None,

@@ -20,7 +20,7 @@ import time
 import numba
 import numpy as np
 
-from app.filter.likelihood_ref import LikelihoodParams
+from app.filter.likelihood_ref import INLIER_SIGMAS, LikelihoodParams
 from app.filter.observation import Evidence, depth_evidence, has_valid_depth
 from app.geometry.camera import PinholeCamera
 from app.render import cpu_raster
@@ -73,6 +73,10 @@ class CPULikelihoodBackend:
         self.profile = profile   # accepted for symmetry with the GL backend: the CPU stages are always exact
         self.chunks = max(1, numba.get_num_threads() * CHUNKS_PER_THREAD)
         self.zbufs = np.zeros((self.chunks, camera.height, camera.width), dtype=np.float64)
+        p = self.params
+        self._evidence_params = np.array([p.z_max, p.occluder_margin, p.k, p.sigma_base, INLIER_SIGMAS], np.float64)
+        self._vertex_scratch = np.empty((len(vertices), 6))
+        self._box = np.empty(4, np.int64)
         self.timings: dict[str, float] = {}
         self._warm_up()
 
@@ -81,7 +85,7 @@ class CPULikelihoodBackend:
         return f"cpu backend (numba {numba.__version__}, {numba.get_num_threads()} threads, exact z-buffer)"
 
     def _warm_up(self) -> None:
-        """Compile (or load from numba's cache) both kernels once per process; time it."""
+        """Compile (or load from numba's cache) the kernels once per process; time it."""
         global _first_call_s
         if _first_call_s is not None:
             return
@@ -89,7 +93,9 @@ class CPULikelihoodBackend:
         T = np.eye(4)[None].copy()
         T[0, 2, 3] = 1.0
         self.render_depth(T)
-        self.log_likelihood(T, np.zeros((self.camera.height, self.camera.width), np.float32))
+        empty = np.zeros((self.camera.height, self.camera.width), np.float32)
+        self.log_likelihood(T, empty)
+        self.evidence(T[0], empty, 1)
         _first_call_s = time.perf_counter() - t0
         self.timings = {}
         log.info("cpu backend: first kernel calls took %.2f s (numba compile or cache load)", _first_call_s)
@@ -148,5 +154,14 @@ class CPULikelihoodBackend:
         return has_valid_depth(depth_meas, self.params)
 
     def evidence(self, T_camera_bone: np.ndarray, depth_meas: np.ndarray, min_covered_pixels: int) -> Evidence:
-        """The pose's covered pixels and inliers (:func:`app.filter.observation.depth_evidence`)."""
-        return depth_evidence(self.render_depth, T_camera_bone, depth_meas, self.params, min_covered_pixels)
+        """The pose's covered pixels and inliers (:func:`app.filter.observation.depth_evidence`):
+        counted in one numba pass over the pose's pixel box (:func:`cpu_raster.evidence_counts`,
+        the same counts) for a float32 image of the backend's size, by depth_evidence otherwise."""
+        T = np.asarray(T_camera_bone, dtype=np.float64)
+        if (getattr(depth_meas, "dtype", None) != np.float32 or T.shape != (4, 4)
+                or np.shape(depth_meas) != (self.camera.height, self.camera.width)):
+            return depth_evidence(self.render_depth, T_camera_bone, depth_meas, self.params, min_covered_pixels)
+        covered, inliers = cpu_raster.evidence_counts(
+            np.ascontiguousarray(T), self.vertices, self.faces, self.cam, self.cull,
+            np.ascontiguousarray(depth_meas), self._evidence_params, self.zbufs[0], self._vertex_scratch, self._box)
+        return Evidence(int(covered), int(inliers), covered < min_covered_pixels)

@@ -311,6 +311,36 @@ def batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out
                     zbuf[v, u] = 0.0
 
 
+@_njit()
+def evidence_counts(T_camera_bone, vertices, faces, cam, cull, depth_meas, ev, zbuf, p, box):
+    """(covered, inliers) of one pose (4, 4), as :func:`app.filter.observation.depth_evidence`
+    counts them from the float32 rendering, over the pose's pixel box only; ``zbuf`` (h, w) all 0
+    on entry and exit, ``p`` (V, 6) and ``box`` (4,) int64 scratch. ``ev`` = (z_max,
+    occluder_margin, k, sigma_base, INLIER_SIGMAS).
+
+    A covered pixel (z* > 0) with a valid measurement z (finite, 0 < z <= z_max) counts unless an
+    occluder hides it (z < z* - margin, in float32 as numpy compares the float32 images); it is an
+    inlier when |z - z*| < 3 σ(z*), σ(z*) = k z*² + σ_base (float64, likelihood_ref.inlier_mask).
+    """
+    poly = np.empty((4, 3))
+    _render_one(T_camera_bone, vertices, faces, cam, cull, p, poly, zbuf, box)
+    z_max, margin32, k, sigma_base, n_sigma = ev[0], np.float32(ev[1]), ev[2], ev[3], ev[4]
+    covered, inliers = 0, 0
+    for v in range(box[1], box[3] + 1):
+        for u in range(box[0], box[2] + 1):
+            z_star32 = np.float32(zbuf[v, u])
+            zbuf[v, u] = 0.0
+            z32 = depth_meas[v, u]
+            z = float(z32)
+            if not (z_star32 > 0.0 and z > 0.0 and z <= z_max) or z32 < z_star32 - margin32:
+                continue
+            covered += 1
+            z_star = float(z_star32)
+            if abs(z - z_star) < n_sigma * (k * z_star * z_star + sigma_base):
+                inliers += 1
+    return covered, inliers
+
+
 def log_likelihood_batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out):
     """(N,) log p(z | x_j) into ``out`` (:func:`batch`)."""
     no_depth = np.zeros((0, 1, 1), dtype=np.float32)
