@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.filter.refine import Refiner, RefineResult, template_std
+from app.filter.static_prior import StaticPrior, StaticPriorConfig
 from app.geometry import se3
 
 
@@ -45,7 +46,8 @@ from app.geometry import se3
 class RefineConfig:
     """``refine.*`` of the configuration (module docstring). enabled; stride (1 full / 2 half sensor
     resolution); iterations; samples (model points); keep_fitness; reseed_fitness;
-    competitor_distance (m) / competitor_angle (rad); competitor_margin; feedback; feedback_fitness."""
+    competitor_distance (m) / competitor_angle (rad); competitor_margin; feedback; feedback_fitness;
+    static_prior, prior_release_chi2, prior_information_frames (app/filter/static_prior.py)."""
 
     enabled: bool = True
     stride: int = 2
@@ -58,6 +60,9 @@ class RefineConfig:
     competitor_margin: float = 0.05
     feedback: bool = True
     feedback_fitness: float = 0.6
+    static_prior: bool = True
+    prior_release_chi2: float = 25.0
+    prior_information_frames: float = 300.0
 
 
 @dataclass
@@ -94,21 +99,30 @@ class RefinedTrack:
     inflation : Σ = inflation H⁻¹ (correlated pixels; status.covariance_inflation)
     """
 
-    def __init__(self, refiner: Refiner, config: RefineConfig, plan_points: np.ndarray, inflation: float):
+    def __init__(self, refiner: Refiner, config: RefineConfig, plan_points: np.ndarray, inflation: float,
+                 max_template_std: float = 0.001):
         self.refiner = refiner
         self.config = config
         self.plan_points = np.asarray(plan_points, float).reshape(-1, 3) - refiner.center
         self.inflation = inflation
+        prior_config = StaticPriorConfig(config.static_prior, config.prior_release_chi2, max_template_std,
+                                         config.prior_information_frames)
+        self.prior = StaticPrior(prior_config, refiner.center, inflation) if config.static_prior else None
         self.reset()
 
     def reset(self) -> None:
         self.T_base_bone, self.fitness = None, float("nan")
         self._seeded = False
+        self.last_info: dict = {}
+        if getattr(self, "prior", None) is not None:
+            self.prior.reset()
 
     def seed(self, T_base_bone: np.ndarray) -> None:
         """Start the track at a given pose (the coarse initial alignment): the first frame refines from
         it with the wide first step as well as from the filter's estimate, and keeps the better fit."""
         self.T_base_bone, self.fitness, self._seeded = np.array(T_base_bone, float), 1.0, True
+        if self.prior is not None:
+            self.prior.reset()
 
     def _refine(self, depth, T_camera_base, T_base_bone, start_width=None) -> tuple[np.ndarray, RefineResult]:
         result = self.refiner.refine(depth, T_camera_base @ T_base_bone, start_width)
@@ -121,6 +135,21 @@ class RefinedTrack:
             return True
         dist, angle = pose_gap(self.T_base_bone, T_filter)
         return dist > c.competitor_distance or angle > c.competitor_angle
+
+    def _held(self, fits, source, T_best, best, std):
+        """The static prior (app/filter/static_prior.py) on the kept fit: a fit from the filter's
+        estimate replaces a held pose only when the image alone pins it (it releases the prior); else
+        the track's own fit is fused with the prior. Returns (source, T_base_bone, result, std)."""
+        prior = self.prior
+        if prior.active and source == "filter" and not prior.would_release(T_best, best.H, std):
+            track = [f for f in fits if f[0] == "track" and f[2].fitness >= self.config.keep_fitness]
+            if not track:
+                return source, T_best, best, std
+            source, T_best, best = track[0]
+            std = template_std(best.H, self.plan_points, self.inflation)
+        T_held = prior.update(T_best, best.H, std)
+        self.last_info.update(chi2=prior.chi2, released=prior.released, held=prior.held, img_std_mm=1e3 * std)
+        return source, T_held, best, std
 
     def update(self, depth: np.ndarray, T_base_camera: np.ndarray, T_base_bone_filter: np.ndarray) -> RefineOutcome:
         """Refine on one weighed frame (full-resolution depth, metres) and update the track."""
@@ -138,19 +167,23 @@ class RefinedTrack:
         if not fits:
             self.reset()
             return RefineOutcome(None, float("nan"), float("inf"), False, float("nan"), "", time.perf_counter() - t0)
+        self.last_info = {f"{name}_sharp": r.sharp for name, _, r in fits}
         fits.sort(key=lambda f: -f[2].sharp)
         source, T_best, best = fits[0]
+        self.last_info["src"] = source
         competitor, competitor_fitness = False, float("nan")
         if len(fits) > 1:
             competitor_fitness = fits[1][2].fitness
             dist, angle = pose_gap(T_best, fits[1][1])
             apart = dist > c.competitor_distance or angle > c.competitor_angle
             competitor = apart and fits[1][2].sharp >= best.sharp - c.competitor_margin
+        std = template_std(best.H, self.plan_points, self.inflation)
+        if self.prior is not None and best.fitness >= c.keep_fitness:
+            source, T_best, best, std = self._held(fits, source, T_best, best, std)
         if best.fitness >= c.keep_fitness:
             self.T_base_bone, self.fitness = T_best, best.fitness
         else:
             self.reset()
-        std = template_std(best.H, self.plan_points, self.inflation)
         kept = T_best if best.fitness >= c.keep_fitness else None
         return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0,
                              best.behind)
