@@ -177,6 +177,7 @@ KEYS: dict[str, _Key] = {
     "refine.feedback_fitness": _f("refine.feedback_fitness", 0.0, 1.0),
     "refine.static_prior": _Key(("refine", "static_prior"), "bool"),
     "refine.prior_release_chi2": _f("refine.prior_release_chi2", 0.0, 1e6, lo_open=True),
+    "refine.prior_clear_ratio": _f("refine.prior_clear_ratio", 1.0, 1e6),
     "refine.prior_information_frames": _f("refine.prior_information_frames", 1.0, 1e6),
     "recovery.enabled": _Key(("recovery", "enabled"), "bool"),
     "recovery.after_lost_frames": _i("recovery.after_lost_frames", 1, 100_000),

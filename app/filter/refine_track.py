@@ -47,7 +47,7 @@ class RefineConfig:
     """``refine.*`` of the configuration (module docstring). enabled; stride (1 full / 2 half sensor
     resolution); iterations; samples (model points); keep_fitness; reseed_fitness;
     competitor_distance (m) / competitor_angle (rad); competitor_margin; feedback; feedback_fitness;
-    static_prior, prior_release_chi2, prior_information_frames (app/filter/static_prior.py)."""
+    static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames (app/filter/static_prior.py)."""
 
     enabled: bool = True
     stride: int = 2
@@ -62,6 +62,7 @@ class RefineConfig:
     feedback_fitness: float = 0.6
     static_prior: bool = True
     prior_release_chi2: float = 25.0
+    prior_clear_ratio: float = 1.5
     prior_information_frames: float = 300.0
 
 
@@ -99,13 +100,12 @@ class RefinedTrack:
     inflation : Σ = inflation H⁻¹ (correlated pixels; status.covariance_inflation)
     """
 
-    def __init__(self, refiner: Refiner, config: RefineConfig, plan_points: np.ndarray, inflation: float,
-                 max_template_std: float = 0.001):
+    def __init__(self, refiner: Refiner, config: RefineConfig, plan_points: np.ndarray, inflation: float):
         self.refiner = refiner
         self.config = config
         self.plan_points = np.asarray(plan_points, float).reshape(-1, 3) - refiner.center
         self.inflation = inflation
-        prior_config = StaticPriorConfig(config.static_prior, config.prior_release_chi2, max_template_std,
+        prior_config = StaticPriorConfig(config.static_prior, config.prior_release_chi2, config.prior_clear_ratio,
                                          config.prior_information_frames)
         self.prior = StaticPrior(prior_config, refiner.center, inflation) if config.static_prior else None
         self.reset()

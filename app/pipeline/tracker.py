@@ -345,4 +345,4 @@ def _refined_track(config: TrackerConfig, mesh: trimesh.Trimesh, camera: Pinhole
                           sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin)
     refiner = Refiner(vertices, faces, camera, params, seed=config.seed)
     step = max(1, len(vertices) // PLAN_POINTS)
-    return RefinedTrack(refiner, c, vertices[::step], config.status.covariance_inflation, config.status.max_template_std)
+    return RefinedTrack(refiner, c, vertices[::step], config.status.covariance_inflation)
