@@ -20,6 +20,13 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   weighing can jump far (measured on crest_left_03, static_occluded: 17.8 mm off after the first
   frame from a start 5 mm off, with the filter alone too), and the refinement from the start pose
   then competes with the one from the filter's estimate;
+- the static-bone prior (``static_prior``, app/filter/static_prior.py): the kept fit is fused with
+  the track's held base-frame pose; a frame whose image constrains the template clearly worse than
+  the clearest view since the last release (a hand over the bone) holds the pose, and a fit from
+  the filter's estimate replaces a held pose only when it would release the prior (a clear frame
+  that contradicts it). Under an 80 % hand the refinement alone slid along the crest (crest_left_03,
+  seed 0: lost from 2.6 s, with or without the filter's reseed and the feedback: "track alone" in
+  BENCHMARKS.md §6c, identical errors), so the slide was the refinement's, not the coupling's;
 - the output pose is the refined one when its fitness >= ``keep_fitness``, else the filter's;
 - feedback (``feedback``): when the filter's cloud has converged (its status not lost, its spread
   under status.uncertain_position_spread / uncertain_rotation_spread), the kept fit reaches
