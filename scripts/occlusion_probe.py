@@ -4,7 +4,9 @@ Usage: nice .venv/bin/python scripts/occlusion_probe.py TRIAL [--variant default
     [--every N] [--max-frames N] [--json OUT]
 
 Variants (BENCHMARKS.md §6c): ``default`` (the tracker's defaults); ``trackonly`` (the refinement's own
-track alone: never re-seeded from the filter, no feedback); ``nofeedback``; ``filteronly`` (refinement off).
+track alone: never re-seeded from the filter, no feedback); ``nofeedback``; ``filteronly`` (refinement off);
+``noprior`` (without the static prior, app/filter/static_prior.py: the tracker before §6c) and
+``trackonly_noprior`` (§6c's "track alone" probe).
 """
 from __future__ import annotations
 
@@ -31,7 +33,10 @@ def config_for(variant: str):
     if variant == "filteronly":
         return replace(c, refine=replace(c.refine, enabled=False))
     if variant == "noprior":
-        return replace(c, refine=replace(c.refine, prior=False))
+        return replace(c, refine=replace(c.refine, static_prior=False))
+    if variant == "trackonly_noprior":
+        return replace(c, refine=replace(c.refine, static_prior=False, feedback=False, reseed_fitness=0.0,
+                                         competitor_distance=1e9, competitor_angle=1e9))
     raise SystemExit(f"unknown variant {variant!r}")
 
 
