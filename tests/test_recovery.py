@@ -171,6 +171,53 @@ def test_a_moving_estimate_is_not_reinitialised_for_being_uncertain():
     assert policy.pending is not None and "not ok" in policy.pending
 
 
+def test_after_a_reinitialisation_a_pose_away_from_the_last_ok_one_needs_evidence():
+    """ok at once near the last ok pose; 20 mm away (the crest_right_05 case of BENCHMARKS.md §6b:
+    a wrong fit of the visible part passing the rules) only after confirm_frames ok-by-the-rules
+    frames in a row, and a frame not ok restarts that count."""
+    ok, unc = TrackingStatus.OK, TrackingStatus.UNCERTAIN
+    far = se3.from_rotvec_trans(np.zeros(3), np.array([0.02, 0.0, 0.0]))
+    policy = _policy(hold_frames=0, confirm_frames=5)
+    policy.done(0.0, "respread")
+    assert [policy.update(ok, True, True, 0.9, far, 0.0) for _ in range(4)] == [unc] * 4
+    policy.update(unc, True, True, 0.9, far, 0.0)
+    assert [policy.update(ok, True, True, 0.9, far, 0.0) for _ in range(5)] == [unc] * 4 + [ok]
+    policy = _policy(hold_frames=0, confirm_frames=5)
+    policy.done(0.0, "respread")
+    near = se3.from_rotvec_trans(np.zeros(3), np.array([0.001, 0.0, 0.0]))
+    assert policy.update(ok, True, True, 0.9, near, 0.0) == ok
+
+
+def test_a_due_reinitialisation_waits_while_the_bone_is_mostly_hidden():
+    """visible_share on a rendered synthetic view: 1 clear, about the hand's share hidden under a
+    slab 10 cm in front of the left part of the bone; may_run only above min_visible_share."""
+    import trimesh
+
+    from app.filter.recovery import point_visible, visible_share
+    from app.filter.refine import Refiner
+    from app.geometry.camera import PinholeCamera
+
+    cam = PinholeCamera(np.array([[300.0, 0, 80.0], [0, 300.0, 60.0], [0, 0, 1]]), 160, 120)
+    box = trimesh.creation.box(extents=(0.08, 0.04, 0.02))
+    refiner = Refiner(box.vertices, box.faces, cam, seed=0)
+    T_camera_bone = se3.from_rotvec_trans(np.zeros(3), np.array([0.0, 0.0, 0.4]))
+    zbuf, (x0, y0, x1, y1) = refiner.model_depth(T_camera_bone)
+    depth = np.full((120, 160), 0.6)
+    s = refiner.params.stride
+    depth[y0:y0 + zbuf.shape[0] * s, x0:x0 + zbuf.shape[1] * s] = np.repeat(np.repeat(
+        np.where(np.isfinite(zbuf), zbuf, 0.6), s, axis=0), s, axis=1)[:y1 - y0, :x1 - x0]
+    assert visible_share(refiner, depth, T_camera_bone) == pytest.approx(1.0)
+    assert point_visible(cam, depth, np.array([0.0, 0.0, 0.39]), margin=0.02)
+    hand = depth.copy()
+    hand[:, : x0 + int(0.8 * (x1 - x0))] = 0.30                # a hand over the left 80 %
+    share = visible_share(refiner, hand, T_camera_bone)
+    assert 0.1 < share < 0.35
+    assert not point_visible(cam, hand, np.array([0.0, 0.0, 0.39]), margin=0.02)
+    policy = _policy()
+    policy.pending = "lost for 10 frames"
+    assert not policy.may_run(share) and policy.may_run(1.0)
+
+
 def test_respread_is_about_the_bone_centroid_with_the_configured_spread(rng):
     centroid = np.array([0.3, 0.0, 0.0])                    # far from the bone frame's origin
     policy = RecoveryPolicy(RecoveryConfig(respread_sigma_p=0.01, respread_sigma_r=0.2), centroid, centroid, True)

@@ -2,8 +2,8 @@
 
 Import as ``from app.filter.recovery import RecoveryPolicy``. Wired in
 :class:`app.pipeline.tracker.DepthTracker` (issue 12, item 4), so replay, ``osteonav track`` and the
-bench all get it with ``recovery.enabled: true``. **Off by default**: on the eight CT crests under an
-80 % hand (BENCHMARKS.md §6b) it found no lost track that the tracker did not find by itself, and it
+bench all get it with ``recovery.enabled: true``. **Off by default**: before the "When" and the
+confirmation rules below, on the eight CT crests under an 80 % hand (BENCHMARKS.md §6b) it found no lost track that the tracker did not find by itself, and it
 lost two tracks that held without it (crest_right_04 and crest_right_05: 0 -> 37-39 % of the frames
 lost, and 81 frames ok while > 5 mm off on crest_right_05): re-spread while most of the crest is
 hidden, the filter and the refinement settle on a wrong fit of the visible part, which then passes
@@ -33,6 +33,15 @@ share from 1.6 to 16 %. It did not save crest_right_04 / _05, whose tracks had b
 moment (and came back by themselves without recovery; BENCHMARKS.md §6b). The re-initialisation
 runs on the next frame that has a camera pose and valid depth.
 
+**When.** A due attempt waits while the bone is mostly hidden: it runs only on a frame where at
+least ``min_visible_share`` (0.6) of the model's expected silhouette at the last confident pose is
+not hidden by an occluder (:func:`visible_share`: valid depth, not more than the likelihood's
+``occluder_margin`` in front of the model). Re-spreading while 80 % of the crest is under the hand
+is what lost crest_right_04 and _05 in BENCHMARKS.md §6b: the filter and the refinement settled on
+a wrong fit of the visible 20 %. An SMC attempt while the pointed point is hidden
+(:func:`point_visible`) is replaced by a re-spread (§6b: with the point under the hand the SMC put
+crest_left_03 78-105 mm off with a fit of 0.95).
+
 **What.** Attempts since the last ok frame are numbered k = 0, 1, ...; attempt k is
 
 - a *re-spread* when k mod (``respreads`` + 1) < ``respreads``: the particles drawn around the last
@@ -54,8 +63,12 @@ crest buried in tissue, is not re-initialised every few frames).
 
 **Honesty.** For ``hold_frames`` weighed frames after a re-initialisation the status is at most
 uncertain, whatever the rules say; then the usual rules (status.py, with the refinement's fit,
-predicted template error and competitor check) decide. That is not enough: on crest_right_05 the
-wrong pose a re-spread settled on was ok in 81 frames after the hold (BENCHMARKS.md §6b).
+predicted template error and competitor check) decide. That alone was not enough: on crest_right_05
+the wrong pose a re-spread settled on was ok in 81 frames after the hold (BENCHMARKS.md §6b). So
+after a re-initialisation a pose is ok only when it agrees with the last ok pose (within FAR_M /
+FAR_RAD: the bone is usually static in the robot's base frame), or, away from it (the bone was
+moved while hidden), after ``confirm_frames`` (90, ~1 s) weighed frames in a row that the rules
+find ok: evidence, not a timer.
 
 Each re-initialisation is recorded as (stamp, kind, reason); :meth:`RecoveryPolicy.report` gives
 them for the summaries.
@@ -85,7 +98,10 @@ class RecoveryConfig:
     in a row before a re-initialisation); after_uncertain_frames (weighed frames not ok in a row
     before one; 0 = off); respread_sigma_p (m) / respread_sigma_r (rad); respreads
     (re-spreads before each SMC attempt); smc_evaluations (the initialiser's likelihood evaluations);
-    hold_frames (weighed frames capped at uncertain after one); cooldown_frames (frames between two)."""
+    hold_frames (weighed frames capped at uncertain after one); cooldown_frames (frames between two);
+    min_visible_share (a due re-initialisation waits until this share of the bone's expected
+    silhouette at the last confident pose is not hidden by an occluder); confirm_frames (after one,
+    weighed frames in a row that the rules find ok before a pose away from the last ok one may be ok)."""
 
     enabled: bool = False
     after_lost_frames: int = 10
@@ -96,6 +112,8 @@ class RecoveryConfig:
     smc_evaluations: int = 30_000
     hold_frames: int = 15
     cooldown_frames: int = 15
+    min_visible_share: float = 0.6
+    confirm_frames: int = 90
 
 
 @dataclass
@@ -140,6 +158,8 @@ class RecoveryPolicy:
         self._attempts = 0                     # since the last ok frame
         self._since = 10**9                    # frames since the last re-initialisation
         self._hold = 0
+        self._unconfirmed = False              # a re-initialised pose not yet confirmed (_confirmed)
+        self._ok_run = 0
 
     # -- inputs ------------------------------------------------------------------------------
     def set_start(self, T_base_bone: np.ndarray) -> None:
@@ -160,6 +180,7 @@ class RecoveryPolicy:
             status = TrackingStatus.UNCERTAIN
         if self._hold > 0 and weighed:
             self._hold -= 1
+        status = self._confirmed(status, weighed, T_base_bone)
         if status == TrackingStatus.OK:
             self.T_base_bone_confident = np.array(T_base_bone, float)
             self._attempts, self._bad, self._not_ok = 0, 0, 0
@@ -177,6 +198,23 @@ class RecoveryPolicy:
         elif c.after_uncertain_frames and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone):
             self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
         return status
+
+    def _confirmed(self, status: TrackingStatus, weighed: bool, T_base_bone: np.ndarray) -> TrackingStatus:
+        """After a re-initialisation (module docstring, "Honesty"): ok only at a pose that agrees with
+        the last ok pose (within FAR_M / FAR_RAD: the bone is usually static in the base frame), or
+        after ``confirm_frames`` weighed frames in a row that the rules find ok."""
+        if not self._unconfirmed or status != TrackingStatus.OK:
+            if weighed and status != TrackingStatus.OK:
+                self._ok_run = 0
+            return status
+        if not self._far(T_base_bone):
+            self._unconfirmed = False
+            return status
+        self._ok_run += 1 if weighed else 0
+        if self._ok_run >= self.config.confirm_frames:
+            self._unconfirmed = False
+            return status
+        return TrackingStatus.UNCERTAIN
 
     def _gap(self, T_base_bone: np.ndarray) -> tuple[float, float]:
         T0 = self.T_base_bone_confident
@@ -249,6 +287,14 @@ class RecoveryPolicy:
         self._since, self._bad, self._not_ok = 0, 0, 0
         self._recent.clear()
         self._hold = self.config.hold_frames
+        self._unconfirmed, self._ok_run = True, 0
+
+    # -- when a due attempt may run ------------------------------------------------------------
+    def may_run(self, visible_share: float) -> bool:
+        """Whether the due attempt may run on this frame: ``visible_share`` of the bone's expected
+        silhouette at the last confident pose is not hidden (:func:`visible_share`); under the hand
+        it waits (module docstring, "When")."""
+        return self.pending is not None and visible_share >= self.config.min_visible_share
 
     # -- the re-spread -----------------------------------------------------------------------
     def respread_state(self, n: int, rng: np.random.Generator) -> ParticleState:
@@ -272,3 +318,31 @@ class RecoveryPolicy:
         """The re-initialisations for the summaries: count, stamps, kinds and reasons."""
         return {"enabled": self.config.enabled, "reinitialisations": len(self.events),
                 "events": [{"stamp": e.stamp, "kind": e.kind, "reason": e.reason} for e in self.events]}
+
+
+def visible_share(refiner, depth: np.ndarray, T_camera_bone: np.ndarray) -> float:
+    """The share of the model's expected silhouette at ``T_camera_bone`` (the refiner's z-buffer on its
+    grid) whose measurement is valid and not an occluder (not more than ``occluder_margin`` in
+    front of the model): 1 on a clear view, ~0.2 under an 80 % hand. 0 when the bone is out of view."""
+    zbuf, _ = refiner.model_depth(T_camera_bone)
+    expected = int(np.isfinite(zbuf).sum())
+    if expected == 0:
+        return 0.0
+    y, _ = refiner.measurements(depth, T_camera_bone)
+    return len(y) / expected
+
+
+def point_visible(camera, depth: np.ndarray, point_camera: np.ndarray, margin: float) -> bool:
+    """Whether a point (camera frame, m) projects into the image onto a valid depth that is not
+    more than ``margin`` in front of it (the pointed point not hidden by a hand)."""
+    if point_camera[2] <= 0:
+        return False
+    uv, z = camera.project(np.asarray(point_camera, float).reshape(1, 3))
+    u, v = int(round(uv[0, 0])), int(round(uv[0, 1]))
+    h, w = depth.shape
+    if not (0 <= u < w and 0 <= v < h):
+        return False
+    r0, r1, c0, c1 = max(v - 2, 0), min(v + 3, h), max(u - 2, 0), min(u + 3, w)
+    patch = depth[r0:r1, c0:c1]
+    patch = patch[np.isfinite(patch) & (patch > 0)]
+    return patch.size > 0 and float(np.median(patch)) >= float(z[0]) - margin

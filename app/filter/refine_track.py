@@ -20,6 +20,13 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   weighing can jump far (measured on crest_left_03, static_occluded: 17.8 mm off after the first
   frame from a start 5 mm off, with the filter alone too), and the refinement from the start pose
   then competes with the one from the filter's estimate;
+- the static-bone prior (``static_prior``, app/filter/static_prior.py): the kept fit is fused with
+  the track's held base-frame pose; a frame whose image constrains the template clearly worse than
+  the clearest view since the last release (a hand over the bone) holds the pose, and a fit from
+  the filter's estimate replaces a held pose only when it would release the prior (a clear frame
+  that contradicts it). Under an 80 % hand the refinement alone slid along the crest (crest_left_03,
+  seed 0: lost from 2.6 s, with or without the filter's reseed and the feedback: "track alone" in
+  BENCHMARKS.md §6c, identical errors), so the slide was the refinement's, not the coupling's;
 - the output pose is the refined one when its fitness >= ``keep_fitness``, else the filter's;
 - feedback (``feedback``): when the filter's cloud has converged (its status not lost, its spread
   under status.uncertain_position_spread / uncertain_rotation_spread), the kept fit reaches
@@ -38,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.filter.refine import Refiner, RefineResult, template_std
+from app.filter.static_prior import StaticPrior, StaticPriorConfig
 from app.geometry import se3
 
 FALLBACK_BEHIND_SHARE = 0.02   # the former fixed share, when too few pixels estimate the noise
@@ -47,7 +55,8 @@ FALLBACK_BEHIND_SHARE = 0.02   # the former fixed share, when too few pixels est
 class RefineConfig:
     """``refine.*`` of the configuration (module docstring). enabled; stride (1 full / 2 half sensor
     resolution); iterations; samples (model points); keep_fitness; reseed_fitness;
-    competitor_distance (m) / competitor_angle (rad); competitor_margin; feedback; feedback_fitness."""
+    competitor_distance (m) / competitor_angle (rad); competitor_margin; feedback; feedback_fitness;
+    static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames (app/filter/static_prior.py)."""
 
     enabled: bool = True
     stride: int = 2
@@ -60,6 +69,10 @@ class RefineConfig:
     competitor_margin: float = 0.05
     feedback: bool = True
     feedback_fitness: float = 0.6
+    static_prior: bool = True
+    prior_release_chi2: float = 25.0
+    prior_clear_ratio: float = 1.5
+    prior_information_frames: float = 300.0
 
 
 @dataclass
@@ -109,16 +122,24 @@ class RefinedTrack:
         self.config = config
         self.plan_points = np.asarray(plan_points, float).reshape(-1, 3) - refiner.center
         self.inflation = inflation
+        prior_config = StaticPriorConfig(config.static_prior, config.prior_release_chi2, config.prior_clear_ratio,
+                                         config.prior_information_frames)
+        self.prior = StaticPrior(prior_config, refiner.center, inflation) if config.static_prior else None
         self.reset()
 
     def reset(self) -> None:
         self.T_base_bone, self.fitness = None, float("nan")
         self._seeded = False
+        self.last_info: dict = {}
+        if getattr(self, "prior", None) is not None:
+            self.prior.reset()
 
     def seed(self, T_base_bone: np.ndarray) -> None:
         """Start the track at a given pose (the coarse initial alignment): the first frame refines from
         it with the wide first step as well as from the filter's estimate, and keeps the better fit."""
         self.T_base_bone, self.fitness, self._seeded = np.array(T_base_bone, float), 1.0, True
+        if self.prior is not None:
+            self.prior.reset()
 
     def _refine(self, depth, T_camera_base, T_base_bone, start_width=None) -> tuple[np.ndarray, RefineResult]:
         result = self.refiner.refine(depth, T_camera_base @ T_base_bone, start_width)
@@ -131,6 +152,21 @@ class RefinedTrack:
             return True
         dist, angle = pose_gap(self.T_base_bone, T_filter)
         return dist > c.competitor_distance or angle > c.competitor_angle
+
+    def _held(self, fits, source, T_best, best, std):
+        """The static prior (app/filter/static_prior.py) on the kept fit: a fit from the filter's
+        estimate replaces a held pose only when the image alone pins it (it releases the prior); else
+        the track's own fit is fused with the prior. Returns (source, T_base_bone, result, std)."""
+        prior = self.prior
+        if prior.active and source == "filter" and not prior.would_release(T_best, best.H, std):
+            track = [f for f in fits if f[0] == "track" and f[2].fitness >= self.config.keep_fitness]
+            if not track:
+                return source, T_best, best, std
+            source, T_best, best = track[0]
+            std = template_std(best.H, self.plan_points, self.inflation)
+        T_held = prior.update(T_best, best.H, std)
+        self.last_info.update(chi2=prior.chi2, released=prior.released, held=prior.held, img_std_mm=1e3 * std)
+        return source, T_held, best, std
 
     def update(self, depth: np.ndarray, T_base_camera: np.ndarray, T_base_bone_filter: np.ndarray) -> RefineOutcome:
         """Refine on one weighed frame (full-resolution depth, metres) and update the track."""
@@ -148,19 +184,23 @@ class RefinedTrack:
         if not fits:
             self.reset()
             return RefineOutcome(None, float("nan"), float("inf"), False, float("nan"), "", time.perf_counter() - t0)
+        self.last_info = {f"{name}_sharp": r.sharp for name, _, r in fits}
         fits.sort(key=lambda f: -f[2].sharp)
         source, T_best, best = fits[0]
+        self.last_info["src"] = source
         competitor, competitor_fitness = False, float("nan")
         if len(fits) > 1:
             competitor_fitness = fits[1][2].fitness
             dist, angle = pose_gap(T_best, fits[1][1])
             apart = dist > c.competitor_distance or angle > c.competitor_angle
             competitor = apart and fits[1][2].sharp >= best.sharp - c.competitor_margin
+        std = template_std(best.H, self.plan_points, self.inflation)
+        if self.prior is not None and best.fitness >= c.keep_fitness:
+            source, T_best, best, std = self._held(fits, source, T_best, best, std)
         if best.fitness >= c.keep_fitness:
             self.T_base_bone, self.fitness = T_best, best.fitness
         else:
             self.reset()
-        std = template_std(best.H, self.plan_points, self.inflation)
         kept = T_best if best.fitness >= c.keep_fitness else None
         return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0,
                              behind_excess(best))

@@ -22,7 +22,7 @@ import trimesh
 from app.config import TrackerConfig
 from app.depth_image import downsample_nearest
 from app.filter.particle_filter import FilterOutput, ParticleFilter
-from app.filter.recovery import RESPREAD, RecoveryPolicy
+from app.filter.recovery import RESPREAD, RecoveryPolicy, point_visible, visible_share
 from app.filter.refine import Refiner, RefineParams
 from app.filter.refine_track import RefinedTrack
 from app.filter.status import RefinementEvidence, TrackingStatus, with_refinement
@@ -144,9 +144,9 @@ class DepthTracker:
                 return self._not_started(stamp)
             self._initialise_from_point(depth_small, T_base_camera)
         reinitialised = (self.recovery is not None and self.recovery.pending is not None
-                         and _usable(depth_small, T_base_camera))
+                         and _usable(depth_small, T_base_camera) and self._recovery_may_run(depth_m, T_base_camera))
         if reinitialised:
-            self._reinitialise(depth_small, T_base_camera, stamp)
+            self._reinitialise(depth_small, T_base_camera, stamp, depth_m)
         result = self.filter.step(depth_small, stamp, T_base_camera)
         if self.refined_track is not None:
             result = self._refine(result, depth_m, T_base_camera)
@@ -188,14 +188,35 @@ class DepthTracker:
         return replace(result, T_base_bone=T_base_bone, status=status, timings=timings, refine_fitness=out.fitness,
                        template_std=out.template_std, refined=out.T_base_bone is not None, competitor=out.competitor)
 
-    def _reinitialise(self, depth_small: np.ndarray, T_base_camera: np.ndarray, stamp: float) -> None:
+    def _recovery_may_run(self, depth_m: np.ndarray, T_base_camera: np.ndarray) -> bool:
+        """A due re-initialisation waits while the bone's expected silhouette at the last confident
+        pose is mostly hidden (the hand has not withdrawn; app/filter/recovery.py)."""
+        policy = self.recovery
+        if self.refined_track is None or policy.T_base_bone_confident is None:
+            return True
+        T_camera_bone = np.linalg.inv(T_base_camera) @ policy.T_base_bone_confident
+        return policy.may_run(visible_share(self.refined_track.refiner, depth_m, T_camera_bone))
+
+    def _smc_point_visible(self, depth_m: np.ndarray, T_base_camera: np.ndarray) -> bool:
+        """Whether the SMC's pointed point is seen (not behind a hand): else a re-spread instead."""
+        point_camera = (np.linalg.inv(T_base_camera) @ np.append(self.recovery.smc_point(), 1.0))[:3]
+        camera = self.refined_track.refiner.camera if self.refined_track is not None else None
+        if camera is None or camera.width != depth_m.shape[1]:
+            return True
+        return point_visible(camera, depth_m, point_camera, self.config.likelihood.occluder_margin)
+
+    def _reinitialise(self, depth_small: np.ndarray, T_base_camera: np.ndarray, stamp: float,
+                      depth_m: np.ndarray | None = None) -> None:
         """The recovery's due attempt (app/filter/recovery.py): a wide re-spread around the last
-        confident pose, or the one-point SMC initialiser on this frame."""
+        confident pose, or the one-point SMC initialiser on this frame (a re-spread instead while
+        the pointed point is hidden)."""
         policy = self.recovery
         T_now = self._T_base_bone_last if self._T_base_bone_last is not None else policy.T_base_bone_confident
         if policy.T_base_bone_confident is None:
             policy.set_start(T_now)
         kind = policy.next_kind()
+        if kind != RESPREAD and depth_m is not None and not self._smc_point_visible(depth_m, T_base_camera):
+            kind = RESPREAD
         if kind == RESPREAD:
             self.filter.set_state(policy.respread_state(self.config.particles, self.filter.rng))
             if self.refined_track is not None:
