@@ -22,7 +22,8 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   then competes with the one from the filter's estimate;
 - the static-bone prior (``static_prior``, app/filter/static_prior.py): the kept fit is fused with
   the track's held base-frame pose; a frame whose image constrains the template clearly worse than
-  the clearest view since the last release (a hand over the bone) holds the pose, and a fit from
+  the clearest view since the last release (a hand over the bone; both errors on the configured grid,
+  :meth:`RefinedTrack._prior_std`) holds the pose, and a fit from
   the filter's estimate replaces a held pose only when it would release the prior (a clear frame
   that contradicts it). Under an 80 % hand the refinement alone slid along the crest (crest_left_03,
   seed 0: lost from 2.6 s, with or without the filter's reseed and the feedback: "track alone" in
