@@ -22,7 +22,8 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   then competes with the one from the filter's estimate;
 - the static-bone prior (``static_prior``, app/filter/static_prior.py): the kept fit is fused with
   the track's held base-frame pose; a frame whose image constrains the template clearly worse than
-  the clearest view since the last release (a hand over the bone) holds the pose, and a fit from
+  the clearest view since the last release (a hand over the bone; both errors on the configured grid,
+  :meth:`RefinedTrack._prior_std`) holds the pose, and a fit from
   the filter's estimate replaces a held pose only when it would release the prior (a clear frame
   that contradicts it). Under an 80 % hand the refinement alone slid along the crest (crest_left_03,
   seed 0: lost from 2.6 s, with or without the filter's reseed and the feedback: "track alone" in
@@ -130,6 +131,7 @@ class RefinedTrack:
     def reset(self) -> None:
         self.T_base_bone, self.fitness = None, float("nan")
         self._seeded = False
+        self._starts: dict = {}
         self.last_info: dict = {}
         if getattr(self, "prior", None) is not None:
             self.prior.reset()
@@ -142,9 +144,24 @@ class RefinedTrack:
             self.prior.reset()
 
     def _refine(self, depth, T_camera_base, T_base_bone, start_width=None) -> tuple[np.ndarray, RefineResult]:
-        result = self.refiner.refine(depth, T_camera_base @ T_base_bone, start_width)
+        T_camera_bone = T_camera_base @ T_base_bone
+        result = self.refiner.refine(depth, T_camera_bone, start_width)
+        self._starts[id(result)] = T_camera_bone
         T_base_camera = se3.inverse(T_camera_base)
         return T_base_camera @ result.T_camera_bone, result
+
+    def _prior_std(self, result: RefineResult, std: float) -> float:
+        """The template error on the configured grid (``refine.stride``), for the prior's relative clear
+        test: a small silhouette is refined at stride 1 (refine.py's ``fine_below``), four times the
+        points, so its H predicts about half the error of the same view at stride 2 (σ ∝ N^-1/2, N ∝
+        stride^-2): σ_grid = σ · stride_grid / stride. Compared raw, one stride-1 fit set the clearest
+        view at 0.36 mm and every later stride-2 view of the bone at rest (0.7 mm) was held as weak
+        (crest_left_02 bone_moves seed 0: 6.4 mm after rest; BENCHMARKS.md §6c)."""
+        start = self._starts.get(id(result))
+        if start is None or not np.isfinite(std):
+            return std
+        stride, _ = self.refiner.choose_stride(start)
+        return std * self.refiner.params.stride / stride
 
     def _needs_filter(self, T_filter: np.ndarray) -> bool:
         c = self.config
@@ -158,14 +175,16 @@ class RefinedTrack:
         estimate replaces a held pose only when the image alone pins it (it releases the prior); else
         the track's own fit is fused with the prior. Returns (source, T_base_bone, result, std)."""
         prior = self.prior
-        if prior.active and source == "filter" and not prior.would_release(T_best, best.H, std):
+        if prior.active and source == "filter" and not prior.would_release(T_best, best.H, self._prior_std(best, std)):
             track = [f for f in fits if f[0] == "track" and f[2].fitness >= self.config.keep_fitness]
             if not track:
                 return source, T_best, best, std
             source, T_best, best = track[0]
             std = template_std(best.H, self.plan_points, self.inflation)
-        T_held = prior.update(T_best, best.H, std)
-        self.last_info.update(chi2=prior.chi2, released=prior.released, held=prior.held, img_std_mm=1e3 * std)
+        grid_std = self._prior_std(best, std)
+        T_held = prior.update(T_best, best.H, grid_std)
+        self.last_info.update(chi2=prior.chi2, released=prior.released, held=prior.held, img_std_mm=1e3 * std,
+                              grid_std_mm=1e3 * grid_std)
         return source, T_held, best, std
 
     def update(self, depth: np.ndarray, T_base_camera: np.ndarray, T_base_bone_filter: np.ndarray) -> RefineOutcome:
@@ -173,7 +192,7 @@ class RefinedTrack:
         t0 = time.perf_counter()
         c = self.config
         T_camera_base = se3.inverse(T_base_camera)
-        fits = []
+        fits, self._starts = [], {}
         if self.T_base_bone is not None and self.fitness >= c.keep_fitness:
             width = None if self._seeded else 0.0
             fits.append(("track", *self._refine(depth, T_camera_base, self.T_base_bone, start_width=width)))

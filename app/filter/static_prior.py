@@ -22,7 +22,9 @@ from the anchor to T_img:
   (refine.template_std of H, inflated) at most ``clear_ratio`` (1.5) times the smallest since the
   last release; under a hand it grows with the hidden share (crest_left_03, seed 0: 0.56 mm clear,
   0.77 at 27 % hidden, 0.93 at 43 %, 2.0 at 45 %, 15 at 80 %). A relative test, not the status's
-  absolute 1 mm: at 0.65 m every frame predicts 1.1-1.4 mm and must still refine the pose;
+  absolute 1 mm: at 0.65 m every frame predicts 1.1-1.4 mm and must still refine the pose. The
+  caller passes σ on one grid (refine_track: σ · stride_grid / stride), else a stride-1 fit (a small
+  silhouette) halves the clearest σ and every stride-2 view after it is weak (BENCHMARKS.md §6c);
 - **weak frame: the pose is held** (no update): its fit is dominated by the pull along the crest,
   not by noise (above), and fusing it drifts the pose (measured on crest_right_02, static_occluded
   seed 0, fusing every frame with an absolute 1 mm test instead: 0.29 -> 0.74 mm over 4 s under the
