@@ -12,14 +12,18 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   could compete; nearer, the filter's 160x120 estimate is only less precise: refining it too, as
   at 3 mm / 1.7 deg first, doubled the refinement's cost on the CT crests), and keeps the better fit (the
   higher share within 1 σ, ``RefineResult.sharp``: the 3 σ fitness barely separates two fits a few
-  millimetres apart on a crest);
+  millimetres apart on a crest; less the share behind the model beyond the noise's bound,
+  :func:`consistent_sharp`: at 0.65 m a fit 17 deg off was 0.002 sharper than one 3 deg off but left
+  16 % of the measurements behind the model against 4 %, BENCHMARKS.md §6d);
 - when both refinements ran, converged more than ``competitor_distance`` (5 mm / 5 deg) apart and
   the loser's sharp share is within ``competitor_margin`` (0.05) of the winner's, a competing pose
   explains the image about as well: the frame is ambiguous (the status cannot be ok, status.py);
 - the track starts at the coarse initial pose (:meth:`RefinedTrack.seed`): the filter's first
   weighing can jump far (measured on crest_left_03, static_occluded: 17.8 mm off after the first
   frame from a start 5 mm off, with the filter alone too), and the refinement from the start pose
-  then competes with the one from the filter's estimate;
+  then competes with the one from the filter's estimate; from the start pose it refines at the
+  default first Tukey width and at twice it (``SEED_WIDTHS``: at 0.65 m each alone left a CT crest
+  7-9 deg off on one of two seeds, BENCHMARKS.md §6d);
 - the static-bone prior (``static_prior``, app/filter/static_prior.py): the kept fit is fused with
   the track's held base-frame pose; a frame whose image constrains the template clearly worse than
   the clearest view since the last release (a hand over the bone; both errors on the configured grid,
@@ -50,6 +54,7 @@ from app.filter.static_prior import StaticPrior, StaticPriorConfig
 from app.geometry import se3
 
 FALLBACK_BEHIND_SHARE = 0.02   # the former fixed share, when too few pixels estimate the noise
+SEED_WIDTHS = (1.0, 2.0)       # the seeded first refinement's Tukey widths (x RefineParams.start_width; BENCHMARKS.md §6d)
 
 
 @dataclass
@@ -99,6 +104,13 @@ def behind_excess(result: RefineResult) -> float:
     (``RefineResult.behind − behind_allowed``; against ``FALLBACK_BEHIND_SHARE`` when the noise is unknown)."""
     allowed = result.behind_allowed if np.isfinite(result.behind_allowed) else FALLBACK_BEHIND_SHARE
     return float(result.behind - allowed)
+
+
+def consistent_sharp(result: RefineResult) -> float:
+    """The fit's share within 1 σ less its share behind the model beyond the noise's bound
+    (:func:`behind_excess`, when positive): light does not pass through bone, so a measurement
+    inside the model contradicts the pose; two fits are compared on this."""
+    return float(result.sharp - max(behind_excess(result), 0.0))
 
 
 def pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
@@ -194,8 +206,8 @@ class RefinedTrack:
         T_camera_base = se3.inverse(T_base_camera)
         fits, self._starts = [], {}
         if self.T_base_bone is not None and self.fitness >= c.keep_fitness:
-            width = None if self._seeded else 0.0
-            fits.append(("track", *self._refine(depth, T_camera_base, self.T_base_bone, start_width=width)))
+            widths = [self.refiner.params.start_width * f for f in SEED_WIDTHS] if self._seeded else [0.0]
+            fits += [("track", *self._refine(depth, T_camera_base, self.T_base_bone, start_width=w)) for w in widths]
         self._seeded = False
         if self._needs_filter(T_base_bone_filter):
             fits.append(("filter", *self._refine(depth, T_camera_base, T_base_bone_filter)))
@@ -204,7 +216,7 @@ class RefinedTrack:
             self.reset()
             return RefineOutcome(None, float("nan"), float("inf"), False, float("nan"), "", time.perf_counter() - t0)
         self.last_info = {f"{name}_sharp": r.sharp for name, _, r in fits}
-        fits.sort(key=lambda f: -f[2].sharp)
+        fits.sort(key=lambda f: -consistent_sharp(f[2]))
         source, T_best, best = fits[0]
         self.last_info["src"] = source
         competitor, competitor_fitness = False, float("nan")

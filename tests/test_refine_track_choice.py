@@ -1,0 +1,60 @@
+"""Which fit the refinement's track keeps (app/filter/refine_track.py): the share within 1 σ less the
+share behind the model beyond the noise's bound, and the seeded first frame's two Tukey widths
+(issue 12, static_far crest_right_02 seed 2: BENCHMARKS.md §6d)."""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from app.filter.refine import RefineResult
+from app.filter.refine_track import RefineConfig, RefinedTrack, consistent_sharp
+from app.geometry import se3
+
+
+def _result(T_camera_bone, sharp, behind, allowed=0.01, fitness=0.85):
+    return RefineResult(np.array(T_camera_bone, float), 1e8 * np.eye(6), fitness, 2500, int(fitness * 2500), 2400,
+                        1e-3, True, sharp, behind, allowed, 1e-3)
+
+
+def test_consistent_sharp_subtracts_only_the_excess_behind():
+    assert consistent_sharp(_result(np.eye(4), 0.40, 0.16, 0.01)) == pytest.approx(0.40 - 0.15)
+    assert consistent_sharp(_result(np.eye(4), 0.40, 0.005, 0.01)) == pytest.approx(0.40)   # noise explains it
+    assert consistent_sharp(_result(np.eye(4), 0.41, 0.04, 0.01)) > consistent_sharp(_result(np.eye(4), 0.42, 0.17, 0.01))
+
+
+class _StubRefiner:
+    """Refines to a fixed pose per start: from the seed at the default width to a wrong fit, at twice
+    the width to the right one; from the filter's estimate to a fit sharper but far behind the image."""
+
+    def __init__(self, T_right, T_wrong, T_filter_fit):
+        self.params = SimpleNamespace(start_width=0.010)
+        self.center = np.zeros(3)
+        self.widths = []
+        self.fits = dict(right=T_right, wrong=T_wrong, filter=T_filter_fit)
+
+    def refine(self, depth, T_camera_bone, start_width=None):
+        self.widths.append(start_width)
+        if start_width is None:
+            return _result(self.fits["filter"], sharp=0.416, behind=0.16)
+        if start_width >= 0.02:
+            return _result(self.fits["right"], sharp=0.408, behind=0.038)
+        return _result(self.fits["wrong"], sharp=0.324, behind=0.051)
+
+
+def test_seeded_track_keeps_the_consistent_fit_over_a_sharper_one_behind_the_image():
+    T_seed = se3.from_rotvec_trans(np.array([0.0, 0.0, 0.05]), np.array([0.005, 0.0, 0.65]))
+    T_right = se3.from_rotvec_trans(np.zeros(3), np.array([0.0, 0.0, 0.65]))
+    T_wrong = se3.from_rotvec_trans(np.array([0.0, 0.1, 0.0]), np.array([0.007, 0.0, 0.65]))
+    T_filter = se3.from_rotvec_trans(np.array([0.0, 0.3, 0.0]), np.array([0.01, 0.0, 0.65]))
+    refiner = _StubRefiner(T_right, T_wrong, T_filter)
+    track = RefinedTrack(refiner, RefineConfig(), np.zeros((4, 3)), inflation=6.0)
+    track.seed(T_seed)
+    out = track.update(np.zeros((2, 2)), np.eye(4), T_filter)
+    assert refiner.widths == [0.010, 0.020, None]           # the seed at both widths, the filter's estimate
+    assert out.source == "track"
+    np.testing.assert_allclose(out.T_base_bone, T_right, atol=1e-12)
+    refiner.widths.clear()
+    track.update(np.zeros((2, 2)), np.eye(4), T_right)
+    assert refiner.widths == [0.0]                           # afterwards one narrow refinement from the track
