@@ -29,10 +29,14 @@ class _StubRefiner:
     the width to the right one; from the filter's estimate to a fit sharper but far behind the image."""
 
     def __init__(self, T_right, T_wrong, T_filter_fit):
-        self.params = SimpleNamespace(start_width=0.010)
+        self.params = SimpleNamespace(start_width=0.010, stride=2)
         self.center = np.zeros(3)
         self.widths = []
         self.fits = dict(right=T_right, wrong=T_wrong, filter=T_filter_fit)
+
+    def choose_stride(self, T_camera_bone):
+        """Refiner.choose_stride: every fit here on the configured grid (the static prior's clear test)."""
+        return self.params.stride, None
 
     def refine(self, depth, T_camera_bone, start_width=None):
         self.widths.append(start_width)
