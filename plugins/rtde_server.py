@@ -233,7 +233,7 @@ class RTDEServer:
                 if streaming and recipe:
                     now = time.monotonic()
                     if now >= next_send:
-                        conn.sendall(self._data_package(recipe))
+                        conn.sendall(self._data_package(recipe, cycle_host=next_send))
                         self.packages_sent += 1
                         next_send += 1.0 / frequency
                         if now - next_send > 0.1:   # fell far behind (a stalled machine): do not burst
@@ -299,8 +299,11 @@ class RTDEServer:
                 return
             getattr(self, name)(arg)
 
-    def _data_package(self, recipe: list[str]) -> bytes:
-        t = self.controller_time()
+    def _data_package(self, recipe: list[str], cycle_host: float | None = None) -> bytes:
+        """One package; ``cycle_host`` : the host time of the controller cycle it belongs to (a
+        controller stamps each package with its cycle's time, even when this fake, starved of CPU on
+        a loaded machine, sends it late); default now."""
+        t = self.controller_time() if cycle_host is None else cycle_host - self._t0 + self._clock_offset
         q = np.full(6, math.nan) if self._nan else np.asarray(self.joints(t), dtype=float)
         fmt = ">B" + "".join(TYPE_FORMATS[VARIABLE_TYPES[n]] for n in recipe)
         values = [1]
