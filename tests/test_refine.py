@@ -227,28 +227,6 @@ def test_image_noise_recovers_the_depth_noise_of_a_slanted_surface(rng):
     assert image_noise(depth, y, camera) == pytest.approx(0.0009, rel=0.05)
 
 
-@pytest.fixture(scope="module")
-def far_frame(gl_ctx):
-    """The synthetic crest in its tissue at 0.8 m (~1,000 cells at stride 2: a far view), with the
-    simulator's sensor noise (app/sim/sensor.py: σ = 0.0015 z² + 0.0003 m, 1.26 mm there)."""
-    from app.render.scene import SceneRenderer
-    from app.sim.sensor import SensorModel
-
-    mesh = trimesh.load(DEFAULT_MESH)
-    vertices = np.asarray(mesh.vertices) - np.asarray(mesh.vertices).mean(axis=0)
-    faces = np.asarray(mesh.faces)
-    tissue = world.soft_tissue_mesh(trimesh.Trimesh(vertices, faces), np.random.default_rng(0))
-    scene = SceneRenderer(gl_ctx, D415_640x480)
-    scene.add_mesh("bone", vertices, faces, label=1)
-    scene.add_mesh("tissue", np.asarray(tissue.vertices), np.asarray(tissue.faces), label=2)
-    T_camera_bone = se3.from_rotvec_trans(np.array([np.pi, 0.1, 0.1]), np.array([0.0, 0.0, 0.8]))
-    depth, _ = scene.render({"bone": T_camera_bone, "tissue": T_camera_bone})
-    scene.release()
-    z = depth.astype(float)
-    noise = SensorModel().sigma(z) * np.random.default_rng(3).standard_normal(z.shape)
-    return vertices, faces, T_camera_bone, np.where(z > 0, z + noise, 0.0)
-
-
 def test_a_far_view_is_refined_at_full_resolution_precisely_and_is_not_declined_by_its_noise(far_frame):
     """BENCHMARKS.md §6d: a small silhouette is refined at stride 1; from 3 mm / 3 deg it converges
     to the truth, and the share of measurements behind it stays within what the image's noise

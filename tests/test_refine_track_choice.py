@@ -34,10 +34,6 @@ class _StubRefiner:
         self.widths = []
         self.fits = dict(right=T_right, wrong=T_wrong, filter=T_filter_fit)
 
-    def choose_stride(self, T_camera_bone):
-        """Refiner.choose_stride: every fit here on the configured grid (the static prior's clear test)."""
-        return self.params.stride, None
-
     def refine(self, depth, T_camera_bone, start_width=None):
         self.widths.append(start_width)
         if start_width is None:

@@ -108,32 +108,6 @@ def test_ct_crest_is_held_under_an_80_percent_hand(tmp_path):
     assert np.median(add) < 1.0
 
 
-@pytest.fixture(scope="module")
-def far_frame(gl_ctx):
-    """The synthetic crest in its tissue at 0.8 m (a small silhouette: refined at stride 1 by default),
-    with the simulator's sensor noise (as tests/test_refine.py's far view)."""
-    import trimesh
-
-    from app.render.scene import SceneRenderer
-    from app.sim import world
-    from app.sim.sensor import SensorModel
-    from app.sim.simulator import D415_640x480, DEFAULT_MESH
-
-    mesh = trimesh.load(DEFAULT_MESH)
-    vertices = np.asarray(mesh.vertices) - np.asarray(mesh.vertices).mean(axis=0)
-    faces = np.asarray(mesh.faces)
-    tissue = world.soft_tissue_mesh(trimesh.Trimesh(vertices, faces), np.random.default_rng(0))
-    scene = SceneRenderer(gl_ctx, D415_640x480)
-    scene.add_mesh("bone", vertices, faces, label=1)
-    scene.add_mesh("tissue", np.asarray(tissue.vertices), np.asarray(tissue.faces), label=2)
-    T_camera_bone = se3.from_rotvec_trans(np.array([np.pi, 0.1, 0.1]), np.array([0.0, 0.0, 0.8]))
-    depth, _ = scene.render({"bone": T_camera_bone, "tissue": T_camera_bone})
-    scene.release()
-    z = depth.astype(float)
-    noise = SensorModel().sigma(z) * np.random.default_rng(3).standard_normal(z.shape)
-    return vertices, faces, T_camera_bone, np.where(z > 0, z + noise, 0.0)
-
-
 def test_a_stride_1_view_does_not_make_the_same_view_at_stride_2_weak(far_frame):
     """The prior's clear test compares views on one grid (refine_track._prior_std). The same image,
     refined first at stride 1 (a small silhouette: four times the points, about half the predicted

@@ -122,7 +122,9 @@ class RefineResult:
     sharp : the share within ``sharp_sigmas`` σ (separates two nearly equal fits better);
     behind : the share whose measured surface lies more than ``behind_sigmas`` σ inside the model
     (signed point-to-plane residual n_iᵀ(p_i − x_i) < −behind_sigmas σ_i): light does not pass
-    through bone, so a right pose leaves only the noise's tail there (module docstring, step 7)."""
+    through bone, so a right pose leaves only the noise's tail there (module docstring, step 7);
+    behind_allowed : the noise bound on it; noise : the image's noise estimate (m); stride : the grid
+    step it was refined at (0 when unknown)."""
 
     T_camera_bone: np.ndarray
     H: np.ndarray
@@ -136,6 +138,7 @@ class RefineResult:
     behind: float = float("nan")
     behind_allowed: float = float("nan")
     noise: float = float("nan")
+    stride: int = 0
 
 
 def exp_se3(delta: np.ndarray) -> np.ndarray:
@@ -325,7 +328,7 @@ class Refiner:
             if step_r * RENDER_LEVER > prm.rerender_step or step_t > prm.rerender_step:
                 y = None
         if last is not None:
-            return self._result(depth, T, H, used, rms, ok, *last)
+            return self._result(depth, T, H, used, rms, ok, *last, stride=stride)
         return self._finish(depth, T if ok else np.array(T_camera_bone, float), H, used, rms, ok, stride)
 
     def _increment(self, delta: np.ndarray) -> np.ndarray:
@@ -338,14 +341,14 @@ class Refiner:
         """Fitness, counts and the information matrix at the final pose."""
         y, z_model = self.measurements(depth, T, stride)
         if len(y) == 0:
-            return RefineResult(T, H, float("nan"), 0, 0, used, rms, ok)
+            return RefineResult(T, H, float("nan"), 0, 0, used, rms, ok, stride=stride)
         p, x, n, d = self._associate(y, T)
         sigma = self.sigma(y[:, 2])
         if ok:
             _, H, used, rms = self._gn_step(p, x, n, d, sigma, 0.0, z_model - y[:, 2])
-        return self._result(depth, T, H, used, rms, ok, y, p, x, n, d, sigma)
+        return self._result(depth, T, H, used, rms, ok, y, p, x, n, d, sigma, stride)
 
-    def _result(self, depth, T, H, used, rms, ok, y, p, x, n, d, sigma) -> RefineResult:
+    def _result(self, depth, T, H, used, rms, ok, y, p, x, n, d, sigma, stride) -> RefineResult:
         """Fitness, sharp and behind shares of one association (steps 7-8); unassociated points
         (none within ``pair_radius``: d = inf, NaN residual) count as neither confirmed nor behind."""
         prm = self.params
@@ -355,7 +358,8 @@ class Refiner:
             behind = float(np.mean(np.einsum("ij,ij->i", n, p - x) < -prm.behind_sigmas * sigma))
         noise = image_noise(depth, y, self.camera)
         allowed = behind_bound(p, n, sigma * prm.behind_sigmas, noise, se3.inverse(T)[:3, 3], prm.behind_z)
-        return RefineResult(T, H, confirmed / len(p), len(p), confirmed, used, rms, ok, sharp, behind, allowed, noise)
+        return RefineResult(T, H, confirmed / len(p), len(p), confirmed, used, rms, ok, sharp, behind, allowed, noise,
+                            stride)
 
 
 def template_std(H: np.ndarray, points_bone: np.ndarray, inflation: float = 1.0) -> float:

@@ -143,7 +143,6 @@ class RefinedTrack:
     def reset(self) -> None:
         self.T_base_bone, self.fitness = None, float("nan")
         self._seeded = False
-        self._starts: dict = {}
         self.last_info: dict = {}
         if getattr(self, "prior", None) is not None:
             self.prior.reset()
@@ -156,9 +155,7 @@ class RefinedTrack:
             self.prior.reset()
 
     def _refine(self, depth, T_camera_base, T_base_bone, start_width=None) -> tuple[np.ndarray, RefineResult]:
-        T_camera_bone = T_camera_base @ T_base_bone
-        result = self.refiner.refine(depth, T_camera_bone, start_width)
-        self._starts[id(result)] = T_camera_bone
+        result = self.refiner.refine(depth, T_camera_base @ T_base_bone, start_width)
         T_base_camera = se3.inverse(T_camera_base)
         return T_base_camera @ result.T_camera_bone, result
 
@@ -169,11 +166,9 @@ class RefinedTrack:
         stride^-2): σ_grid = σ · stride_grid / stride. Compared raw, one stride-1 fit set the clearest
         view at 0.36 mm and every later stride-2 view of the bone at rest (0.7 mm) was held as weak
         (crest_left_02 bone_moves seed 0: 6.4 mm after rest; BENCHMARKS.md §6c)."""
-        start = self._starts.get(id(result))
-        if start is None or not np.isfinite(std):
+        if result.stride <= 0 or not np.isfinite(std):
             return std
-        stride, _ = self.refiner.choose_stride(start)
-        return std * self.refiner.params.stride / stride
+        return std * self.refiner.params.stride / result.stride
 
     def _needs_filter(self, T_filter: np.ndarray) -> bool:
         c = self.config
@@ -204,7 +199,7 @@ class RefinedTrack:
         t0 = time.perf_counter()
         c = self.config
         T_camera_base = se3.inverse(T_base_camera)
-        fits, self._starts = [], {}
+        fits = []
         if self.T_base_bone is not None and self.fitness >= c.keep_fitness:
             widths = [self.refiner.params.start_width * f for f in SEED_WIDTHS] if self._seeded else [0.0]
             fits += [("track", *self._refine(depth, T_camera_base, self.T_base_bone, start_width=w)) for w in widths]
