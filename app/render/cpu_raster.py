@@ -49,7 +49,10 @@ from app.filter.likelihood_ref import LOG_FLOOR, LikelihoodParams
 
 log = logging.getLogger(__name__)
 
-N_PARAMS = 16
+N_PARAMS = 17
+# :func:`_score_and_clear`'s product path keeps its running product of densities in
+# [1 / _PRODUCT_RANGE, _PRODUCT_RANGE]; a factor that would take it out is logged on its own
+_PRODUCT_RANGE = 1e150
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 _SQRT1_2 = 1.0 / math.sqrt(2.0)
 
@@ -68,12 +71,19 @@ def _njit(parallel: bool = False):
 
 
 def pack_params(p: LikelihoodParams) -> np.ndarray:
-    """The likelihood parameters as the kernels' float64 vector (order fixed by :data:`N_PARAMS`)."""
+    """The likelihood parameters as the kernels' float64 vector (order fixed by :data:`N_PARAMS`).
+
+    [16] enables the product path of :func:`_score_and_clear` (one log per block of pixels instead
+    of one per pixel): the model without classification with p_u >= LOG_FLOOR, where every pixel's
+    density x_i = p_u + w_e p_e + w_n p_n >= p_u is above the log's floor (l_i = log x_i, plus
+    log z_max with the background ratio).
+    """
     p_u = p.w_u / p.z_max
+    product = not p.classification and p_u >= LOG_FLOOR
     return np.array([p.z_max, p.lam, p.w_u, p.w_e, p.w_n, p.k, p.sigma_base, p.l0_weight, p.pixel_count_reg,
                      p.pixel_weight, p.occluder_margin, float(p.occlusion == "smooth_exponential"),
                      float(bool(p.classification)), float(bool(p.background_ratio)),
-                     math.log(p.z_max), math.log(max(p_u, LOG_FLOOR))], dtype=np.float64)
+                     math.log(p.z_max), math.log(max(p_u, LOG_FLOOR)), float(product)], dtype=np.float64)
 
 
 # ---------------------------------------------------------------- rasterisation
@@ -236,11 +246,23 @@ def pixel_log_likelihood(z, z_star, prm):
 
 
 @_njit()
+def _densities(z, exp_lam_z, z_star, prm):
+    """(p_n, p_e) of a valid measurement z at a covered pixel of rendered depth z*: the noisy hit
+    N(z; z*, σ(z*)²), σ = k z*² + σ_base, and the occlusion density; exp(-r²/2) is skipped where it
+    is exactly 0.0 in float64 (r²/2 > 746)."""
+    sigma = prm[5] * z_star * z_star + prm[6]
+    r = (z - z_star) / sigma
+    half_r2 = 0.5 * r * r
+    p_n = _INV_SQRT_2PI / sigma * math.exp(-half_r2) if half_r2 < 746.0 else 0.0
+    return p_n, _occlusion_density(z, exp_lam_z, z_star, sigma, prm)
+
+
+@_njit()
 def _pixel_log_likelihood(z, exp_lam_z, z_star, prm):
     """:func:`pixel_log_likelihood` given exp(-λ z), which :func:`batch` computes once per measured pixel.
 
     Same value, fewer transcendental calls: a pixel the background ratio makes neutral returns 0
-    before any, and exp(-r²/2) is skipped where it is exactly 0.0 in float64 (r²/2 > 746).
+    before any (and :func:`_densities` skips an exp that is 0).
     """
     z_max, w_u, w_e, w_n, l0 = prm[0], prm[2], prm[3], prm[4], prm[7]
     classification, ratio = prm[12] != 0.0, prm[13] != 0.0
@@ -250,11 +272,7 @@ def _pixel_log_likelihood(z, exp_lam_z, z_star, prm):
         return l_invalid - log_p_u if ratio else l_invalid
     if ratio and z < z_star - prm[10]:     # an occluder in front: says nothing about the bone
         return 0.0
-    sigma = prm[5] * z_star * z_star + prm[6]
-    r = (z - z_star) / sigma
-    half_r2 = 0.5 * r * r
-    p_n = _INV_SQRT_2PI / sigma * math.exp(-half_r2) if half_r2 < 746.0 else 0.0
-    p_e = _occlusion_density(z, exp_lam_z, z_star, sigma, prm)
+    p_n, p_e = _densities(z, exp_lam_z, z_star, prm)
     if classification:
         l_obj = _safe_log(w_n * p_n)
         l_bg = _safe_log(p_u + w_e * p_e)
@@ -267,18 +285,64 @@ def _pixel_log_likelihood(z, exp_lam_z, z_star, prm):
 @_njit()
 def _score_and_clear(depth_meas, exp_lam_z, zbuf, box, prm):
     """α Σ l_i (or c_reg Σ l_i / max(N_px, 1)) over the covered pixels of ``box``; zeroes them."""
-    total, count = 0.0, 0
+    if prm[16] != 0.0:
+        total, count = _sum_by_products(depth_meas, exp_lam_z, zbuf, box, prm)
+    else:
+        total, count = 0.0, 0
+        for v in range(box[1], box[3] + 1):
+            for u in range(box[0], box[2] + 1):
+                z_star = zbuf[v, u]
+                if z_star <= 0.0:
+                    continue
+                zbuf[v, u] = 0.0
+                total += _pixel_log_likelihood(float(depth_meas[v, u]), exp_lam_z[v, u], z_star, prm)
+                count += 1
+    if prm[8] > 0.0:
+        return prm[8] * total / max(count, 1)
+    return prm[9] * total
+
+
+@_njit()
+def _sum_by_products(depth_meas, exp_lam_z, zbuf, box, prm):
+    """(Σ l_i, N_px) over the covered pixels of ``box`` for the model without classification
+    (:func:`pack_params` [16]), zeroing them: Σ_i log x_i = log Π_i x_i for the densities
+    x_i = p_u + w_e p_e + w_n p_n >= p_u >= LOG_FLOOR of the valid pixels that count, so one log
+    per block instead of one per pixel; the constant terms as count x constant: log p_u per
+    invalid pixel (0 with the background ratio), log z_max per density with the ratio, 0 per
+    pixel the ratio makes neutral. The running product stays in [1e-150, 1e150] (a factor that
+    would take it out is logged on its own, so no factor can overflow or underflow it); the sum
+    differs from :func:`_pixel_log_likelihood`'s by rounding only (~1e-16 per pixel, relative).
+    """
+    z_max, w_u, w_e, w_n, margin = prm[0], prm[2], prm[3], prm[4], prm[10]
+    ratio = prm[13] != 0.0
+    p_u = w_u / z_max
+    total, product, n_density, n_invalid, count = 0.0, 1.0, 0, 0, 0
     for v in range(box[1], box[3] + 1):
         for u in range(box[0], box[2] + 1):
             z_star = zbuf[v, u]
             if z_star <= 0.0:
                 continue
             zbuf[v, u] = 0.0
-            total += _pixel_log_likelihood(float(depth_meas[v, u]), exp_lam_z[v, u], z_star, prm)
             count += 1
-    if prm[8] > 0.0:
-        return prm[8] * total / max(count, 1)
-    return prm[9] * total
+            z = float(depth_meas[v, u])
+            if not (z > 0.0 and z <= z_max):       # 0, negative, > z_max, NaN, ±inf: invalid
+                n_invalid += 1
+                continue
+            if ratio and z < z_star - margin:      # an occluder in front: neutral
+                continue
+            p_n, p_e = _densities(z, exp_lam_z[v, u], z_star, prm)
+            x = p_u + w_e * p_e + w_n * p_n
+            n_density += 1
+            y = product * x
+            if y > 1.0 / _PRODUCT_RANGE and y < _PRODUCT_RANGE:
+                product = y
+            else:
+                total += math.log(product) + math.log(x)
+                product = 1.0
+    total += math.log(product)
+    if ratio:
+        return total + n_density * prm[14], count
+    return total + n_invalid * prm[15], count
 
 
 @_njit(parallel=True)
