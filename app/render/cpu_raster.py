@@ -312,9 +312,12 @@ def _sum_by_products(depth_meas, exp_lam_z, zbuf, box, prm):
     pixel the ratio makes neutral. The running product stays in [1e-150, 1e150] (a factor that
     would take it out is logged on its own, so no factor can overflow or underflow it); the sum
     differs from :func:`_pixel_log_likelihood`'s by rounding only (~1e-16 per pixel, relative).
+    The exponential model's densities (:func:`_densities`) are written out here, with one division
+    1 / σ per pixel instead of two (a call per pixel and a division cost ~15 % of the kernel).
     """
     z_max, w_u, w_e, w_n, margin = prm[0], prm[2], prm[3], prm[4], prm[10]
-    ratio = prm[13] != 0.0
+    ratio, smooth = prm[13] != 0.0, prm[11] != 0.0
+    lam, k, sigma_base = prm[1], prm[5], prm[6]
     p_u = w_u / z_max
     total, product, n_density, n_invalid, count = 0.0, 1.0, 0, 0, 0
     for v in range(box[1], box[3] + 1):
@@ -330,7 +333,14 @@ def _sum_by_products(depth_meas, exp_lam_z, zbuf, box, prm):
                 continue
             if ratio and z < z_star - margin:      # an occluder in front: neutral
                 continue
-            p_n, p_e = _densities(z, exp_lam_z[v, u], z_star, prm)
+            if smooth:
+                p_n, p_e = _densities(z, exp_lam_z[v, u], z_star, prm)
+            else:
+                inv_sigma = 1.0 / (k * z_star * z_star + sigma_base)
+                r = (z - z_star) * inv_sigma
+                half_r2 = 0.5 * r * r
+                p_n = _INV_SQRT_2PI * inv_sigma * math.exp(-half_r2) if half_r2 < 746.0 else 0.0
+                p_e = lam / (1.0 - math.exp(-lam * z_star)) * exp_lam_z[v, u] if z < z_star else 0.0
             x = p_u + w_e * p_e + w_n * p_n
             n_density += 1
             y = product * x
