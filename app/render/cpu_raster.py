@@ -25,7 +25,9 @@ Rasterisation, with the GL renderer's conventions (``batched.py``, ``depth.vert.
 The pixel term is :func:`app.filter.likelihood_ref.pixel_log_likelihood` in float64 (every
 option: beam / classification with L0, exponential / smooth exponential occlusion ((B) eq. 4.33),
 background ratio with the occluder margin, α tempering or the pixel-count regularisation (B) eq.
-4.37), packed into a float64 vector by :func:`pack_params`.
+4.37), packed into a float64 vector by :func:`pack_params`. Without classification the per-pixel
+logs are summed as the log of a running product of the pixels' densities (:func:`_sum_by_products`:
+one log per block of pixels, the same sum to rounding).
 
 Parallelism: ``prange`` over chunks of hypotheses (hypothesis j goes to chunk j mod C); each chunk
 owns one z-buffer, read and cleared only inside the pixel box of the pose's projected vertices.
@@ -50,9 +52,7 @@ from app.filter.likelihood_ref import LOG_FLOOR, LikelihoodParams
 log = logging.getLogger(__name__)
 
 N_PARAMS = 17
-# :func:`_score_and_clear`'s product path keeps its running product of densities in
-# [1 / _PRODUCT_RANGE, _PRODUCT_RANGE]; a factor that would take it out is logged on its own
-_PRODUCT_RANGE = 1e150
+_PRODUCT_RANGE = 1e150   # :func:`_sum_by_products` keeps its running product in [1 / this, this]
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 _SQRT1_2 = 1.0 / math.sqrt(2.0)
 
@@ -71,13 +71,9 @@ def _njit(parallel: bool = False):
 
 
 def pack_params(p: LikelihoodParams) -> np.ndarray:
-    """The likelihood parameters as the kernels' float64 vector (order fixed by :data:`N_PARAMS`).
-
-    [16] enables the product path of :func:`_score_and_clear` (one log per block of pixels instead
-    of one per pixel): the model without classification with p_u >= LOG_FLOOR, where every pixel's
-    density x_i = p_u + w_e p_e + w_n p_n >= p_u is above the log's floor (l_i = log x_i, plus
-    log z_max with the background ratio).
-    """
+    """The likelihood parameters as the kernels' float64 vector (order fixed by :data:`N_PARAMS`);
+    [16]: :func:`_sum_by_products` applies (no classification, p_u >= LOG_FLOOR: every density
+    p_u + w_e p_e + w_n p_n >= p_u is above the log's floor)."""
     p_u = p.w_u / p.z_max
     product = not p.classification and p_u >= LOG_FLOOR
     return np.array([p.z_max, p.lam, p.w_u, p.w_e, p.w_n, p.k, p.sigma_base, p.l0_weight, p.pixel_count_reg,
@@ -304,17 +300,13 @@ def _score_and_clear(depth_meas, exp_lam_z, zbuf, box, prm):
 
 @_njit()
 def _sum_by_products(depth_meas, exp_lam_z, zbuf, box, prm):
-    """(Σ l_i, N_px) over the covered pixels of ``box`` for the model without classification
-    (:func:`pack_params` [16]), zeroing them: Σ_i log x_i = log Π_i x_i for the densities
-    x_i = p_u + w_e p_e + w_n p_n >= p_u >= LOG_FLOOR of the valid pixels that count, so one log
-    per block instead of one per pixel; the constant terms as count x constant: log p_u per
-    invalid pixel (0 with the background ratio), log z_max per density with the ratio, 0 per
-    pixel the ratio makes neutral. The running product stays in [1e-150, 1e150] (a factor that
-    would take it out is logged on its own, so no factor can overflow or underflow it); the sum
-    differs from :func:`_pixel_log_likelihood`'s by rounding only (~1e-16 per pixel, relative).
-    The exponential model's densities (:func:`_densities`) are written out here, with one division
-    1 / σ per pixel instead of two (a call per pixel and a division cost ~15 % of the kernel).
-    """
+    """(Σ l_i, N_px) over the covered pixels of ``box``, zeroing them, without classification
+    (:func:`pack_params` [16]): Σ log x_i = log Π x_i over the densities x_i = p_u + w_e p_e +
+    w_n p_n >= p_u >= LOG_FLOOR, one log per block of pixels; the constants as count x constant
+    (log p_u per invalid pixel, or log z_max per density with the background ratio). The product
+    stays in [1e-150, 1e150] (a factor that would take it out is logged on its own), so the sum
+    is :func:`_pixel_log_likelihood`'s to rounding. The exponential model's densities are written
+    out (:func:`_densities` with one division 1 / σ: the call per pixel cost ~10 % of the kernel)."""
     z_max, w_u, w_e, w_n, margin = prm[0], prm[2], prm[3], prm[4], prm[10]
     ratio, smooth = prm[13] != 0.0, prm[11] != 0.0
     lam, k, sigma_base = prm[1], prm[5], prm[6]
