@@ -37,6 +37,73 @@ def test_the_pixel_term_equals_the_reference_on_random_inputs(option, rng):
     np.testing.assert_allclose(ours, reference, rtol=1e-9, atol=1e-9)
 
 
+def _scored_box(z_star, depth, params, product):
+    """cpu_raster._score_and_clear over the whole image (a z-buffer of rendered depth z_star), with
+    the product path on or off; also checks that it clears the z-buffer."""
+    prm = cpu_raster.pack_params(params)
+    assert prm[16] == (not params.classification and params.w_u / params.z_max >= likelihood_ref.LOG_FLOOR)
+    prm[16] = float(product)
+    zbuf = z_star.astype(np.float64)
+    exp_lam_z = np.exp(-params.lam * depth.astype(np.float64))
+    box = np.array([0, 0, z_star.shape[1] - 1, z_star.shape[0] - 1], np.int64)
+    value = cpu_raster._score_and_clear(depth, exp_lam_z, zbuf, box, prm)
+    assert not zbuf.any()
+    return value
+
+
+PRODUCT_OPTIONS = [o for o in OPTIONS if not o.get("classification")] + [{"pixel_count_reg": 50.0}]
+
+
+@pytest.mark.parametrize("option", PRODUCT_OPTIONS, ids=lambda o: "-".join(o) or "beam")
+def test_the_sum_by_products_equals_the_sum_of_logs_on_random_images(option, rng):
+    """The product path (one log per block of pixels) gives the per-pixel logs' sum and the numpy
+    reference's log-likelihood to rounding, on images with hits, occluders, invalid pixels and
+    uncovered pixels."""
+    params = replace(LikelihoodParams(), **option)
+    z_star = rng.uniform(0.3, 0.6, (40, 50)).astype(np.float32)
+    z_star[rng.random(z_star.shape) < 0.3] = 0.0                          # not covered
+    depth = (z_star + rng.normal(0, 0.002, z_star.shape)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.2] *= np.float32(0.7)                # occluders in front
+    depth[rng.random(depth.shape) < 0.05] = 0.0
+    depth[0, :4] = [np.nan, np.inf, 3.0, -1.0]
+    reference = float(likelihood_ref.log_likelihood(depth, z_star[None], params)[0])
+    by_logs, by_products = _scored_box(z_star, depth, params, False), _scored_box(z_star, depth, params, True)
+    assert abs(reference) > 100.0
+    assert by_products == pytest.approx(by_logs, rel=1e-12, abs=1e-9)
+    assert by_products == pytest.approx(reference, rel=1e-9, abs=1e-9)
+
+
+@pytest.mark.parametrize("extreme", ["huge densities", "tiny densities"])
+def test_the_sum_by_products_survives_products_beyond_float64(extreme, rng):
+    """Densities whose running product over- or underflows float64 within a few pixels (σ_base = 1e-60:
+    p_n ~ 1e59; w_u = 1e-27: p_u = 5e-28 on pixels far from the surface): the product is flushed into
+    a log before it leaves [1e-150, 1e150], so the sum stays the per-pixel logs' sum."""
+    if extreme == "huge densities":
+        params = LikelihoodParams(k=0.0, sigma_base=1e-60)
+        z_star = np.full((20, 30), 0.5, np.float32)
+        depth = z_star.copy()                                              # every pixel a perfect hit
+        factors = params.w_n / (np.sqrt(2 * np.pi) * params.sigma_base)
+    else:
+        params = LikelihoodParams(w_u=1e-27, w_e=0.0)
+        z_star = rng.uniform(0.3, 0.6, (20, 30)).astype(np.float32)
+        depth = (z_star + 0.5).astype(np.float32)                          # far behind: density ~ p_u
+        factors = params.w_u / params.z_max
+    with np.errstate(over="ignore", divide="ignore"):
+        assert not np.isfinite(np.log(np.prod(np.full(z_star.size, factors)))), "a plain product must leave float64"
+    by_logs, by_products = _scored_box(z_star, depth, params, False), _scored_box(z_star, depth, params, True)
+    assert np.isfinite(by_products) and abs(by_logs) > 1e4
+    assert by_products == pytest.approx(by_logs, rel=1e-12)
+    assert by_products == pytest.approx(float(likelihood_ref.log_likelihood(depth, z_star[None], params)[0]), rel=1e-9)
+
+
+def test_the_product_path_is_off_where_a_density_could_fall_below_the_log_floor():
+    """Classification takes the max of two logs per pixel, and p_u < LOG_FLOOR lets the floor act:
+    both keep the per-pixel logs."""
+    assert cpu_raster.pack_params(LikelihoodParams())[16] == 1.0
+    assert cpu_raster.pack_params(LikelihoodParams(classification=True))[16] == 0.0
+    assert cpu_raster.pack_params(LikelihoodParams(w_u=1e-31))[16] == 0.0
+
+
 def test_without_a_writable_cache_numba_compiles_uncached(monkeypatch, caplog):
     import numba
 

@@ -25,7 +25,8 @@ Rasterisation, with the GL renderer's conventions (``batched.py``, ``depth.vert.
 The pixel term is :func:`app.filter.likelihood_ref.pixel_log_likelihood` in float64 (every
 option: beam / classification with L0, exponential / smooth exponential occlusion ((B) eq. 4.33),
 background ratio with the occluder margin, α tempering or the pixel-count regularisation (B) eq.
-4.37), packed into a float64 vector by :func:`pack_params`.
+4.37), packed into a float64 vector by :func:`pack_params`; without classification the logs are
+summed as the log of a running product of the pixels' densities (:func:`_score_and_clear`).
 
 Parallelism: ``prange`` over chunks of hypotheses (hypothesis j goes to chunk j mod C); each chunk
 owns one z-buffer, read and cleared only inside the pixel box of the pose's projected vertices.
@@ -49,7 +50,8 @@ from app.filter.likelihood_ref import LOG_FLOOR, LikelihoodParams
 
 log = logging.getLogger(__name__)
 
-N_PARAMS = 16
+N_PARAMS = 17
+_PRODUCT_RANGE = 1e150   # :func:`_score_and_clear` keeps its running product in [1 / this, this]
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 _SQRT1_2 = 1.0 / math.sqrt(2.0)
 
@@ -68,12 +70,14 @@ def _njit(parallel: bool = False):
 
 
 def pack_params(p: LikelihoodParams) -> np.ndarray:
-    """The likelihood parameters as the kernels' float64 vector (order fixed by :data:`N_PARAMS`)."""
+    """The likelihood parameters as the kernels' float64 vector (order fixed by :data:`N_PARAMS`);
+    [16]: sum by products (no classification, p_u >= LOG_FLOOR: every density is above the floor)."""
     p_u = p.w_u / p.z_max
+    product = not p.classification and p_u >= LOG_FLOOR
     return np.array([p.z_max, p.lam, p.w_u, p.w_e, p.w_n, p.k, p.sigma_base, p.l0_weight, p.pixel_count_reg,
                      p.pixel_weight, p.occluder_margin, float(p.occlusion == "smooth_exponential"),
                      float(bool(p.classification)), float(bool(p.background_ratio)),
-                     math.log(p.z_max), math.log(max(p_u, LOG_FLOOR))], dtype=np.float64)
+                     math.log(p.z_max), math.log(max(p_u, LOG_FLOOR)), float(product)], dtype=np.float64)
 
 
 # ---------------------------------------------------------------- rasterisation
@@ -266,19 +270,53 @@ def _pixel_log_likelihood(z, exp_lam_z, z_star, prm):
 
 @_njit()
 def _score_and_clear(depth_meas, exp_lam_z, zbuf, box, prm):
-    """α Σ l_i (or c_reg Σ l_i / max(N_px, 1)) over the covered pixels of ``box``; zeroes them."""
-    total, count = 0.0, 0
+    """α Σ l_i (or c_reg Σ l_i / max(N_px, 1)) over the covered pixels of ``box``; zeroes them.
+
+    Without classification (:func:`pack_params` [16]) Σ log x_i = log Π x_i over the densities
+    x_i = p_u + w_e p_e + w_n p_n >= p_u >= LOG_FLOOR (written out, one division 1 / σ), one log
+    per block of pixels, the constants as count x constant (log p_u per invalid pixel, or log
+    z_max per density with the background ratio); the product stays in [1e-150, 1e150] (a factor
+    that would take it out is logged on its own), so the sum is the per-pixel logs' to rounding.
+    """
+    z_max, lam, w_u, w_e, w_n, k, sigma_base = prm[0], prm[1], prm[2], prm[3], prm[4], prm[5], prm[6]
+    ratio, smooth, by_product = prm[13] != 0.0, prm[11] != 0.0, prm[16] != 0.0
+    p_u = w_u / z_max
+    total, product, n_density, n_invalid, count = 0.0, 1.0, 0, 0, 0
     for v in range(box[1], box[3] + 1):
         for u in range(box[0], box[2] + 1):
             z_star = zbuf[v, u]
             if z_star <= 0.0:
                 continue
             zbuf[v, u] = 0.0
-            total += _pixel_log_likelihood(float(depth_meas[v, u]), exp_lam_z[v, u], z_star, prm)
             count += 1
-    if prm[8] > 0.0:
-        return prm[8] * total / max(count, 1)
-    return prm[9] * total
+            z = float(depth_meas[v, u])
+            if not by_product:
+                total += _pixel_log_likelihood(z, exp_lam_z[v, u], z_star, prm)
+                continue
+            if not (z > 0.0 and z <= z_max):       # 0, negative, > z_max, NaN, ±inf: invalid
+                n_invalid += 1
+                continue
+            if ratio and z < z_star - prm[10]:     # an occluder in front: neutral
+                continue
+            sigma = k * z_star * z_star + sigma_base
+            inv_sigma = 1.0 / sigma
+            r = (z - z_star) * inv_sigma
+            half_r2 = 0.5 * r * r
+            p_n = _INV_SQRT_2PI * inv_sigma * math.exp(-half_r2) if half_r2 < 746.0 else 0.0
+            if smooth:
+                p_e = _occlusion_density(z, exp_lam_z[v, u], z_star, sigma, prm)
+            else:
+                p_e = lam / (1.0 - math.exp(-lam * z_star)) * exp_lam_z[v, u] if z < z_star else 0.0
+            x = p_u + w_e * p_e + w_n * p_n
+            n_density += 1
+            y = product * x
+            if y > 1.0 / _PRODUCT_RANGE and y < _PRODUCT_RANGE:
+                product = y
+            else:
+                total += math.log(product) + math.log(x)
+                product = 1.0
+    total += math.log(product) + (n_density * prm[14] if ratio else n_invalid * prm[15])
+    return prm[8] * total / max(count, 1) if prm[8] > 0.0 else prm[9] * total
 
 
 @_njit(parallel=True)
