@@ -62,7 +62,8 @@ class RefineConfig:
     """``refine.*`` of the configuration (module docstring). enabled; stride (1 full / 2 half sensor
     resolution); iterations; samples (model points); keep_fitness; reseed_fitness;
     competitor_distance (m) / competitor_angle (rad); competitor_margin; feedback; feedback_fitness;
-    static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames (app/filter/static_prior.py)."""
+    static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames, prior_motion_frames
+    (app/filter/static_prior.py)."""
 
     enabled: bool = True
     stride: int = 2
@@ -79,6 +80,7 @@ class RefineConfig:
     prior_release_chi2: float = 25.0
     prior_clear_ratio: float = 1.5
     prior_information_frames: float = 300.0
+    prior_motion_frames: int = 9
 
 
 @dataclass
@@ -136,7 +138,7 @@ class RefinedTrack:
         self.plan_points = np.asarray(plan_points, float).reshape(-1, 3) - refiner.center
         self.inflation = inflation
         prior_config = StaticPriorConfig(config.static_prior, config.prior_release_chi2, config.prior_clear_ratio,
-                                         config.prior_information_frames)
+                                         config.prior_information_frames, config.prior_motion_frames)
         self.prior = StaticPrior(prior_config, refiner.center, inflation) if config.static_prior else None
         self.reset()
 
@@ -190,7 +192,7 @@ class RefinedTrack:
             std = template_std(best.H, self.plan_points, self.inflation)
         grid_std = self._prior_std(best, std)
         T_held = prior.update(T_best, best.H, grid_std)
-        self.last_info.update(chi2=prior.chi2, released=prior.released, held=prior.held, img_std_mm=1e3 * std,
+        self.last_info.update(chi2=prior.chi2, motion_chi2=prior.motion_chi2, released=prior.released, held=prior.held, img_std_mm=1e3 * std,
                               grid_std_mm=1e3 * grid_std)
         return source, T_held, best, std
 

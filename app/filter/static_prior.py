@@ -54,6 +54,7 @@ did not move while the image could not see it.
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,12 +67,14 @@ class StaticPriorConfig:
     """``refine.static_prior`` / ``refine.prior_*``: enabled; release_chi2 (Δχ² of the image's cost
     above which the prior is released); clear_ratio (a frame is *clear* when its predicted template
     error is at most this times the smallest since the last release); max_information_frames (Λ's
-    cap in units of the largest frame information)."""
+    cap in units of the largest frame information); motion_frames (the motion test's window in clear
+    frames: the image's fit is compared with its own fit this many clear frames ago; 0 disables)."""
 
     enabled: bool = True
     release_chi2: float = 25.0
     clear_ratio: float = 1.5
     max_information_frames: float = 300.0
+    motion_frames: int = 9
 
 
 def increment(delta: np.ndarray, center: np.ndarray) -> np.ndarray:
@@ -108,6 +111,8 @@ class StaticPrior:
         self.released = False
         self.held = False
         self.chi2 = float("nan")
+        self.motion_chi2 = float("nan")
+        self._fits: deque = deque(maxlen=max(int(self.config.motion_frames), 0) + 1)
 
     @property
     def active(self) -> bool:
@@ -126,9 +131,24 @@ class StaticPrior:
         """Whether :meth:`update` with this fit would release the prior (no state change)."""
         if not self.active:
             return True
+        if not self._clear(image_std):
+            return False
+        H1 = np.asarray(H, float) / self.inflation
         delta = log_increment(self.T_base_bone, T_base_bone_image, self.center)
-        chi2 = float(delta @ (np.asarray(H, float) / self.inflation) @ delta)
-        return chi2 > self.config.release_chi2 and self._clear(image_std)
+        chi2 = float(delta @ H1 @ delta)
+        return chi2 > self.config.release_chi2 or self._motion_chi2(T_base_bone_image, H1) > self.config.release_chi2
+
+    def _motion_chi2(self, T_base_bone_image: np.ndarray, H1: np.ndarray) -> float:
+        """The motion test (module docstring): Δχ²_W = dᵀ (H'_old⁻¹ + H'⁻¹)⁻¹ d between this frame's fit
+        and the oldest fit of the window (``motion_frames`` consecutive clear frames ago, fewer just after a
+        weak frame or a reset; both the image's alone); (A⁻¹ + B⁻¹)⁻¹ = A (A + B)⁻¹ B, defined where either
+        constrains a direction. NaN with no earlier clear fit."""
+        if self.config.motion_frames <= 0 or not self._fits:
+            return float("nan")
+        T_old, H_old = self._fits[0]
+        d = log_increment(T_old, T_base_bone_image, self.center)
+        combined = H_old @ np.linalg.solve(H_old + H1 + 1e-12 * np.eye(6), H1)
+        return float(d @ combined @ d)
 
     def _clear(self, image_std: float) -> bool:
         """A frame whose image constrains the template about as well as the clearest one since the
@@ -146,7 +166,12 @@ class StaticPrior:
         delta = log_increment(self.T_base_bone, T_base_bone_image, self.center)
         self.chi2 = float(delta @ H1 @ delta)
         clear = self._clear(image_std)
-        self.released = self.chi2 > self.config.release_chi2 and clear
+        self.motion_chi2 = self._motion_chi2(T_base_bone_image, H1) if clear else float("nan")
+        if clear:
+            self._fits.append((np.array(T_base_bone_image, float), H1))
+        else:
+            self._fits.clear()   # the window spans consecutive clear frames only
+        self.released = clear and (self.chi2 > self.config.release_chi2 or self.motion_chi2 > self.config.release_chi2)
         if self.released:
             self.held = False
             return self.start(T_base_bone_image, H, image_std)
