@@ -49,12 +49,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.filter.refine import RENDER_LEVER as REFINE_LEVER
 from app.filter.refine import Refiner, RefineResult, template_std
 from app.filter.static_prior import StaticPrior, StaticPriorConfig
 from app.geometry import se3
 
 FALLBACK_BEHIND_SHARE = 0.02   # the former fixed share, when too few pixels estimate the noise
-SEED_WIDTHS = (1.0, 2.0)       # the seeded first refinement's Tukey widths (x RefineParams.start_width; BENCHMARKS.md §6d)
+SEED_WIDTHS = (1.0, 2.0, 4.0)  # the seeded first refinement's Tukey widths (x RefineParams.start_width; BENCHMARKS.md §6d)
+SEED_CHAIN = 6                 # at most this many refinements chained at each seeded width (BENCHMARKS.md §6d)
 
 
 @dataclass
@@ -172,6 +174,30 @@ class RefinedTrack:
             return std
         return std * self.refiner.params.stride / result.stride
 
+    def _seed_fits(self, depth, T_camera_base) -> list:
+        """The seeded first frame (:meth:`seed`): from the start pose, at each width of ``SEED_WIDTHS``, a
+        chain of refinements each restarting the annealing at that width (up to ``SEED_CHAIN``, until one
+        moves the pose less than ``rerender_step``), the chain's most consistent fit
+        (:func:`consistent_sharp`) its candidate. One anneal of 5 halving steps did not reach the truth
+        from 16 mm / 12 deg on crest_right_03 (or_coarse_start) at any width; at 40 mm four chained did
+        (BENCHMARKS.md §6d)."""
+        prm = self.refiner.params
+        fits = []
+        for factor in SEED_WIDTHS:
+            T, chain = self.T_base_bone, []
+            for _ in range(SEED_CHAIN):
+                T_new, result = self._refine(depth, T_camera_base, T, start_width=prm.start_width * factor)
+                if not (result.converged and np.isfinite(result.fitness)):
+                    break
+                chain.append(("track", T_new, result))
+                dist, angle = pose_gap(T, T_new)
+                T = T_new
+                if dist < prm.rerender_step and angle * REFINE_LEVER < prm.rerender_step:
+                    break
+            if chain:
+                fits.append(max(chain, key=lambda f: consistent_sharp(f[2])))
+        return fits
+
     def _needs_filter(self, T_filter: np.ndarray) -> bool:
         c = self.config
         if self.T_base_bone is None or not self.fitness >= c.reseed_fitness:
@@ -203,8 +229,10 @@ class RefinedTrack:
         T_camera_base = se3.inverse(T_base_camera)
         fits = []
         if self.T_base_bone is not None and self.fitness >= c.keep_fitness:
-            widths = [self.refiner.params.start_width * f for f in SEED_WIDTHS] if self._seeded else [0.0]
-            fits += [("track", *self._refine(depth, T_camera_base, self.T_base_bone, start_width=w)) for w in widths]
+            if self._seeded:
+                fits += self._seed_fits(depth, T_camera_base)
+            else:
+                fits.append(("track", *self._refine(depth, T_camera_base, self.T_base_bone, start_width=0.0)))
         self._seeded = False
         if self._needs_filter(T_base_bone_filter):
             fits.append(("filter", *self._refine(depth, T_camera_base, T_base_bone_filter)))
