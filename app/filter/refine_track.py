@@ -22,8 +22,10 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   weighing can jump far (measured on crest_left_03, static_occluded: 17.8 mm off after the first
   frame from a start 5 mm off, with the filter alone too), and the refinement from the start pose
   then competes with the one from the filter's estimate; from the start pose it refines at the
-  default first Tukey width and at twice it (``SEED_WIDTHS``: at 0.65 m each alone left a CT crest
-  7-9 deg off on one of two seeds, BENCHMARKS.md §6d);
+  default first Tukey width, twice and four times it (``SEED_WIDTHS``: at 0.65 m each of 1x and 2x
+  alone left a CT crest 7-9 deg off on one of two seeds, BENCHMARKS.md §6d), each width a chain of
+  refinements until one no longer moves the pose (``SEED_CHAIN``, :meth:`RefinedTrack._seed_fits`:
+  from 16 mm / 12 deg on crest_right_03 one anneal reached 8 mm / 9 deg, four chained at 4x the truth);
 - the static-bone prior (``static_prior``, app/filter/static_prior.py): the kept fit is fused with
   the track's held base-frame pose; a frame whose image constrains the template clearly worse than
   the clearest view since the last release (a hand over the bone; both errors on the configured grid,
@@ -55,7 +57,7 @@ from app.filter.static_prior import StaticPrior, StaticPriorConfig
 from app.geometry import se3
 
 FALLBACK_BEHIND_SHARE = 0.02   # the former fixed share, when too few pixels estimate the noise
-SEED_WIDTHS = (1.0, 2.0, 4.0)  # the seeded first refinement's Tukey widths (x RefineParams.start_width; BENCHMARKS.md §6d)
+SEED_WIDTHS = (1.0, 2.0, 4.0)  # the seeded first frame's Tukey widths (x RefineParams.start_width; BENCHMARKS.md §6d)
 SEED_CHAIN = 6                 # at most this many refinements chained at each seeded width (BENCHMARKS.md §6d)
 
 
@@ -218,8 +220,8 @@ class RefinedTrack:
             std = template_std(best.H, self.plan_points, self.inflation)
         grid_std = self._prior_std(best, std)
         T_held = prior.update(T_best, best.H, grid_std)
-        self.last_info.update(chi2=prior.chi2, motion_chi2=prior.motion_chi2, released=prior.released, held=prior.held, img_std_mm=1e3 * std,
-                              grid_std_mm=1e3 * grid_std)
+        self.last_info.update(chi2=prior.chi2, motion_chi2=prior.motion_chi2, released=prior.released, held=prior.held,
+                              img_std_mm=1e3 * std, grid_std_mm=1e3 * grid_std)
         return source, T_held, best, std
 
     def update(self, depth: np.ndarray, T_base_camera: np.ndarray, T_base_bone_filter: np.ndarray) -> RefineOutcome:

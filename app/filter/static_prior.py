@@ -35,12 +35,27 @@ from the anchor to T_img:
   released (anchor ← T_img, Λ ← H / inflation): a bone that moves in view is followed at once. A
   weak frame never releases: with the quadratic test alone, crest_left_03 released at 75 % hidden
   (Δχ² 27 for a fit that had slid 12 mm) and was lost;
+- **clear frame, motion test** (a window over the image's own fits, not against the anchor): Δχ²_W =
+  dᵀ (H'_old⁻¹ + H'⁻¹)⁻¹ d, d the increment from the image's fit ``motion_frames`` (9) consecutive
+  clear frames ago to this frame's fit (fewer after a weak frame, which empties the window). Above
+  ``release_chi2`` the bone is moving: the prior is released onto the image's fit, every clear frame
+  while the window spans the move. Why: a bone moving at 5 cm/s moves ~0.55 mm a frame, each frame's
+  Δχ² against the anchor stays at 5-13, under 25, so the frames were *fused*: with Λ of n frames the
+  anchor moves δ/(n+1), the refinement starts from the lagging anchor, and once the lag passes the
+  narrow refinement's reach it converges short of the bone (crest_left_02 bone_moves seed 2: 2.8-6.6 mm
+  behind during the move, held 3.49 mm off after rest). Measured on that trial: Δχ²_W 0.0-0.2 at rest
+  and 27-350 during the move (no overlap); the anchor's own Δχ² cannot separate them because the fit
+  it compares starts from the anchor. A hand's slide is not motion to this test: weak frames never
+  enter the window, and a slide over seconds moves the fits little within 9 frames (0.1 s at 90 Hz);
 - **clear frame, otherwise a Kalman update with no process noise** (a static pose, information form):
   δ* = (Λ + H')⁻¹ H' δ, anchor ← anchor ∘ exp(δ*)⁻¹, Λ ← min(Λ + H', cap), H' = H / inflation.
   In the directions the image constrains H' dominates and the pose follows the image; in the
   directions it does not (the crest's long axis and roll under the hand) Λ from the earlier,
   clearer frames holds the pose. Λ is capped (``max_information_frames`` x the largest H' seen
   since the last release) so that the anchor keeps refining on a clear view.
+
+Motion test measured (BENCHMARKS.md §6c, end): bone_moves 8 crests x 3 seeds, after rest + 0.3 s max ADD
+0.43 mm (was 3.49 on crest_left_02 seed 2), ADD p95 <= 0.67 mm (was up to 5.5).
 
 Measured (BENCHMARKS.md §6c, commit f82eac8, the lead's 7 s static_occluded trials, 8 CT crests):
 seed 0 lost 0-62 % -> 0 % on every crest, ADD median per run 0.14-0.38 mm, 0 frames ok while > 5 mm
