@@ -3,6 +3,7 @@ share behind the model beyond the noise's bound, and the seeded first frame's Tu
 (issue 12, static_far crest_right_02 seed 2 and or_coarse_start crest_right_03: BENCHMARKS.md §6d)."""
 from __future__ import annotations
 
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -94,3 +95,28 @@ def test_seeded_track_chains_the_wide_refinement_until_it_stops_moving():
     assert refiner.widths.count(pytest.approx(0.04)) == 6
     assert out.source == "track"
     assert se3.translation_distance(out.T_base_bone, T_true) == pytest.approx(0.016 / 2 ** 6)
+
+
+PELVIS = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "pelvis"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (PELVIS / "crest_right_03.ply").is_file(), reason=f"no CT crest meshes at {PELVIS}")
+@pytest.mark.parametrize("seed", [0, 1])
+def test_ct_crest_converges_from_a_coarse_start(tmp_path, seed):
+    """crest_right_03, or_coarse_start (the start 15 mm / 12 deg off), 1.5 s: before the seeded chains
+    and the wide step's association it never converged (ADD ~19.5 mm on every frame, the filter alone
+    drifting to 66 mm; BENCHMARKS.md §6d)."""
+    from app.config import load_config
+    from app.metrics import DANGEROUS_ADD_MM
+    from app.pipeline.replay import replay
+    from app.sim.simulator import simulate
+
+    simulate(tmp_path / "trial", mesh_path=PELVIS / "crest_right_03.ply", scenario_name="or_coarse_start",
+             seconds=1.5, seed=seed)
+    result = replay(tmp_path / "trial", None, load_config(None), rrd=False, projector=False)
+    add, statuses = np.asarray(result.errors["add_mm"]), np.asarray(result.statuses)
+    print(f"\nADD median {np.median(add):.2f} mm, max {add.max():.2f}, ok {np.mean(statuses == 'ok'):.0%}")
+    assert not np.any((statuses == "ok") & (add > DANGEROUS_ADD_MM))
+    assert np.median(add) < 0.5
+    assert np.mean(statuses == "ok") > 0.5
