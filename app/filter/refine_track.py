@@ -22,10 +22,11 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   weighing can jump far (measured on crest_left_03, static_occluded: 17.8 mm off after the first
   frame from a start 5 mm off, with the filter alone too), and the refinement from the start pose
   then competes with the one from the filter's estimate; from the start pose it refines at the
-  default first Tukey width, twice and four times it (``SEED_WIDTHS``: at 0.65 m each of 1x and 2x
-  alone left a CT crest 7-9 deg off on one of two seeds, BENCHMARKS.md §6d), each width a chain of
-  refinements until one no longer moves the pose (``SEED_CHAIN``, :meth:`RefinedTrack._seed_fits`:
-  from 16 mm / 12 deg on crest_right_03 one anneal reached 8 mm / 9 deg, four chained at 4x the truth);
+  default first Tukey width and twice it (at 0.65 m each alone left a CT crest 7-9 deg off on one of
+  two seeds, BENCHMARKS.md §6d), and at 1x, 2x and 4x (``SEED_WIDTHS``) a chain of refinements until
+  one no longer moves the pose (``SEED_CHAIN``), whose most consistent link competes when the image's
+  noise explains its share behind the model (:meth:`RefinedTrack._seed_fits`: from 16 mm / 12 deg on
+  crest_right_03 one anneal reached 8 mm / 9 deg, four chained at 4x the truth);
 - the static-bone prior (``static_prior``, app/filter/static_prior.py): the kept fit is fused with
   the track's held base-frame pose; a frame whose image constrains the template clearly worse than
   the clearest view since the last release (a hand over the bone; both errors on the configured grid,
@@ -59,6 +60,7 @@ from app.geometry import se3
 FALLBACK_BEHIND_SHARE = 0.02   # the former fixed share, when too few pixels estimate the noise
 SEED_WIDTHS = (1.0, 2.0, 4.0)  # the seeded first frame's Tukey widths (x RefineParams.start_width; BENCHMARKS.md §6d)
 SEED_CHAIN = 6                 # at most this many refinements chained at each seeded width (BENCHMARKS.md §6d)
+SEED_SINGLE = (1.0, 2.0)       # widths whose first link is a candidate whatever its consistency (the single refinements of §6d)
 
 
 @dataclass
@@ -179,10 +181,13 @@ class RefinedTrack:
     def _seed_fits(self, depth, T_camera_base) -> list:
         """The seeded first frame (:meth:`seed`): from the start pose, at each width of ``SEED_WIDTHS``, a
         chain of refinements each restarting the annealing at that width (up to ``SEED_CHAIN``, until one
-        moves the pose less than ``rerender_step``), the chain's most consistent fit
-        (:func:`consistent_sharp`) its candidate. One anneal of 5 halving steps did not reach the truth
-        from 16 mm / 12 deg on crest_right_03 (or_coarse_start) at any width; at 40 mm four chained did
-        (BENCHMARKS.md §6d)."""
+        moves the pose less than ``rerender_step``). Candidates: the first link at 1x and 2x (the single
+        refinements of §6d) and the chain's most consistent link (:func:`consistent_sharp`) when the
+        image's noise explains its share behind the model (:func:`behind_excess` <= 0: light does not
+        pass through bone). One anneal of 5 halving steps did not reach the truth from 16 mm / 12 deg on
+        crest_right_03 (or_coarse_start) at any width, four chained at 4x did (0.2 % behind against a
+        0.9 % bound); ungated, a chain on crest_left_03 (seed 1) ended 8 mm off with fitness 0.88 but
+        25 % behind, was kept and fed back, and the track was lost (BENCHMARKS.md §6d)."""
         prm = self.refiner.params
         fits = []
         for factor in SEED_WIDTHS:
@@ -196,8 +201,11 @@ class RefinedTrack:
                 T = T_new
                 if dist < prm.rerender_step and angle * REFINE_LEVER < prm.rerender_step:
                     break
-            if chain:
-                fits.append(max(chain, key=lambda f: consistent_sharp(f[2])))
+            if chain and factor in SEED_SINGLE:
+                fits.append(chain[0])
+            consistent = [f for f in chain if behind_excess(f[2]) <= 0.0]
+            if consistent:
+                fits.append(max(consistent, key=lambda f: consistent_sharp(f[2])))
         return fits
 
     def _needs_filter(self, T_filter: np.ndarray) -> bool:
