@@ -114,6 +114,26 @@ def test_information_matrix_of_a_plane_matches_the_closed_form():
     assert template_std(result.H, vertices - refiner.center) == np.inf
 
 
+def test_a_wide_first_step_associates_as_far_as_its_tukey_cut_off():
+    """A plane seen head-on, measured 12 mm behind the model: every measurement lies 12 mm from the
+    nearest model sample, beyond the tracking association radius (``pair_radius``, 5 mm), so a
+    refinement with no wide first step has nothing to fit and declines. A first step of width 20 mm
+    cuts pairs at 3 x 20 mm (refine.py step 5) and must associate as far (``PAIR_WIDTHS``): Tukey's
+    weight at 12 / 20 is 0.41 and the plane's GN step lands on the measured depth (closed form)."""
+    camera = PinholeCamera(K=np.array([[100.0, 0, 39.5], [0, 100.0, 29.5], [0, 0, 1]]), width=80, height=60)
+    half = 0.1
+    vertices = np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]], float)
+    faces = np.array([[0, 2, 1], [0, 3, 2]])
+    T = se3.from_rotvec_trans(np.zeros(3), np.array([0, 0, 0.5]))
+    depth = np.full((60, 80), 0.512)
+    for backend in ("numba", "numpy"):
+        refiner = Refiner(vertices, faces, camera, RefineParams(stride=1, samples=20000, backend=backend))
+        assert not refiner.refine(depth, T, start_width=0.0).converged
+        result = refiner.refine(depth, T, start_width=0.02)
+        assert result.converged
+        np.testing.assert_allclose(result.T_camera_bone[:3, 3], [0, 0, 0.512], atol=1e-4)
+
+
 def test_template_std_matches_the_closed_form(rng):
     """Σ = diag: a point t moves by ω × t + v; with σ_ω = 0 the std is σ_v, with σ_v = 0 and t ⊥ the
     rotation axes it is σ_ω |t|."""

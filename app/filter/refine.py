@@ -22,7 +22,11 @@ float tolerance: tests/test_refine_kernels.py). Per iteration, at the current po
    back-projected (y_i = z_i K⁻¹(u, v, 1)) and moved into the bone frame p_i = T⁻¹ y_i.
 3. Association: the nearest model sample x_i, n_i within ``pair_radius`` = 5 mm (re-associated every
    iteration); a measurement with none as near (the background beside the bone's silhouette, tissue
-   far from it) is not associated: left out of the fit, never confirmed, never behind.
+   far from it) is not associated: left out of the fit, never confirmed, never behind. An annealed
+   step of width w > 5 mm / 3 associates within ``PAIR_WIDTHS`` w = 3 w, its own cut-off in step 5:
+   with the fixed 5 mm a wide first width had nothing to act on, and from crest_right_03's coarse
+   start (or_coarse_start, 16 mm / 12 deg) no width converged (BENCHMARKS.md §6d). Tracking steps
+   (width 0) and the final statistics keep 5 mm.
 4. Point-to-plane residual r_i = n_iᵀ (p_i − x_i) (Chen & Medioni 1991; the small-angle
    linearisation of Low 2004, as in Stoiber's ICG depth modality): with the increment
    δ = (ω, v) applied to the measurements about the model's centre c (CT meshes keep the
@@ -74,6 +78,7 @@ from app.geometry.camera import PinholeCamera
 TUKEY_C = 3.0   # Tukey's constant in σ(z): 4.685 is the 95 %-efficiency value; 3 measured less biased by tissue
 RENDER_LEVER = 0.05   # m, radius at which a rotation step is compared with rerender_step
 FINE_BELOW = 1150     # silhouette cells at ``stride`` under which a frame is refined at stride 1 (module docstring)
+PAIR_WIDTHS = 3.0     # a step of width w associates pairs up to PAIR_WIDTHS w apart (its Tukey cut-off, step 5)
 GRID_CELL = 0.002     # m, cell of the samples' grid for the nearest-sample search: 2 mm took 0.6-0.7x the CPU of 1 mm (0.7 mm: 1.7x) on a CT crest at 0.42 and 0.65 m
 
 
@@ -248,19 +253,20 @@ class Refiner:
             return 1, None
         return s, rendered
 
-    def _associate(self, y_cam: np.ndarray, T_camera_bone: np.ndarray):
-        """Bone-frame points p_i, nearest samples' x_i, n_i and point distances d_i."""
+    def _associate(self, y_cam: np.ndarray, T_camera_bone: np.ndarray, radius: float | None = None):
+        """Bone-frame points p_i, nearest samples' x_i, n_i and point distances d_i (none within
+        ``radius``, default ``pair_radius``: not associated)."""
+        radius = self.params.pair_radius if radius is None else radius
         p = se3.transform_points(se3.inverse(T_camera_bone), y_cam)
         if self.grid is None:
-            d, j = self.tree.query(p, distance_upper_bound=self.params.pair_radius)
+            d, j = self.tree.query(p, distance_upper_bound=radius)
             far = j >= len(self.points)            # none within pair_radius: not associated (NaN residual)
             j[far] = 0
             x, n = self.points[j], self.normals[j]
             x[far], n[far] = np.nan, np.nan
             return p, x, n, d
         g = self.grid
-        j, d = kernels.nearest(np.ascontiguousarray(p), g.points, g.start, g.empty, g.origin, g.cell, g.dims,
-                               self.params.pair_radius)
+        j, d = kernels.nearest(np.ascontiguousarray(p), g.points, g.start, g.empty, g.origin, g.cell, g.dims, radius)
         x, n = kernels.gather(j, g.points, g.normals)
         return p, x, n, d
 
@@ -313,8 +319,8 @@ class Refiner:
                 sigma = self.sigma(y[:, 2])
             if len(y) < prm.min_points:
                 break
-            p, x, n, d = self._associate(y, T)
             width = start_width * 0.5 ** it
+            p, x, n, d = self._associate(y, T, max(prm.pair_radius, PAIR_WIDTHS * width))
             delta, H, used, rms = self._gn_step(p, x, n, d, sigma, width, z_model - y[:, 2])
             if delta is None:
                 break

@@ -22,8 +22,11 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   weighing can jump far (measured on crest_left_03, static_occluded: 17.8 mm off after the first
   frame from a start 5 mm off, with the filter alone too), and the refinement from the start pose
   then competes with the one from the filter's estimate; from the start pose it refines at the
-  default first Tukey width and at twice it (``SEED_WIDTHS``: at 0.65 m each alone left a CT crest
-  7-9 deg off on one of two seeds, BENCHMARKS.md §6d);
+  default first Tukey width and twice it (at 0.65 m each alone left a CT crest 7-9 deg off on one of
+  two seeds, BENCHMARKS.md §6d), and at 1x, 2x and 4x (``SEED_WIDTHS``) a chain of refinements until
+  one no longer moves the pose (``SEED_CHAIN``), whose most consistent link competes when the image's
+  noise explains its share behind the model (:meth:`RefinedTrack._seed_fits`: from 16 mm / 12 deg on
+  crest_right_03 one anneal reached 8 mm / 9 deg, four chained at 4x the truth);
 - the static-bone prior (``static_prior``, app/filter/static_prior.py): the kept fit is fused with
   the track's held base-frame pose; a frame whose image constrains the template clearly worse than
   the clearest view since the last release (a hand over the bone; both errors on the configured grid,
@@ -49,12 +52,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.filter.refine import RENDER_LEVER as REFINE_LEVER
 from app.filter.refine import Refiner, RefineResult, template_std
 from app.filter.static_prior import StaticPrior, StaticPriorConfig
 from app.geometry import se3
 
 FALLBACK_BEHIND_SHARE = 0.02   # the former fixed share, when too few pixels estimate the noise
-SEED_WIDTHS = (1.0, 2.0)       # the seeded first refinement's Tukey widths (x RefineParams.start_width; BENCHMARKS.md §6d)
+SEED_WIDTHS = (1.0, 2.0, 4.0)  # the seeded first frame's Tukey widths (x RefineParams.start_width; BENCHMARKS.md §6d)
+SEED_CHAIN = 6                 # at most this many refinements chained at each seeded width (BENCHMARKS.md §6d)
+SEED_SINGLE = (1.0, 2.0)       # widths whose first link is a candidate whatever its consistency (the single refinements of §6d)
 
 
 @dataclass
@@ -62,7 +68,8 @@ class RefineConfig:
     """``refine.*`` of the configuration (module docstring). enabled; stride (1 full / 2 half sensor
     resolution); iterations; samples (model points); keep_fitness; reseed_fitness;
     competitor_distance (m) / competitor_angle (rad); competitor_margin; feedback; feedback_fitness;
-    static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames (app/filter/static_prior.py)."""
+    static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames, prior_motion_frames
+    (app/filter/static_prior.py)."""
 
     enabled: bool = True
     stride: int = 2
@@ -79,6 +86,7 @@ class RefineConfig:
     prior_release_chi2: float = 25.0
     prior_clear_ratio: float = 1.5
     prior_information_frames: float = 300.0
+    prior_motion_frames: int = 9
 
 
 @dataclass
@@ -136,7 +144,7 @@ class RefinedTrack:
         self.plan_points = np.asarray(plan_points, float).reshape(-1, 3) - refiner.center
         self.inflation = inflation
         prior_config = StaticPriorConfig(config.static_prior, config.prior_release_chi2, config.prior_clear_ratio,
-                                         config.prior_information_frames)
+                                         config.prior_information_frames, config.prior_motion_frames)
         self.prior = StaticPrior(prior_config, refiner.center, inflation) if config.static_prior else None
         self.reset()
 
@@ -170,6 +178,36 @@ class RefinedTrack:
             return std
         return std * self.refiner.params.stride / result.stride
 
+    def _seed_fits(self, depth, T_camera_base) -> list:
+        """The seeded first frame (:meth:`seed`): from the start pose, at each width of ``SEED_WIDTHS``, a
+        chain of refinements each restarting the annealing at that width (up to ``SEED_CHAIN``, until one
+        moves the pose less than ``rerender_step``). Candidates: the first link at 1x and 2x (the single
+        refinements of §6d) and the chain's most consistent link (:func:`consistent_sharp`) when the
+        image's noise explains its share behind the model (:func:`behind_excess` <= 0: light does not
+        pass through bone). One anneal of 5 halving steps did not reach the truth from 16 mm / 12 deg on
+        crest_right_03 (or_coarse_start) at any width, four chained at 4x did (0.2 % behind against a
+        0.9 % bound); ungated, a chain on crest_left_03 (seed 1) ended 8 mm off with fitness 0.88 but
+        25 % behind, was kept and fed back, and the track was lost (BENCHMARKS.md §6d)."""
+        prm = self.refiner.params
+        fits = []
+        for factor in SEED_WIDTHS:
+            T, chain = self.T_base_bone, []
+            for _ in range(SEED_CHAIN):
+                T_new, result = self._refine(depth, T_camera_base, T, start_width=prm.start_width * factor)
+                if not (result.converged and np.isfinite(result.fitness)):
+                    break
+                chain.append(("track", T_new, result))
+                dist, angle = pose_gap(T, T_new)
+                T = T_new
+                if dist < prm.rerender_step and angle * REFINE_LEVER < prm.rerender_step:
+                    break
+            if chain and factor in SEED_SINGLE:
+                fits.append(chain[0])
+            consistent = [f for f in chain if behind_excess(f[2]) <= 0.0]
+            if consistent:
+                fits.append(max(consistent, key=lambda f: consistent_sharp(f[2])))
+        return fits
+
     def _needs_filter(self, T_filter: np.ndarray) -> bool:
         c = self.config
         if self.T_base_bone is None or not self.fitness >= c.reseed_fitness:
@@ -190,8 +228,8 @@ class RefinedTrack:
             std = template_std(best.H, self.plan_points, self.inflation)
         grid_std = self._prior_std(best, std)
         T_held = prior.update(T_best, best.H, grid_std)
-        self.last_info.update(chi2=prior.chi2, released=prior.released, held=prior.held, img_std_mm=1e3 * std,
-                              grid_std_mm=1e3 * grid_std)
+        self.last_info.update(chi2=prior.chi2, motion_chi2=prior.motion_chi2, released=prior.released, held=prior.held,
+                              img_std_mm=1e3 * std, grid_std_mm=1e3 * grid_std)
         return source, T_held, best, std
 
     def update(self, depth: np.ndarray, T_base_camera: np.ndarray, T_base_bone_filter: np.ndarray) -> RefineOutcome:
@@ -201,8 +239,10 @@ class RefinedTrack:
         T_camera_base = se3.inverse(T_base_camera)
         fits = []
         if self.T_base_bone is not None and self.fitness >= c.keep_fitness:
-            widths = [self.refiner.params.start_width * f for f in SEED_WIDTHS] if self._seeded else [0.0]
-            fits += [("track", *self._refine(depth, T_camera_base, self.T_base_bone, start_width=w)) for w in widths]
+            if self._seeded:
+                fits += self._seed_fits(depth, T_camera_base)
+            else:
+                fits.append(("track", *self._refine(depth, T_camera_base, self.T_base_bone, start_width=0.0)))
         self._seeded = False
         if self._needs_filter(T_base_bone_filter):
             fits.append(("filter", *self._refine(depth, T_camera_base, T_base_bone_filter)))

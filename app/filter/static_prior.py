@@ -35,12 +35,27 @@ from the anchor to T_img:
   released (anchor ← T_img, Λ ← H / inflation): a bone that moves in view is followed at once. A
   weak frame never releases: with the quadratic test alone, crest_left_03 released at 75 % hidden
   (Δχ² 27 for a fit that had slid 12 mm) and was lost;
+- **clear frame, motion test** (a window over the image's own fits, not against the anchor): Δχ²_W =
+  dᵀ (H'_old⁻¹ + H'⁻¹)⁻¹ d, d the increment from the image's fit ``motion_frames`` (9) consecutive
+  clear frames ago to this frame's fit (fewer after a weak frame, which empties the window). Above
+  ``release_chi2`` the bone is moving: the prior is released onto the image's fit, every clear frame
+  while the window spans the move. Why: a bone moving at 5 cm/s moves ~0.55 mm a frame, each frame's
+  Δχ² against the anchor stays at 5-13, under 25, so the frames were *fused*: with Λ of n frames the
+  anchor moves δ/(n+1), the refinement starts from the lagging anchor, and once the lag passes the
+  narrow refinement's reach it converges short of the bone (crest_left_02 bone_moves seed 2: 2.8-6.6 mm
+  behind during the move, held 3.49 mm off after rest). Measured on that trial: Δχ²_W 0.0-0.2 at rest
+  and 27-350 during the move (no overlap); the anchor's own Δχ² cannot separate them because the fit
+  it compares starts from the anchor. A hand's slide is not motion to this test: weak frames never
+  enter the window, and a slide over seconds moves the fits little within 9 frames (0.1 s at 90 Hz);
 - **clear frame, otherwise a Kalman update with no process noise** (a static pose, information form):
   δ* = (Λ + H')⁻¹ H' δ, anchor ← anchor ∘ exp(δ*)⁻¹, Λ ← min(Λ + H', cap), H' = H / inflation.
   In the directions the image constrains H' dominates and the pose follows the image; in the
   directions it does not (the crest's long axis and roll under the hand) Λ from the earlier,
   clearer frames holds the pose. Λ is capped (``max_information_frames`` x the largest H' seen
   since the last release) so that the anchor keeps refining on a clear view.
+
+Motion test measured (BENCHMARKS.md §6c, end): bone_moves 8 crests x 3 seeds, after rest + 0.3 s max ADD
+0.43 mm (was 3.49 on crest_left_02 seed 2), ADD p95 <= 0.67 mm (was up to 5.5).
 
 Measured (BENCHMARKS.md §6c, commit f82eac8, the lead's 7 s static_occluded trials, 8 CT crests):
 seed 0 lost 0-62 % -> 0 % on every crest, ADD median per run 0.14-0.38 mm, 0 frames ok while > 5 mm
@@ -54,6 +69,7 @@ did not move while the image could not see it.
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -66,12 +82,14 @@ class StaticPriorConfig:
     """``refine.static_prior`` / ``refine.prior_*``: enabled; release_chi2 (Δχ² of the image's cost
     above which the prior is released); clear_ratio (a frame is *clear* when its predicted template
     error is at most this times the smallest since the last release); max_information_frames (Λ's
-    cap in units of the largest frame information)."""
+    cap in units of the largest frame information); motion_frames (the motion test's window in clear
+    frames: the image's fit is compared with its own fit this many clear frames ago; 0 disables)."""
 
     enabled: bool = True
     release_chi2: float = 25.0
     clear_ratio: float = 1.5
     max_information_frames: float = 300.0
+    motion_frames: int = 9
 
 
 def increment(delta: np.ndarray, center: np.ndarray) -> np.ndarray:
@@ -108,6 +126,8 @@ class StaticPrior:
         self.released = False
         self.held = False
         self.chi2 = float("nan")
+        self.motion_chi2 = float("nan")
+        self._fits: deque = deque(maxlen=max(int(self.config.motion_frames), 0) + 1)
 
     @property
     def active(self) -> bool:
@@ -126,9 +146,24 @@ class StaticPrior:
         """Whether :meth:`update` with this fit would release the prior (no state change)."""
         if not self.active:
             return True
+        if not self._clear(image_std):
+            return False
+        H1 = np.asarray(H, float) / self.inflation
         delta = log_increment(self.T_base_bone, T_base_bone_image, self.center)
-        chi2 = float(delta @ (np.asarray(H, float) / self.inflation) @ delta)
-        return chi2 > self.config.release_chi2 and self._clear(image_std)
+        chi2 = float(delta @ H1 @ delta)
+        return chi2 > self.config.release_chi2 or self._motion_chi2(T_base_bone_image, H1) > self.config.release_chi2
+
+    def _motion_chi2(self, T_base_bone_image: np.ndarray, H1: np.ndarray) -> float:
+        """The motion test (module docstring): Δχ²_W = dᵀ (H'_old⁻¹ + H'⁻¹)⁻¹ d between this frame's fit
+        and the oldest fit of the window (``motion_frames`` consecutive clear frames ago, fewer just after a
+        weak frame or a reset; both the image's alone); (A⁻¹ + B⁻¹)⁻¹ = A (A + B)⁻¹ B, defined where either
+        constrains a direction. NaN with no earlier clear fit."""
+        if self.config.motion_frames <= 0 or not self._fits:
+            return float("nan")
+        T_old, H_old = self._fits[0]
+        d = log_increment(T_old, T_base_bone_image, self.center)
+        combined = H_old @ np.linalg.solve(H_old + H1 + 1e-12 * np.eye(6), H1)
+        return float(d @ combined @ d)
 
     def _clear(self, image_std: float) -> bool:
         """A frame whose image constrains the template about as well as the clearest one since the
@@ -146,7 +181,12 @@ class StaticPrior:
         delta = log_increment(self.T_base_bone, T_base_bone_image, self.center)
         self.chi2 = float(delta @ H1 @ delta)
         clear = self._clear(image_std)
-        self.released = self.chi2 > self.config.release_chi2 and clear
+        self.motion_chi2 = self._motion_chi2(T_base_bone_image, H1) if clear else float("nan")
+        if clear:
+            self._fits.append((np.array(T_base_bone_image, float), H1))
+        else:
+            self._fits.clear()   # the window spans consecutive clear frames only
+        self.released = clear and (self.chi2 > self.config.release_chi2 or self.motion_chi2 > self.config.release_chi2)
         if self.released:
             self.held = False
             return self.start(T_base_bone_image, H, image_std)
