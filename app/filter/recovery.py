@@ -86,7 +86,10 @@ from app.filter.status import TrackingStatus
 from app.filter.weights import uniform_log_weights
 from app.geometry import quaternion as quat
 
-RESPREAD, SMC = "respread", "smc"
+RESPREAD, SMC, SEARCH = "respread", "smc", "search"
+FOUND_SIGMA_M, FOUND_SIGMA_RAD = 0.003, math.radians(3.0)   # the cloud about a pose the wide search found
+SEARCH_RETRY_FRAMES = 30             # frames between two wide searches that found nothing (~0.33 s at 90 Hz)
+TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 of the last 90 not-lost estimates
 MAX_BACKOFF_DOUBLINGS = 3
 FAR_M, FAR_RAD = 0.005, math.radians(5.0)
 STILL_WINDOW_S = 0.5
@@ -101,19 +104,23 @@ class RecoveryConfig:
     hold_frames (weighed frames capped at uncertain after one); cooldown_frames (frames between two);
     min_visible_share (a due re-initialisation waits until this share of the bone's expected
     silhouette at the last confident pose is not hidden by an occluder); confirm_frames (after one,
-    weighed frames in a row that the rules find ok before a pose away from the last ok one may be ok)."""
+    weighed frames in a row that the rules find ok before a pose away from the last ok one may be ok);
+    search (the wide search, app/filter/wide_search.py, replaces the one-point SMC attempts);
+    search_evaluations (its likelihood evaluations per search)."""
 
     enabled: bool = False
     after_lost_frames: int = 10
     after_uncertain_frames: int = 90
     respread_sigma_p: float = 0.015
     respread_sigma_r: float = math.radians(10.0)
-    respreads: int = 2
+    respreads: int = 1
     smc_evaluations: int = 30_000
     hold_frames: int = 15
     cooldown_frames: int = 15
     min_visible_share: float = 0.6
     confirm_frames: int = 90
+    search: bool = True
+    search_evaluations: int = 4000
 
 
 @dataclass
@@ -157,9 +164,12 @@ class RecoveryPolicy:
         self._not_ok = 0                       # weighed frames not ok in a row
         self._attempts = 0                     # since the last ok frame
         self._since = 10**9                    # frames since the last re-initialisation
+        self._wait = 0                         # frames the next one waits after it (_due)
         self._hold = 0
         self._unconfirmed = False              # a re-initialised pose not yet confirmed (_confirmed)
         self._ok_run = 0
+        self._track: collections.deque = collections.deque(maxlen=TRACK_FRAMES)   # recent not-lost estimates
+        self.declined_searches = 0
 
     # -- inputs ------------------------------------------------------------------------------
     def set_start(self, T_base_bone: np.ndarray) -> None:
@@ -176,6 +186,9 @@ class RecoveryPolicy:
         """One frame's final status in, the status to report out (capped at uncertain while holding);
         remembers the confident pose and decides whether a re-initialisation is due (``pending``)."""
         self._since += 1
+        rules_ok = status == TrackingStatus.OK
+        if status != TrackingStatus.LOST:
+            self._track.append(np.array(T_base_bone, float))
         if self._hold > 0 and status == TrackingStatus.OK:
             status = TrackingStatus.UNCERTAIN
         if self._hold > 0 and weighed:
@@ -186,7 +199,7 @@ class RecoveryPolicy:
             self._attempts, self._bad, self._not_ok = 0, 0, 0
             return status
         moving = self._moving(stamp, T_base_bone)
-        self._not_ok = 0 if moving else (self._not_ok + 1 if weighed else self._not_ok)
+        self._not_ok = 0 if moving or rules_ok else (self._not_ok + 1 if weighed else self._not_ok)
         reason = self._bad_reason(status, weighed, refined, fitness, T_base_bone)
         if reason is not None:
             self._bad += 1
@@ -250,7 +263,7 @@ class RecoveryPolicy:
         return dist / dt > speed or angle / dt > angular
 
     def _due(self, reason: str) -> None:
-        if self._since >= self._cooldown() and self.pending is None:
+        if self._since >= self._wait and self.pending is None:
             self.pending = reason
 
     def _bad_reason(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float,
@@ -264,13 +277,31 @@ class RecoveryPolicy:
         return None
 
     def _cooldown(self) -> int:
+        """After attempt k (attempts counts it already): cooldown_frames * 2^min(k, 3)."""
         k = max(self._attempts - 1, 0)
         return self.config.cooldown_frames * 2 ** min(k, MAX_BACKOFF_DOUBLINGS)
 
     def next_kind(self) -> str:
         """The kind of the due attempt (module docstring)."""
         c = self.config
-        return RESPREAD if self._attempts % (c.respreads + 1) < c.respreads else SMC
+        if self._attempts % (c.respreads + 1) < c.respreads:
+            return RESPREAD
+        return SEARCH if c.search else SMC
+
+    def track_poses(self) -> list[np.ndarray]:
+        """Up to TRACK_POSES of the last TRACK_FRAMES not-lost estimates (base frame), evenly spaced:
+        the wide search's candidates from the track (it followed part of a move)."""
+        poses = list(self._track)
+        step = max(len(poses) // TRACK_POSES, 1)
+        return poses[::-1][::step][:TRACK_POSES]
+
+    def declined(self) -> None:
+        """The due wide search found nothing confirmed (the bone out of view): nothing was changed, so
+        it is no attempt (no hold, no backoff step, the bad-frame counts kept); the next search runs
+        SEARCH_RETRY_FRAMES later while the trigger still holds."""
+        self.pending = None
+        self.declined_searches += 1
+        self._since, self._wait = 0, SEARCH_RETRY_FRAMES
 
     def smc_point(self) -> np.ndarray:
         """The point on the bone (base frame) the one-point initialiser starts from."""
@@ -285,6 +316,7 @@ class RecoveryPolicy:
         self.pending = None
         self._attempts += 1
         self._since, self._bad, self._not_ok = 0, 0, 0
+        self._wait = self._cooldown()
         self._recent.clear()
         self._hold = self.config.hold_frames
         self._unconfirmed, self._ok_run = True, 0
@@ -300,23 +332,31 @@ class RecoveryPolicy:
     def respread_state(self, n: int, rng: np.random.Generator) -> ParticleState:
         """n particles around the last confident pose (module docstring: rotations about the bone's
         centroid), at rest, equally weighted."""
-        p, q = self._around(self.T_base_bone_confident, n, rng)
+        return self.state_around(self.T_base_bone_confident, n, rng)
+
+    def state_around(self, T_base_bone: np.ndarray, n: int, rng: np.random.Generator,
+                     sigma_p: float | None = None, sigma_r: float | None = None) -> ParticleState:
+        """n particles around ``T_base_bone`` (default spread: the re-spread's), at rest, equally weighted."""
+        c = self.config
+        p, q = self._around(T_base_bone, n, rng, c.respread_sigma_p if sigma_p is None else sigma_p,
+                            c.respread_sigma_r if sigma_r is None else sigma_r)
         return ParticleState(p, np.zeros((n, 3)), q, np.zeros((n, 3)), uniform_log_weights(n))
 
-    def _around(self, T_base_bone: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    def _around(self, T_base_bone: np.ndarray, n: int, rng: np.random.Generator, sigma_p: float,
+                sigma_r: float) -> tuple[np.ndarray, np.ndarray]:
         """p' = c + R(r)(t - c) + ε, q' = exp(r) ⊗ q0 with c the centroid in the base frame."""
-        c = self.config
         R0, t0 = T_base_bone[:3, :3], T_base_bone[:3, 3]
         centre = R0 @ self.centroid_bone + t0
-        dq = quat.exp_map(rng.normal(0.0, c.respread_sigma_r, (n, 3)))
+        dq = quat.exp_map(rng.normal(0.0, sigma_r, (n, 3)))
         p = centre[None] + quat.rotate(dq, np.broadcast_to(t0 - centre, (n, 3)))
-        p = p + rng.normal(0.0, c.respread_sigma_p, (n, 3))
+        p = p + rng.normal(0.0, sigma_p, (n, 3))
         q = quat.normalize(quat.multiply(dq, np.broadcast_to(quat.from_matrix(R0), (n, 4))))
         return p, q
 
     def report(self) -> dict:
         """The re-initialisations for the summaries: count, stamps, kinds and reasons."""
         return {"enabled": self.config.enabled, "reinitialisations": len(self.events),
+                "declined_searches": self.declined_searches,
                 "events": [{"stamp": e.stamp, "kind": e.kind, "reason": e.reason} for e in self.events]}
 
 
