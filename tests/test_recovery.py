@@ -140,7 +140,7 @@ def test_policy_counts_bad_frames_waits_while_hidden_and_holds_after():
 
 
 def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
-    policy = _policy(after_lost_frames=1, respreads=2, cooldown_frames=4)
+    policy = _policy(after_lost_frames=1, respreads=2, cooldown_frames=4, search=False)
     T = se3.from_rotvec_trans(np.array([0.0, 0.0, 0.3]), np.array([0.1, 0.2, 0.3]))
     policy.set_start(T)
     np.testing.assert_allclose(policy.smc_point(), T[:3, :3] @ [0, 0, 0.01] + T[:3, 3])
@@ -156,6 +156,110 @@ def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
     assert kinds == ["respread", "respread", "smc", "respread"]
     gaps = np.diff([e.stamp for e in policy.events])
     assert gaps[1] > gaps[0]                                # the cooldown doubles
+
+
+def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retries_without_backoff():
+    from app.filter.recovery import SEARCH_RETRY_FRAMES
+
+    policy = _policy(after_lost_frames=1, respreads=1, cooldown_frames=4)
+    T = np.eye(4)
+    frames, due = 0, []
+
+    def run_until_due():
+        nonlocal frames
+        start = frames
+        while not policy.pending and frames < start + 400:
+            policy.update(TrackingStatus.LOST, True, False, float("nan"), T, 0.01 * frames)
+            frames += 1
+        due.append(frames - start)
+        return policy.next_kind()
+
+    assert run_until_due() == "respread"
+    policy.done(0.0, "respread")
+    assert run_until_due() == "search"
+    policy.declined()                                        # found nothing: no attempt, no hold
+    assert policy.report()["declined_searches"] == 1 and len(policy.events) == 1
+    assert run_until_due() == "search" and due[-1] == SEARCH_RETRY_FRAMES   # retried, not backed off
+    policy.done(1.0, "search")
+    assert run_until_due() == "respread"
+
+
+def test_the_slow_trigger_does_not_count_frames_the_rules_find_ok_while_unconfirmed():
+    """After a re-initialisation away from the last ok pose the reported status is uncertain until
+    confirmed; those frames must not fire the slow trigger (it would re-spread at the old pose)."""
+    policy = _policy(after_uncertain_frames=5, hold_frames=0, confirm_frames=8, cooldown_frames=1)
+    policy.done(0.0, "search")
+    T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.1, 0.0, 0.0]))
+    statuses = [policy.update(TrackingStatus.OK, True, True, 0.9, T_far, 0.1 * k) for k in range(8)]
+    assert statuses[:7] == [TrackingStatus.UNCERTAIN] * 7 and statuses[7] == TrackingStatus.OK
+    assert policy.pending is None
+
+
+# -- the wide search (app/filter/wide_search.py) ------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def search_frame(trial):
+    """A tracker on the synthetic crest's trial and one frame of it: (tracker, depth, T_base_camera, truth)."""
+    from app.pipeline.tracker import DepthTracker
+    from app.trial.reader import open_trial
+
+    reader = open_trial(trial)
+    tracker = DepthTracker(_enabled(), reader.load_mesh(), reader.meta.camera)
+    T_base_camera, _ = reader.camera_poses()
+    i = 60
+    yield tracker, reader.read_depth(i), T_base_camera[i], np.asarray(reader.groundtruth[i])
+    tracker.release()
+
+
+def _moved(T_base_bone: np.ndarray, centroid_bone: np.ndarray, shift_m, yaw_rad: float) -> np.ndarray:
+    """T_base_bone turned by yaw about the base's z through the bone's centroid, then shifted."""
+    centre = se3.transform_points(T_base_bone, centroid_bone[None])[0]
+    turn = se3.from_rotvec_trans(np.array([0.0, 0.0, yaw_rad]), np.zeros(3))
+    turn[:3, 3] = centre - turn[:3, :3] @ centre + np.asarray(shift_m, float)
+    return turn @ T_base_bone
+
+
+def test_the_wide_search_finds_a_bone_moved_12_cm_and_45_deg_from_the_last_ok_pose(search_frame):
+    """The last ok pose (where the bone WAS) lies 12 cm / 45 deg from the truth in the image, the track
+    has nothing near it: the image's anchors find it, the refinement confirms it (< 0.5 mm ADD), within
+    the budget of likelihood evaluations."""
+    from app.depth_image import downsample_nearest
+
+    tracker, depth, T_base_camera, T_true = search_frame
+    centroid = tracker.mesh_vertices.mean(axis=0)
+    T_was = _moved(T_true, centroid, [-0.12, 0.0, 0.0], -np.pi / 4)
+    small = downsample_nearest(depth, *tracker.config.resolution)
+    result = tracker.wide_search.run(small, depth, T_base_camera, T_was, [T_was], np.random.default_rng(3))
+    assert result.T_base_bone is not None and result.source == "image"
+    assert 1e3 * metrics.add(result.T_base_bone, T_true, tracker.mesh_vertices) < 0.5
+    assert result.fitness >= 0.6 and result.sharp >= 0.5
+    assert result.evaluations <= tracker.config.recovery.search_evaluations and result.refinements <= 6
+
+
+def test_the_wide_search_declines_where_the_bone_is_not_in_the_image(search_frame):
+    """A flat table only (the bone out of view): nothing confirmed, no pose."""
+    from app.depth_image import downsample_nearest
+
+    tracker, depth, T_base_camera, T_true = search_frame
+    table = np.full_like(depth, 0.45)
+    small = downsample_nearest(table, *tracker.config.resolution)
+    result = tracker.wide_search.run(small, table, T_base_camera, T_true, [T_true], np.random.default_rng(3))
+    assert result.T_base_bone is None
+
+
+def test_image_anchors_are_peaks_that_stand_out_highest_first():
+    """A ridge 2 cm over a floor and a 1 mm bump: one anchor on the ridge's top, none on the bump or the floor."""
+    from app.filter.wide_search import image_anchors
+    from app.geometry.camera import PinholeCamera
+
+    camera = PinholeCamera(np.array([[100.0, 0, 39.5], [0, 100.0, 29.5], [0, 0, 1]]), 80, 60)
+    depth = np.full((60, 80), 0.50)
+    depth[20:40, 30:33] = 0.48                                   # the ridge, 2 cm nearer the camera
+    depth[10, 70] = 0.499                                        # a 1 mm bump: under MIN_PROMINENCE_M
+    T_base_camera = se3.from_rotvec_trans(np.array([np.pi, 0.0, 0.0]), np.array([0.0, 0.0, 0.6]))   # looking down
+    anchors = image_anchors(depth, camera, T_base_camera, count=4)
+    assert len(anchors) >= 1
+    np.testing.assert_allclose(anchors[:, 2], 0.6 - 0.48, atol=1e-9)   # every anchor on the ridge's top
 
 
 def test_a_moving_estimate_is_not_reinitialised_for_being_uncertain():
