@@ -63,6 +63,7 @@ def run_one(config: BenchConfig, trial: TrialSpec, out_dir: str | Path | None = 
         "jitter": jitter(T_est, static_pairs(T_gt, result.stamps)),
         "after_rest": after_rest(T_gt, t_rel, add_mm),
         "refound": found, "refound_s": None if found is None else found["refound_s"],
+        "recovery": result.summary.get("recovery"),
         "series": {"t": t_rel.round(4).tolist(), "add_mm": np.round(add_mm, 4).tolist(),
                    "rot_deg": np.round(result.errors["rot_deg"], 4).tolist(),
                    "vsd": [None if not np.isfinite(v) else round(float(v), 4) for v in vsd],
