@@ -52,14 +52,28 @@ crest_left_03 78-105 mm off with a fit of 0.95).
   Not around the current estimate too: on crest_left_03 (static_occluded) half of the particles
   there kept a wrong pose 105 mm off alive, and the filter and the refinement went back to it
   after the re-spread had found the bone (0.2 mm);
-- else the *one-point SMC initialiser* (app/filter/smc_init/) around a point on the bone: the
-  trial's / session's ``point_prior`` when given, else the last confident pose's surface point
-  nearest the bone's centroid; its budget is ``smc_evaluations`` pose likelihood evaluations
-  (work, never seconds).
+- else (``search``, the default) the *wide search for a moved bone* (app/filter/wide_search.py):
+  candidates from the image (where its height map stands out, the crest's ridge put there, turned
+  about up) and from the track's recent not-lost estimates (:meth:`RecoveryPolicy.track_poses`: it
+  followed part of the move), scored by the likelihood backend, searched locally and verified by
+  the refinement; ``search_evaluations`` likelihood evaluations plus 6 refinements (work, never
+  seconds). A found pose seeds the cloud (FOUND_SIGMA_M / FOUND_SIGMA_RAD about it) and the
+  refinement's track (RefinedTrack.seed, which resets the static-bone prior: its held base-frame
+  pose is where the bone WAS and must not drag the track back). A search that confirms nothing
+  (the bone out of view) changes nothing and is no attempt (:meth:`RecoveryPolicy.declined`): it
+  is retried every SEARCH_RETRY_FRAMES while the trigger holds. Re-spreading around the last ok
+  pose and the SMC from the trial's point prior both search where the bone was: on
+  or_fast_reposition (12 cm / 45 deg) neither found it (BENCHMARKS.md §6);
+- or, with ``search: false``, the *one-point SMC initialiser* (app/filter/smc_init/) around a point
+  on the bone: the trial's / session's ``point_prior`` when given, else the last confident pose's
+  surface point nearest the bone's centroid; its budget is ``smc_evaluations`` pose likelihood
+  evaluations (work, never seconds).
 
 Without any ok frame yet, the last confident pose is the start pose. After attempt k the next one
 waits at least ``cooldown_frames`` · 2^min(k, 3) frames (a scene that can never be tracked, e.g. a
-crest buried in tissue, is not re-initialised every few frames).
+crest buried in tissue, is not re-initialised every few frames). The slow trigger counts only
+frames the rules do not find ok: a found pose awaiting its confirmation (below) is reported
+uncertain, and counting those frames fired a re-spread at the old pose before it was confirmed.
 
 **Honesty.** For ``hold_frames`` weighed frames after a re-initialisation the status is at most
 uncertain, whatever the rules say; then the usual rules (status.py, with the refinement's fit,
@@ -113,7 +127,7 @@ class RecoveryConfig:
     after_uncertain_frames: int = 90
     respread_sigma_p: float = 0.015
     respread_sigma_r: float = math.radians(10.0)
-    respreads: int = 1
+    respreads: int = 0
     smc_evaluations: int = 30_000
     hold_frames: int = 15
     cooldown_frames: int = 15
