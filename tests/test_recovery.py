@@ -394,3 +394,28 @@ def test_a_ct_crest_moved_out_of_view_is_found_again_within_2_s_of_being_visible
     assert row["refound_s"] is not None and row["refound_s"] <= 2.0
     assert row["dangerous_frames"] == 0
     assert row["recovery"]["search"]["found"] >= 1
+
+
+def test_a_track_weighed_again_after_being_out_of_view_far_from_the_last_ok_pose_is_searched_at_once():
+    policy = _policy(after_lost_frames=3, after_uncertain_frames=1000, cooldown_frames=1)
+    unc = TrackingStatus.UNCERTAIN
+    T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.1, 0.0, 0.0]))
+    for k in range(5):
+        policy.update(unc, False, False, float("nan"), T_far, 0.1 * k)     # out of view: not weighed
+    assert policy.pending is None
+    policy.update(unc, True, True, 0.9, T_far, 0.6)                          # seen again, 10 cm from the last ok pose
+    assert policy.pending and "unseen" in policy.pending and policy.next_kind() == "search"
+    near = _policy(after_lost_frames=3, after_uncertain_frames=1000, cooldown_frames=1)
+    for k in range(5):
+        near.update(unc, False, False, float("nan"), np.eye(4), 0.1 * k)
+    near.update(unc, True, True, 0.9, np.eye(4), 0.6)                       # back where it was ok: nothing due
+    assert near.pending is None
+
+
+def test_a_due_search_runs_where_the_last_ok_pose_is_out_of_the_image():
+    policy = _policy(after_lost_frames=1)
+    policy.update(TrackingStatus.LOST, True, False, float("nan"), np.eye(4), 0.0)
+    assert policy.next_kind() == "search" and policy.may_run(float("nan"))
+    smc = _policy(after_lost_frames=1, search=False)
+    smc.update(TrackingStatus.LOST, True, False, float("nan"), np.eye(4), 0.0)
+    assert not smc.may_run(float("nan"))            # an SMC at the point prior waits for the old place in view

@@ -30,8 +30,11 @@ trigger also need the estimate more than ``FAR_M`` / ``FAR_RAD`` = 5 mm / 5 deg 
 competitor gap) from the last confident pose: under an 80 % hand a correct track is uncertain for
 seconds (the predicted template error), and re-initialising it there raised crest_left_05's lost
 share from 1.6 to 16 %. It did not save crest_right_04 / _05, whose tracks had been > 5 mm off for a
-moment (and came back by themselves without recovery; BENCHMARKS.md §6b). The re-initialisation
-runs on the next frame that has a camera pose and valid depth.
+moment (and came back by themselves without recovery; BENCHMARKS.md §6b). A third: a weighed
+frame after at least ``after_lost_frames`` not weighed (the estimate out of the image or hidden)
+while not ok and more than FAR_M / FAR_RAD from the last confident pose: a bone moved out of view
+and back (or_fast_reposition) is searched for as soon as it is seen again; the slow trigger took
+1.5 s more there. The re-initialisation runs on the next frame that has a camera pose and valid depth.
 
 **When.** A due attempt waits while the bone is mostly hidden: it runs only on a frame where at
 least ``min_visible_share`` (0.6) of the model's expected silhouette at the last confident pose is
@@ -183,6 +186,7 @@ class RecoveryPolicy:
         self._unconfirmed = False              # a re-initialised pose not yet confirmed (_confirmed)
         self._ok_run = 0
         self._track: collections.deque = collections.deque(maxlen=TRACK_FRAMES)   # recent not-lost estimates
+        self._unseen = 0                       # not-weighed frames in a row while not ok
         self.declined_searches = 0
 
     # -- inputs ------------------------------------------------------------------------------
@@ -210,8 +214,9 @@ class RecoveryPolicy:
         status = self._confirmed(status, weighed, T_base_bone)
         if status == TrackingStatus.OK:
             self.T_base_bone_confident = np.array(T_base_bone, float)
-            self._attempts, self._bad, self._not_ok = 0, 0, 0
+            self._attempts, self._bad, self._not_ok, self._unseen = 0, 0, 0, 0
             return status
+        back = self._back_in_view(weighed)
         moving = self._moving(stamp, T_base_bone)
         self._not_ok = 0 if moving or rules_ok else (self._not_ok + 1 if weighed else self._not_ok)
         reason = self._bad_reason(status, weighed, refined, fitness, T_base_bone)
@@ -222,9 +227,23 @@ class RecoveryPolicy:
         c = self.config
         if reason is not None and self._bad >= c.after_lost_frames:
             self._due(f"{reason} for {self._bad} frames")
+        elif back and self._far(T_base_bone):
+            self._due(f"weighed again after {back} frames unseen, {self._gap_text(T_base_bone)} from the last ok pose")
         elif c.after_uncertain_frames and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone):
             self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
         return status
+
+    def _back_in_view(self, weighed: bool) -> int:
+        """The count of not-weighed frames (not ok) just ended by a weighed one when it reached
+        ``after_lost_frames``, else 0: the estimate is in view again after the bone was out of it
+        (or hidden); far from the last ok pose, a moved bone is searched for at once instead of
+        after the slow trigger's ``after_uncertain_frames`` (module docstring, "Trigger")."""
+        if not weighed:
+            self._unseen += 1
+            return 0
+        back = self._unseen if self._unseen >= self.config.after_lost_frames else 0
+        self._unseen = 0
+        return back
 
     def _confirmed(self, status: TrackingStatus, weighed: bool, T_base_bone: np.ndarray) -> TrackingStatus:
         """After a re-initialisation (module docstring, "Honesty"): ok only at a pose that agrees with
@@ -339,8 +358,14 @@ class RecoveryPolicy:
     def may_run(self, visible_share: float) -> bool:
         """Whether the due attempt may run on this frame: ``visible_share`` of the bone's expected
         silhouette at the last confident pose is not hidden (:func:`visible_share`); under the hand
-        it waits (module docstring, "When")."""
-        return self.pending is not None and visible_share >= self.config.min_visible_share
+        it waits (module docstring, "When"). A wide search also runs where the last confident pose is
+        out of the image (``visible_share`` NaN): the camera has moved away from where the bone was,
+        and the search looks everywhere (crest_left_02 seed 1, or_fast_reposition: it waited 2.4 s)."""
+        if self.pending is None:
+            return False
+        if math.isnan(visible_share):
+            return self.next_kind() == SEARCH
+        return visible_share >= self.config.min_visible_share
 
     # -- the re-spread -----------------------------------------------------------------------
     def respread_state(self, n: int, rng: np.random.Generator) -> ParticleState:
@@ -377,11 +402,12 @@ class RecoveryPolicy:
 def visible_share(refiner, depth: np.ndarray, T_camera_bone: np.ndarray) -> float:
     """The share of the model's expected silhouette at ``T_camera_bone`` (the refiner's z-buffer on its
     grid) whose measurement is valid and not an occluder (not more than ``occluder_margin`` in
-    front of the model): 1 on a clear view, ~0.2 under an 80 % hand. 0 when the bone is out of view."""
+    front of the model): 1 on a clear view, ~0.2 under an 80 % hand. NaN when that pose is out of
+    the image (no hand can be judged there)."""
     zbuf, _ = refiner.model_depth(T_camera_bone)
     expected = int(np.isfinite(zbuf).sum())
     if expected == 0:
-        return 0.0
+        return float("nan")
     y, _ = refiner.measurements(depth, T_camera_bone)
     return len(y) / expected
 
