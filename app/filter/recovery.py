@@ -99,6 +99,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.filter.motion import ParticleState
+from app.filter.visibility import point_visible, visible_share  # noqa: F401  (re-exported: the tracker's "When" inputs)
 from app.filter.status import TrackingStatus
 from app.filter.weights import uniform_log_weights
 from app.geometry import quaternion as quat
@@ -397,32 +398,3 @@ class RecoveryPolicy:
         return {"enabled": self.config.enabled, "reinitialisations": len(self.events),
                 "declined_searches": self.declined_searches,
                 "events": [{"stamp": e.stamp, "kind": e.kind, "reason": e.reason} for e in self.events]}
-
-
-def visible_share(refiner, depth: np.ndarray, T_camera_bone: np.ndarray) -> float:
-    """The share of the model's expected silhouette at ``T_camera_bone`` (the refiner's z-buffer on its
-    grid) whose measurement is valid and not an occluder (not more than ``occluder_margin`` in
-    front of the model): 1 on a clear view, ~0.2 under an 80 % hand. NaN when that pose is out of
-    the image (no hand can be judged there)."""
-    zbuf, _ = refiner.model_depth(T_camera_bone)
-    expected = int(np.isfinite(zbuf).sum())
-    if expected == 0:
-        return float("nan")
-    y, _ = refiner.measurements(depth, T_camera_bone)
-    return len(y) / expected
-
-
-def point_visible(camera, depth: np.ndarray, point_camera: np.ndarray, margin: float) -> bool:
-    """Whether a point (camera frame, m) projects into the image onto a valid depth that is not
-    more than ``margin`` in front of it (the pointed point not hidden by a hand)."""
-    if point_camera[2] <= 0:
-        return False
-    uv, z = camera.project(np.asarray(point_camera, float).reshape(1, 3))
-    u, v = int(round(uv[0, 0])), int(round(uv[0, 1]))
-    h, w = depth.shape
-    if not (0 <= u < w and 0 <= v < h):
-        return False
-    r0, r1, c0, c1 = max(v - 2, 0), min(v + 3, h), max(u - 2, 0), min(u + 3, w)
-    patch = depth[r0:r1, c0:c1]
-    patch = patch[np.isfinite(patch) & (patch > 0)]
-    return patch.size > 0 and float(np.median(patch)) >= float(z[0]) - margin
