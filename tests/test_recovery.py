@@ -419,3 +419,19 @@ def test_a_due_search_runs_where_the_last_ok_pose_is_out_of_the_image():
     smc = _policy(after_lost_frames=1, search=False)
     smc.update(TrackingStatus.LOST, True, False, float("nan"), np.eye(4), 0.0)
     assert not smc.may_run(float("nan"))            # an SMC at the point prior waits for the old place in view
+
+
+def test_the_slow_trigger_needs_an_ok_frame_since_the_start():
+    """A track never ok (residual tissue) sits ~5 mm from the coarse start it converged from: no
+    re-initialisation for that alone; after an ok frame the same gap counts."""
+    unc = TrackingStatus.UNCERTAIN
+    T_off = se3.from_rotvec_trans(np.zeros(3), np.array([0.006, 0.0, 0.0]))
+    never = _policy(after_uncertain_frames=5, cooldown_frames=1)
+    for k in range(10):
+        never.update(unc, True, True, 0.9, T_off, 0.1 * k)
+    assert never.pending is None
+    was_ok = _policy(after_uncertain_frames=5, cooldown_frames=1)
+    was_ok.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0)
+    for k in range(10):
+        was_ok.update(unc, True, True, 0.9, T_off, 0.1 * (k + 1))
+    assert was_ok.pending is not None and "not ok" in was_ok.pending

@@ -24,7 +24,9 @@ error), never lost (BENCHMARKS.md §6b). The estimate is still when it moved les
 ``status.uncertain_speed`` / ``uncertain_angular_speed`` over ``STILL_WINDOW_S`` = 0.5 s (longer
 than the status's 0.2 s: a wrong track's refined pose jumps a few millimetres between frames, which
 over 0.2 s read as motion and kept the count at 0 on crest_left_02 while 64-100 mm off); a moving
-estimate restarts that count: a bone being repositioned is uncertain for seconds (status.py's motion
+estimate restarts that count, and it needs an ok frame since the start (a track that was never
+ok, e.g. or_deep_tissue, sits ~5 mm from the coarse start pose it converged from; measured: it
+fired 2-3 times there per run for nothing, BENCHMARKS.md §6b); a bone being repositioned is uncertain for seconds (status.py's motion
 rule), and a re-spread around its pose before the move would lose it. The low-fit and the slow
 trigger also need the estimate more than ``FAR_M`` / ``FAR_RAD`` = 5 mm / 5 deg (refine_track.py's
 competitor gap) from the last confident pose: under an 80 % hand a correct track is uncertain for
@@ -188,6 +190,7 @@ class RecoveryPolicy:
         self._ok_run = 0
         self._track: collections.deque = collections.deque(maxlen=TRACK_FRAMES)   # recent not-lost estimates
         self._unseen = 0                       # not-weighed frames in a row while not ok
+        self._ever_ok = False                  # the slow trigger needs an ok frame: the start pose is no evidence
         self.declined_searches = 0
 
     # -- inputs ------------------------------------------------------------------------------
@@ -214,6 +217,7 @@ class RecoveryPolicy:
             self._hold -= 1
         status = self._confirmed(status, weighed, T_base_bone)
         if status == TrackingStatus.OK:
+            self._ever_ok = True
             self.T_base_bone_confident = np.array(T_base_bone, float)
             self._attempts, self._bad, self._not_ok, self._unseen = 0, 0, 0, 0
             return status
@@ -230,7 +234,7 @@ class RecoveryPolicy:
             self._due(f"{reason} for {self._bad} frames")
         elif back and self._far(T_base_bone):
             self._due(f"weighed again after {back} frames unseen, {self._gap_text(T_base_bone)} from the last ok pose")
-        elif c.after_uncertain_frames and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone):
+        elif c.after_uncertain_frames and self._ever_ok and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone):
             self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
         return status
 
