@@ -2,12 +2,8 @@
 
 Import as ``from app.filter.recovery import RecoveryPolicy``. Wired in
 :class:`app.pipeline.tracker.DepthTracker` (issue 12, item 4), so replay, ``osteonav track`` and the
-bench all get it with ``recovery.enabled: true``. **Off by default**: before the "When" and the
-confirmation rules below, on the eight CT crests under an 80 % hand (BENCHMARKS.md §6b) it found no lost track that the tracker did not find by itself, and it
-lost two tracks that held without it (crest_right_04 and crest_right_05: 0 -> 37-39 % of the frames
-lost, and 81 frames ok while > 5 mm off on crest_right_05): re-spread while most of the crest is
-hidden, the filter and the refinement settle on a wrong fit of the visible part, which then passes
-the status rules.
+bench all get it (``recovery.enabled``, **on by default** since the wide search: harmless on the
+eight CT crests, finds a moved bone; before it, re-spreads under a hand lost tracks: BENCHMARKS.md §6b).
 
 **Trigger.** A frame is *bad* when its status is lost, or (with the refinement on) it was weighed
 and the refined fit no longer confirms the visible bone: not refined at all (refine_track.py kept no
@@ -128,7 +124,7 @@ class RecoveryConfig:
     search (the wide search, app/filter/wide_search.py, replaces the one-point SMC attempts);
     search_evaluations (its likelihood evaluations per search)."""
 
-    enabled: bool = False
+    enabled: bool = True
     after_lost_frames: int = 10
     after_uncertain_frames: int = 90
     respread_sigma_p: float = 0.015
