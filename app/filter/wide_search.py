@@ -40,8 +40,8 @@ drawn from the image and the track instead of a template bank:
    Nothing confirmed (the bone out of view, hidden): the search declines, and the tracker keeps its state.
 
 The budget is counted in likelihood evaluations (``evaluations``: poses scored by the backend, 60 %
-to the candidates of 1-2, the rest to the local search) plus ``2 * refine_top`` refinements: work,
-never seconds. A found pose is no evidence of being right: the recovery's confirmation rule
+to the image's candidates, 10 % to the track's, the rest to the local search) plus ``2 * refine_top``
+refinements: work, never seconds (0.52-0.60 s of CPU per search on the CT crests, BENCHMARKS.md §6b). A found pose is no evidence of being right: the recovery's confirmation rule
 (app/filter/recovery.py, "Honesty") keeps it from being ok until the rules have agreed for
 ``confirm_frames`` weighed frames in a row.
 """
