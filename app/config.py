@@ -191,6 +191,8 @@ KEYS: dict[str, _Key] = {
     "recovery.cooldown_frames": _i("recovery.cooldown_frames", 1, 100_000),
     "recovery.min_visible_share": _f("recovery.min_visible_share", 0.0, 1.0),
     "recovery.confirm_frames": _i("recovery.confirm_frames", 0, 1_000_000),
+    "recovery.search": _Key(("recovery", "search"), "bool"),
+    "recovery.search_evaluations": _i("recovery.search_evaluations", 100, 10_000_000),
     "render.resolution": _Key(("resolution",), "resolution", 8, 4096),
     "render.near": _f("near", 0.0, 10.0, lo_open=True),
     "render.far": _f("far", 0.0, 100.0, lo_open=True),

@@ -282,6 +282,41 @@ def test_after_rest_is_the_error_from_0_3_s_after_the_last_move():
     assert bench.after_rest(np.repeat(np.eye(4)[None], 5, axis=0), t[:5], add[:5]) is None   # never moves
 
 
+def _moved_then_still(t, rest_at=1.0):
+    T_gt = np.repeat(np.eye(4)[None], len(t), axis=0)
+    T_gt[:, 0, 3] = np.minimum(t, rest_at) * 0.01             # moves until rest_at, then rests
+    return T_gt
+
+
+def test_refound_counts_from_the_bone_in_view_and_still_to_the_add_staying_under_2_mm():
+    t = np.round(np.arange(0.0, 4.0, 0.1), 6)
+    T_gt = _moved_then_still(t)
+    in_view = np.where(t < 1.5, 0.0, 0.6)                      # out of view until 1.5 s after rest at 1.0 s
+    add = np.where(t < 2.3, 60.0, 0.5)
+    add[t == 2.0] = 1.0                                        # a dip under 2 mm that does not stay: not found yet
+    out = bench.refound(T_gt, t, add, in_view)
+    assert out["rest_s"] == pytest.approx(1.0) and out["visible_s"] == pytest.approx(1.5)
+    assert out["refound_s"] == pytest.approx(0.8)              # 2.3 - 1.5
+    add[-1] = 2.5                                              # off on the last frame: never found again
+    assert bench.refound(T_gt, t, add, in_view)["refound_s"] is None
+    assert bench.refound(T_gt, t, np.full(len(t), 0.3), in_view)["refound_s"] == 0.0   # never lost
+    never_seen = bench.refound(T_gt, t, np.full(len(t), 0.3), np.zeros(len(t)))
+    assert never_seen["visible_s"] is None and never_seen["refound_s"] is None
+    assert bench.refound(np.repeat(np.eye(4)[None], len(t), axis=0), t, add, in_view) is None   # never moves
+
+
+def test_in_view_share_is_the_share_of_points_projecting_into_the_image():
+    from app.geometry.camera import PinholeCamera
+
+    camera = PinholeCamera(np.array([[100.0, 0, 49.5], [0, 100.0, 49.5], [0, 0, 1]]), 100, 100)
+    points = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])   # 2 of 4 in view at 0.5 m
+    T_bone = np.eye(4)
+    T_bone[2, 3] = 0.5
+    T_camera = np.stack([np.eye(4), np.full((4, 4), np.nan)])  # the second frame has no camera pose
+    share = bench.in_view_share(T_camera, np.stack([T_bone, T_bone]), points, camera)
+    assert share.tolist() == [0.5, 0.0]
+
+
 def _row(mesh, seed, add_med, ok, danger, rest=None):
     return {"config": "c", "scenario": "s", "mesh": mesh, "seed": seed, "add_mm": {"median": add_med, "p95": 2 * add_med},
             "rotation_deg": {"median": add_med / 2}, "lost_pct": 0.0, "status_pct": {"ok": ok},
@@ -298,3 +333,17 @@ def test_summary_gives_the_median_and_names_the_worst_run():
     assert s["after_rest_max_add"]["worst"] == pytest.approx(1.5) and s["after_rest_max_add"]["worst_run"] == "a#1"
     text = bench.summary_table(rows, markdown=True)
     assert "0.40 / 0.90 (b#0)" in text and "3 (b#0)" in text
+
+
+def test_summary_gives_refound_median_and_worst_with_never_as_worst():
+    rows = [_row("a", 0, 0.2, 90.0, 0), _row("b", 0, 0.9, 40.0, 0), _row("c", 0, 0.4, 80.0, 0), _row("d", 0, 0.4, 80.0, 0)]
+    rows[0]["refound"] = {"visible_s": 2.4, "refound_s": 0.5}
+    rows[1]["refound"] = {"visible_s": 2.4, "refound_s": 1.5}
+    rows[2]["refound"] = {"visible_s": None, "refound_s": None}   # never in view after rest
+    (s,) = bench.summary(rows)
+    assert s["refound_s"]["median"] == pytest.approx(1.0) and s["refound_s"]["worst_run"] == "b#0"
+    assert s["refound_s"]["not_in_view"] == ["c#0"]
+    assert "1.00 / 1.50 (b#0), not in view: 1" in bench.summary_table(rows, markdown=True)
+    rows[3]["refound"] = {"visible_s": 2.4, "refound_s": None}    # in view, never found again: the worst
+    (s,) = bench.summary(rows)
+    assert s["refound_s"]["never"] == ["d#0"] and "never (d#0)" in bench.summary_table(rows)

@@ -82,8 +82,8 @@ def _enabled():
     return replace(config, recovery=replace(config.recovery, enabled=True))
 
 
-def test_recovery_is_off_by_default():
-    assert not load_config(None).recovery.enabled      # BENCHMARKS.md §6b: it lost tracks on CT crests
+def test_recovery_is_on_by_default():
+    assert load_config(None).recovery.enabled          # BENCHMARKS.md §6b: harmless on the CT crests, finds a moved bone
 
 
 def test_a_knocked_off_track_is_found_again_within_2_s_and_never_ok_while_off(trial):
@@ -97,7 +97,7 @@ def test_a_knocked_off_track_is_found_again_within_2_s_and_never_ok_while_off(tr
     assert not np.any(ok & (add > 5.0))                          # never ok while > 5 mm off
     assert report["recovery"]["reinitialisations"] >= 1 and reinit.sum() == report["recovery"]["reinitialisations"]
     first = report["recovery"]["events"][0]
-    assert first["kind"] == "respread" and first["stamp"] >= KNOCK_S
+    assert first["kind"] == "search" and first["stamp"] >= KNOCK_S      # every attempt a verified wide search (respreads: 0)
     # the hold: no ok on the first frames after a re-initialisation
     k = int(np.argmax(reinit))
     assert not np.any(ok[k:k + load_config(None).recovery.hold_frames])
@@ -123,7 +123,7 @@ def _policy(**kw) -> RecoveryPolicy:
 
 
 def test_policy_counts_bad_frames_waits_while_hidden_and_holds_after():
-    policy = _policy(after_lost_frames=3, hold_frames=2, cooldown_frames=1)
+    policy = _policy(after_lost_frames=3, hold_frames=2, cooldown_frames=1, respreads=1)
     lost, unc = TrackingStatus.LOST, TrackingStatus.UNCERTAIN
     for _ in range(2):
         policy.update(lost, True, False, 0.9, np.eye(4), 0.0)
@@ -140,7 +140,7 @@ def test_policy_counts_bad_frames_waits_while_hidden_and_holds_after():
 
 
 def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
-    policy = _policy(after_lost_frames=1, respreads=2, cooldown_frames=4)
+    policy = _policy(after_lost_frames=1, respreads=2, cooldown_frames=4, search=False)
     T = se3.from_rotvec_trans(np.array([0.0, 0.0, 0.3]), np.array([0.1, 0.2, 0.3]))
     policy.set_start(T)
     np.testing.assert_allclose(policy.smc_point(), T[:3, :3] @ [0, 0, 0.01] + T[:3, 3])
@@ -158,11 +158,116 @@ def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
     assert gaps[1] > gaps[0]                                # the cooldown doubles
 
 
+def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retries_without_backoff():
+    from app.filter.recovery import SEARCH_RETRY_FRAMES
+
+    policy = _policy(after_lost_frames=1, respreads=1, cooldown_frames=4)
+    T = np.eye(4)
+    frames, due = 0, []
+
+    def run_until_due():
+        nonlocal frames
+        start = frames
+        while not policy.pending and frames < start + 400:
+            policy.update(TrackingStatus.LOST, True, False, float("nan"), T, 0.01 * frames)
+            frames += 1
+        due.append(frames - start)
+        return policy.next_kind()
+
+    assert run_until_due() == "respread"
+    policy.done(0.0, "respread")
+    assert run_until_due() == "search"
+    policy.declined()                                        # found nothing: no attempt, no hold
+    assert policy.report()["declined_searches"] == 1 and len(policy.events) == 1
+    assert run_until_due() == "search" and due[-1] == SEARCH_RETRY_FRAMES   # retried, not backed off
+    policy.done(1.0, "search")
+    assert run_until_due() == "respread"
+
+
+def test_the_slow_trigger_does_not_count_frames_the_rules_find_ok_while_unconfirmed():
+    """After a re-initialisation away from the last ok pose the reported status is uncertain until
+    confirmed; those frames must not fire the slow trigger (it would re-spread at the old pose)."""
+    policy = _policy(after_uncertain_frames=5, hold_frames=0, confirm_frames=8, cooldown_frames=1)
+    policy.done(0.0, "search")
+    T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.1, 0.0, 0.0]))
+    statuses = [policy.update(TrackingStatus.OK, True, True, 0.9, T_far, 0.1 * k) for k in range(8)]
+    assert statuses[:7] == [TrackingStatus.UNCERTAIN] * 7 and statuses[7] == TrackingStatus.OK
+    assert policy.pending is None
+
+
+# -- the wide search (app/filter/wide_search.py) ------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def search_frame(trial):
+    """A tracker on the synthetic crest's trial and one frame of it: (tracker, depth, T_base_camera, truth)."""
+    from app.pipeline.tracker import DepthTracker
+    from app.trial.reader import open_trial
+
+    reader = open_trial(trial)
+    tracker = DepthTracker(_enabled(), reader.load_mesh(), reader.meta.camera)
+    T_base_camera, _ = reader.camera_poses()
+    i = 60
+    yield tracker, reader.read_depth(i), T_base_camera[i], np.asarray(reader.groundtruth[i])
+    tracker.release()
+
+
+def _moved(T_base_bone: np.ndarray, centroid_bone: np.ndarray, shift_m, yaw_rad: float) -> np.ndarray:
+    """T_base_bone turned by yaw about the base's z through the bone's centroid, then shifted."""
+    centre = se3.transform_points(T_base_bone, centroid_bone[None])[0]
+    turn = se3.from_rotvec_trans(np.array([0.0, 0.0, yaw_rad]), np.zeros(3))
+    turn[:3, 3] = centre - turn[:3, :3] @ centre + np.asarray(shift_m, float)
+    return turn @ T_base_bone
+
+
+def test_the_wide_search_finds_a_bone_moved_12_cm_and_45_deg_from_the_last_ok_pose(search_frame):
+    """The last ok pose (where the bone WAS) lies 12 cm / 45 deg from the truth in the image, the track
+    has nothing near it: the image's anchors find it, the refinement confirms it (< 0.5 mm ADD), within
+    the budget of likelihood evaluations."""
+    from app.depth_image import downsample_nearest
+
+    tracker, depth, T_base_camera, T_true = search_frame
+    centroid = tracker.mesh_vertices.mean(axis=0)
+    T_was = _moved(T_true, centroid, [-0.12, 0.0, 0.0], -np.pi / 4)
+    small = downsample_nearest(depth, *tracker.config.resolution)
+    result = tracker.wide_search.run(small, depth, T_base_camera, T_was, [T_was], np.random.default_rng(3))
+    assert result.T_base_bone is not None and result.source == "image"
+    assert 1e3 * metrics.add(result.T_base_bone, T_true, tracker.mesh_vertices) < 0.5
+    assert result.fitness >= 0.6 and result.sharp >= 0.5
+    assert result.evaluations <= tracker.config.recovery.search_evaluations and result.refinements <= 6
+
+
+def test_the_wide_search_declines_where_the_bone_is_not_in_the_image(search_frame):
+    """A flat table only (the bone out of view): nothing confirmed, no pose."""
+    from app.depth_image import downsample_nearest
+
+    tracker, depth, T_base_camera, T_true = search_frame
+    table = np.full_like(depth, 0.45)
+    small = downsample_nearest(table, *tracker.config.resolution)
+    result = tracker.wide_search.run(small, table, T_base_camera, T_true, [T_true], np.random.default_rng(3))
+    assert result.T_base_bone is None
+
+
+def test_image_anchors_are_peaks_that_stand_out_highest_first():
+    """A ridge 2 cm over a floor and a 1 mm bump: one anchor on the ridge's top, none on the bump or the floor."""
+    from app.filter.wide_search import image_anchors
+    from app.geometry.camera import PinholeCamera
+
+    camera = PinholeCamera(np.array([[100.0, 0, 39.5], [0, 100.0, 29.5], [0, 0, 1]]), 80, 60)
+    depth = np.full((60, 80), 0.50)
+    depth[20:40, 30:33] = 0.48                                   # the ridge, 2 cm nearer the camera
+    depth[10, 70] = 0.499                                        # a 1 mm bump: under MIN_PROMINENCE_M
+    T_base_camera = se3.from_rotvec_trans(np.array([np.pi, 0.0, 0.0]), np.array([0.0, 0.0, 0.6]))   # looking down
+    anchors = image_anchors(depth, camera, T_base_camera, count=4)
+    assert len(anchors) >= 1
+    np.testing.assert_allclose(anchors[:, 2], 0.6 - 0.48, atol=1e-9)   # every anchor on the ridge's top
+
+
 def test_a_moving_estimate_is_not_reinitialised_for_being_uncertain():
     """The slow trigger (not ok for after_uncertain_frames) counts only while the estimate is still:
     a bone being repositioned is uncertain for seconds."""
     unc = TrackingStatus.UNCERTAIN
     policy = _policy(after_uncertain_frames=20)
+    policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), -1 / 90)   # ok once before (the slow trigger needs it)
     for k in range(100):                                    # 5 cm/s, 90 frames/s, refined at a good fit
         policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.05 * k / 90, 0, 0])), k / 90)
     assert policy.pending is None
@@ -270,3 +375,64 @@ def test_a_knocked_off_track_is_found_again_on_a_ct_crest(tmp_path, crest_mesh_p
     assert add[after][0] > 10.0 and report["recovery"]["reinitialisations"] >= 1
     assert found.size and stamps[found[0]] - KNOCK_S <= 2.0
     assert not np.any((statuses == "ok") & (add > 5.0))
+
+
+@pytest.mark.slow
+def test_a_ct_crest_moved_out_of_view_is_found_again_within_2_s_of_being_visible(tmp_path, crest_mesh_path):
+    """or_fast_reposition on a shared CT crest (crest_left_02: moved 12 cm / 45 deg from 1.5 s, out of
+    the camera's view from ~2.5 s to ~4.3 s), recovery on: ADD < 2 mm within 2 s of the bone being
+    still and in view (the bench's refound_s), never ok while > 5 mm off (BENCHMARKS.md §6b)."""
+    from app.bench.configs import load_bench_config
+    from app.bench.runs import run_one
+    from app.bench.trials import recorded_trials
+    from app.sim.simulator import simulate
+
+    simulate(tmp_path / "trial", mesh_path=crest_mesh_path, scenario_name="or_fast_reposition", seconds=6.5, seed=0)
+    (tmp_path / "on.yaml").write_text("recovery:\n  enabled: true\n")
+    (trial,) = recorded_trials([tmp_path / "trial"])
+    row = run_one(load_bench_config(tmp_path / "on.yaml"), trial, with_vsd=False)
+    assert row["refound"]["visible_s"] is not None
+    assert row["refound_s"] is not None and row["refound_s"] <= 2.0
+    assert row["dangerous_frames"] == 0
+    assert row["recovery"]["search"]["found"] >= 1
+
+
+def test_a_track_weighed_again_after_being_out_of_view_far_from_the_last_ok_pose_is_searched_at_once():
+    policy = _policy(after_lost_frames=3, after_uncertain_frames=1000, cooldown_frames=1)
+    unc = TrackingStatus.UNCERTAIN
+    T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.1, 0.0, 0.0]))
+    for k in range(5):
+        policy.update(unc, False, False, float("nan"), T_far, 0.1 * k)     # out of view: not weighed
+    assert policy.pending is None
+    policy.update(unc, True, True, 0.9, T_far, 0.6)                          # seen again, 10 cm from the last ok pose
+    assert policy.pending and "unseen" in policy.pending and policy.next_kind() == "search"
+    near = _policy(after_lost_frames=3, after_uncertain_frames=1000, cooldown_frames=1)
+    for k in range(5):
+        near.update(unc, False, False, float("nan"), np.eye(4), 0.1 * k)
+    near.update(unc, True, True, 0.9, np.eye(4), 0.6)                       # back where it was ok: nothing due
+    assert near.pending is None
+
+
+def test_a_due_search_runs_where_the_last_ok_pose_is_out_of_the_image():
+    policy = _policy(after_lost_frames=1)
+    policy.update(TrackingStatus.LOST, True, False, float("nan"), np.eye(4), 0.0)
+    assert policy.next_kind() == "search" and policy.may_run(float("nan"))
+    smc = _policy(after_lost_frames=1, search=False)
+    smc.update(TrackingStatus.LOST, True, False, float("nan"), np.eye(4), 0.0)
+    assert not smc.may_run(float("nan"))            # an SMC at the point prior waits for the old place in view
+
+
+def test_the_slow_trigger_needs_an_ok_frame_since_the_start():
+    """A track never ok (residual tissue) sits ~5 mm from the coarse start it converged from: no
+    re-initialisation for that alone; after an ok frame the same gap counts."""
+    unc = TrackingStatus.UNCERTAIN
+    T_off = se3.from_rotvec_trans(np.zeros(3), np.array([0.006, 0.0, 0.0]))
+    never = _policy(after_uncertain_frames=5, cooldown_frames=1)
+    for k in range(10):
+        never.update(unc, True, True, 0.9, T_off, 0.1 * k)
+    assert never.pending is None
+    was_ok = _policy(after_uncertain_frames=5, cooldown_frames=1)
+    was_ok.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0)
+    for k in range(10):
+        was_ok.update(unc, True, True, 0.9, T_off, 0.1 * (k + 1))
+    assert was_ok.pending is not None and "not ok" in was_ok.pending

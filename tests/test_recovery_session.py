@@ -83,7 +83,7 @@ def test_replay_with_a_plan_bounds_the_template_points(tmp_path):
     simulate(tmp_path / "trial", scenario_name="static_clear", seconds=0.2, seed=2)
     with_plan = replay(tmp_path / "trial", tmp_path / "out", load_config(None), rrd=False)
     assert with_plan.summary["template_points"] == "plan"
-    assert with_plan.summary["recovery"] == {"enabled": False, "reinitialisations": 0, "events": []}
+    assert with_plan.summary["recovery"]["enabled"] and with_plan.summary["recovery"]["reinitialisations"] == 0
     without = replay(tmp_path / "trial", None, load_config(None), rrd=False, projector=False)
     assert without.summary["template_points"] == "mesh_vertices"
 

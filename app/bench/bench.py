@@ -44,7 +44,7 @@ from app.bench.parallel import pmap
 from app.bench.report import COLUMNS, SUMMARY_COLUMNS, plot, summary, summary_table, table, write_json
 from app.bench.runs import run_bench, run_one
 from app.bench.scoring import (JITTER_SETTLE_S, REST_DELAY_S, after_rest, STATIC_ROTATION_RAD, STATIC_TRANSLATION_M, VSD_RESOLUTION, jitter,
-                               static_pairs, vsd_series)
+                               static_pairs, vsd_series, in_view_share, refound)
 from app.bench.trials import (DEFAULT_CACHE, PELVIS_DIR, QUICK_CONFIGS, QUICK_SCENARIOS, QUICK_STATIC_S, TrialSpec,
                               pelvis_crest_meshes, quick_seconds, recorded_trials, standard_trials)
 from app.metrics import DANGEROUS_ADD_MM, LOST_ADD_MM
@@ -52,6 +52,6 @@ from app.metrics import DANGEROUS_ADD_MM, LOST_ADD_MM
 __all__ = ["BUILTIN_DIR", "BUILTIN_ORDER", "REPO", "TRACKERS", "BenchConfig", "builtin_configs", "load_bench_config",
            "load_icp_params", "resolve_configs", "pmap", "COLUMNS", "SUMMARY_COLUMNS", "summary", "summary_table", "plot", "table", "write_json", "run_bench",
            "run_one", "JITTER_SETTLE_S", "STATIC_ROTATION_RAD", "STATIC_TRANSLATION_M", "VSD_RESOLUTION", "jitter",
-           "static_pairs", "vsd_series", "REST_DELAY_S", "after_rest", "DEFAULT_CACHE", "PELVIS_DIR", "QUICK_CONFIGS", "QUICK_SCENARIOS",
+           "static_pairs", "vsd_series", "REST_DELAY_S", "after_rest", "in_view_share", "refound", "DEFAULT_CACHE", "PELVIS_DIR", "QUICK_CONFIGS", "QUICK_SCENARIOS",
            "QUICK_STATIC_S", "TrialSpec", "pelvis_crest_meshes", "quick_seconds", "recorded_trials",
            "standard_trials", "DANGEROUS_ADD_MM", "LOST_ADD_MM"]

@@ -11,7 +11,7 @@ from app.metrics import DANGEROUS_ADD_MM, LOST_ADD_MM
 
 
 COLUMNS = ("config", "scenario", "fps", "ADD med", "ADD p95", "rot med", "rot p95", "VSD rec",
-           "lost %", "ok %", "danger", "jit mm", "jit deg")
+           "lost %", "ok %", "danger", "jit mm", "jit deg", "refound s")
 
 
 def _row_cells(r: dict) -> list[str]:
@@ -21,7 +21,30 @@ def _row_cells(r: dict) -> list[str]:
     return [r["config"], r["trial"], f(r["fps"], 1), f(r["add_mm"]["median"]), f(r["add_mm"]["p95"]),
             f(r["rotation_deg"]["median"]), f(r["rotation_deg"]["p95"]), f(r["vsd_recall"]),
             f(r["lost_pct"], 1), f(r["status_pct"]["ok"], 1), str(r["dangerous_frames"]),
-            f(r["jitter"]["translation_mm"], 3), f(r["jitter"]["rotation_deg"], 3)]
+            f(r["jitter"]["translation_mm"], 3), f(r["jitter"]["rotation_deg"], 3), _refound_cell(r.get("refound"))]
+
+
+def _refound_cell(found: dict | None) -> str:
+    """refound_s of a run (app/bench/scoring.py's ``refound``): seconds, 'never', 'not in view' or '-'."""
+    if found is None:
+        return "-"
+    if found["visible_s"] is None:
+        return "not in view"
+    return "never" if found["refound_s"] is None else f"{found['refound_s']:.2f}"
+
+
+def refound_stat(rows: list[dict], who: list[str]) -> dict:
+    """Over runs with a moved bone that came into view after rest: the median and the worst
+    ``refound_s`` (a run never found again counts as worst, inf), and the runs never found / never in view."""
+    seen = [(w, r["refound"]) for w, r in zip(who, rows) if r.get("refound") and r["refound"]["visible_s"] is not None]
+    values = np.array([np.inf if f["refound_s"] is None else f["refound_s"] for _, f in seen], float)
+    out = {"runs": len(seen), "median": None, "worst": None, "worst_run": None,
+           "never": [w for w, f in seen if f["refound_s"] is None],
+           "not_in_view": [w for w, r in zip(who, rows) if r.get("refound") and r["refound"]["visible_s"] is None]}
+    if len(values):
+        k = int(np.argmax(values))
+        out.update(median=float(np.median(values)), worst=float(values[k]), worst_run=seen[k][0])
+    return out
 
 
 def table(rows: list[dict], markdown: bool = False) -> str:
@@ -46,7 +69,7 @@ def table(rows: list[dict], markdown: bool = False) -> str:
 
 SUMMARY_COLUMNS = ("config", "scenario", "runs", "ADD med: median / worst", "ADD p95: median / worst",
                    "rot med: median / worst", "lost %: median / worst", "ok %: median / min", "danger (total)",
-                   "after rest + 0.3 s: max ADD worst")
+                   "after rest + 0.3 s: max ADD worst", "refound s: median / worst")
 
 
 def summary(rows: list[dict]) -> list[dict]:
@@ -74,8 +97,18 @@ def summary(rows: list[dict]) -> list[dict]:
                     "ok_pct": stat([r["status_pct"]["ok"] for r in rs], worst=np.nanargmin),
                     "dangerous_frames": int(sum(r["dangerous_frames"] for r in rs)),
                     "dangerous_runs": [w for w, r in zip(who, rs) if r["dangerous_frames"]],
-                    "after_rest_max_add": stat(rest)})
+                    "after_rest_max_add": stat(rest), "refound_s": refound_stat(rs, who)})
     return out
+
+
+def _refound_summary(st: dict) -> str:
+    """'median / worst (run)' of refound_s, 'never' for an inf worst, with the runs never in view."""
+    if st["runs"] == 0:
+        return "-" if not st["not_in_view"] else f"not in view ({len(st['not_in_view'])})"
+    worst = "never" if not np.isfinite(st["worst"]) else f"{st['worst']:.2f}"
+    median = "never" if not np.isfinite(st["median"]) else f"{st['median']:.2f}"
+    text = f"{median} / {worst} ({st['worst_run']})"
+    return text + (f", not in view: {len(st['not_in_view'])}" if st["not_in_view"] else "")
 
 
 def summary_table(rows: list[dict], markdown: bool = False) -> str:
@@ -91,7 +124,8 @@ def summary_table(rows: list[dict], markdown: bool = False) -> str:
         rest = "-" if s["after_rest_max_add"]["worst_run"] is None else \
             f"{s['after_rest_max_add']['worst']:.2f} ({s['after_rest_max_add']['worst_run']})"
         lines.append([s["config"], s["scenario"], str(s["runs"]), cell(s["add_median"]), cell(s["add_p95"]),
-                      cell(s["rot_median"]), cell(s["lost_pct"], 1), cell(s["ok_pct"], 1), danger, rest])
+                      cell(s["rot_median"]), cell(s["lost_pct"], 1), cell(s["ok_pct"], 1), danger, rest,
+                      _refound_summary(s["refound_s"])])
     header = list(SUMMARY_COLUMNS)
     if markdown:
         return "\n".join(["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]

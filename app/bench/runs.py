@@ -9,7 +9,7 @@ import numpy as np
 
 from app.bench.configs import BenchConfig
 from app.bench.parallel import pmap
-from app.bench.scoring import after_rest, jitter, static_pairs, vsd_series
+from app.bench.scoring import after_rest, in_view_share, jitter, refound, static_pairs, vsd_series
 from app.bench.trials import TrialSpec
 from app.metrics import DANGEROUS_ADD_MM, LOST_ADD_MM
 
@@ -45,6 +45,8 @@ def run_one(config: BenchConfig, trial: TrialSpec, out_dir: str | Path | None = 
     ok = statuses == "ok"
     vsd = vsd_series(trial.path, T_est, n) if with_vsd else np.full(n, np.nan)
     t_rel = result.stamps - result.stamps[0]
+    in_view = in_view_share(reader.camera_poses()[0][:n], T_gt, points, reader.meta.camera)
+    found = refound(T_gt, t_rel, add_mm, in_view)
     row = {
         "config": config.name, "config_description": config.describe(), "config_source": config.source,
         "tracker": config.kind, "trial": trial.name, "trial_path": trial.path, "mesh": trial.mesh,
@@ -60,6 +62,8 @@ def run_one(config: BenchConfig, trial: TrialSpec, out_dir: str | Path | None = 
         "dangerous_frames": int(np.sum(ok & (add_mm > DANGEROUS_ADD_MM))),
         "jitter": jitter(T_est, static_pairs(T_gt, result.stamps)),
         "after_rest": after_rest(T_gt, t_rel, add_mm),
+        "refound": found, "refound_s": None if found is None else found["refound_s"],
+        "recovery": result.summary.get("recovery"),
         "series": {"t": t_rel.round(4).tolist(), "add_mm": np.round(add_mm, 4).tolist(),
                    "rot_deg": np.round(result.errors["rot_deg"], 4).tolist(),
                    "vsd": [None if not np.isfinite(v) else round(float(v), 4) for v in vsd],

@@ -45,6 +45,53 @@ def after_rest(T_gt: np.ndarray, t: np.ndarray, add_mm: np.ndarray, delay_s: flo
             "median_add_mm": float(np.median(add_mm[late])), "frames": int(late.sum())}
 
 
+REFOUND_ADD_MM = 2.0       # issue 12: a lost track found again = ADD < 2 mm ...
+VISIBLE_SHARE = 0.2        # ... within 2 s of the bone being visible (this share of its vertices in view) and still
+
+
+def in_view_share(T_base_camera: np.ndarray, T_base_bone: np.ndarray, points_bone: np.ndarray, camera) -> np.ndarray:
+    """(N,) the share of the mesh's points (bone frame) that project into the image in front of the
+    camera at the ground truth (occluders not counted: a hand over the bone leaves it in view); 0 on
+    frames without a camera pose."""
+    out = np.zeros(len(T_base_bone))
+    for i, (T_bc, T_bb) in enumerate(zip(T_base_camera, T_base_bone)):
+        if not np.all(np.isfinite(T_bc)):
+            continue
+        T_camera_bone = np.linalg.inv(T_bc) @ T_bb
+        uv, z = camera.project(points_bone @ T_camera_bone[:3, :3].T + T_camera_bone[:3, 3])
+        inside = (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] < camera.width - 0.5) & \
+                 (uv[:, 1] >= -0.5) & (uv[:, 1] < camera.height - 0.5)
+        out[i] = float(np.mean(inside))
+    return out
+
+
+def refound(T_gt: np.ndarray, t: np.ndarray, add_mm: np.ndarray, in_view: np.ndarray,
+            threshold_mm: float = REFOUND_ADD_MM, visible_share: float = VISIBLE_SHARE) -> dict | None:
+    """Issue 12's "lost track found again": from the first frame at or after the bone's last motion
+    (``rest_s``, as :func:`after_rest`) on which it is in view (``in_view`` >= ``visible_share``;
+    ``visible_s``) to the first frame from which ADD stays below ``threshold_mm`` to the end
+    (``refound_s``: 0 when it never left; None when the last frame is off or the bone is never in view
+    after rest). None when the bone never moves (or is still moving at the end)."""
+    t = np.asarray(t, float)
+    moving = ~static_pairs(T_gt, t, settle_s=0.0)
+    moving[0] = False
+    if not moving.any() or moving[-1]:
+        return None
+    rest = int(np.nonzero(moving)[0][-1])
+    seen = np.nonzero(np.asarray(in_view)[rest:] >= visible_share)[0]
+    out = {"rest_s": float(t[rest]), "visible_s": None, "refound_s": None, "threshold_mm": threshold_mm}
+    if len(seen) == 0:
+        return out
+    k_vis = rest + int(seen[0])
+    out["visible_s"] = float(t[k_vis])
+    off = np.nonzero(~(np.asarray(add_mm)[k_vis:] < threshold_mm))[0]
+    if len(off) and k_vis + int(off[-1]) == len(t) - 1:
+        return out
+    k_found = k_vis + (int(off[-1]) + 1 if len(off) else 0)
+    out["refound_s"] = float(t[k_found] - t[k_vis])
+    return out
+
+
 def jitter(T_est: np.ndarray, pairs: np.ndarray) -> dict:
     """RMS frame-to-frame change of the estimate over ``pairs`` (frames k with k-1): mm and deg."""
     from app.geometry import se3

@@ -2,12 +2,8 @@
 
 Import as ``from app.filter.recovery import RecoveryPolicy``. Wired in
 :class:`app.pipeline.tracker.DepthTracker` (issue 12, item 4), so replay, ``osteonav track`` and the
-bench all get it with ``recovery.enabled: true``. **Off by default**: before the "When" and the
-confirmation rules below, on the eight CT crests under an 80 % hand (BENCHMARKS.md §6b) it found no lost track that the tracker did not find by itself, and it
-lost two tracks that held without it (crest_right_04 and crest_right_05: 0 -> 37-39 % of the frames
-lost, and 81 frames ok while > 5 mm off on crest_right_05): re-spread while most of the crest is
-hidden, the filter and the refinement settle on a wrong fit of the visible part, which then passes
-the status rules.
+bench all get it (``recovery.enabled``, **on by default** since the wide search: harmless on the
+eight CT crests, finds a moved bone; before it, re-spreads under a hand lost tracks: BENCHMARKS.md §6b).
 
 **Trigger.** A frame is *bad* when its status is lost, or (with the refinement on) it was weighed
 and the refined fit no longer confirms the visible bone: not refined at all (refine_track.py kept no
@@ -24,14 +20,19 @@ error), never lost (BENCHMARKS.md §6b). The estimate is still when it moved les
 ``status.uncertain_speed`` / ``uncertain_angular_speed`` over ``STILL_WINDOW_S`` = 0.5 s (longer
 than the status's 0.2 s: a wrong track's refined pose jumps a few millimetres between frames, which
 over 0.2 s read as motion and kept the count at 0 on crest_left_02 while 64-100 mm off); a moving
-estimate restarts that count: a bone being repositioned is uncertain for seconds (status.py's motion
+estimate restarts that count, and it needs an ok frame since the start (a track that was never
+ok, e.g. or_deep_tissue, sits ~5 mm from the coarse start pose it converged from; measured: it
+fired 2-3 times there per run for nothing, BENCHMARKS.md §6b); a bone being repositioned is uncertain for seconds (status.py's motion
 rule), and a re-spread around its pose before the move would lose it. The low-fit and the slow
 trigger also need the estimate more than ``FAR_M`` / ``FAR_RAD`` = 5 mm / 5 deg (refine_track.py's
 competitor gap) from the last confident pose: under an 80 % hand a correct track is uncertain for
 seconds (the predicted template error), and re-initialising it there raised crest_left_05's lost
 share from 1.6 to 16 %. It did not save crest_right_04 / _05, whose tracks had been > 5 mm off for a
-moment (and came back by themselves without recovery; BENCHMARKS.md §6b). The re-initialisation
-runs on the next frame that has a camera pose and valid depth.
+moment (and came back by themselves without recovery; BENCHMARKS.md §6b). A third: a weighed
+frame after at least ``after_lost_frames`` not weighed (the estimate out of the image or hidden)
+while not ok and more than FAR_M / FAR_RAD from the last confident pose: a bone moved out of view
+and back (or_fast_reposition) is searched for as soon as it is seen again; the slow trigger took
+1.5 s more there. The re-initialisation runs on the next frame that has a camera pose and valid depth.
 
 **When.** A due attempt waits while the bone is mostly hidden: it runs only on a frame where at
 least ``min_visible_share`` (0.6) of the model's expected silhouette at the last confident pose is
@@ -52,14 +53,28 @@ crest_left_03 78-105 mm off with a fit of 0.95).
   Not around the current estimate too: on crest_left_03 (static_occluded) half of the particles
   there kept a wrong pose 105 mm off alive, and the filter and the refinement went back to it
   after the re-spread had found the bone (0.2 mm);
-- else the *one-point SMC initialiser* (app/filter/smc_init/) around a point on the bone: the
-  trial's / session's ``point_prior`` when given, else the last confident pose's surface point
-  nearest the bone's centroid; its budget is ``smc_evaluations`` pose likelihood evaluations
-  (work, never seconds).
+- else (``search``, the default) the *wide search for a moved bone* (app/filter/wide_search.py):
+  candidates from the image (where its height map stands out, the crest's ridge put there, turned
+  about up) and from the track's recent not-lost estimates (:meth:`RecoveryPolicy.track_poses`: it
+  followed part of the move), scored by the likelihood backend, searched locally and verified by
+  the refinement; ``search_evaluations`` likelihood evaluations plus 6 refinements (work, never
+  seconds). A found pose seeds the cloud (FOUND_SIGMA_M / FOUND_SIGMA_RAD about it) and the
+  refinement's track (RefinedTrack.seed, which resets the static-bone prior: its held base-frame
+  pose is where the bone WAS and must not drag the track back). A search that confirms nothing
+  (the bone out of view) changes nothing and is no attempt (:meth:`RecoveryPolicy.declined`): it
+  is retried every SEARCH_RETRY_FRAMES while the trigger holds. Re-spreading around the last ok
+  pose and the SMC from the trial's point prior both search where the bone was: on
+  or_fast_reposition (12 cm / 45 deg) neither found it (BENCHMARKS.md §6);
+- or, with ``search: false``, the *one-point SMC initialiser* (app/filter/smc_init/) around a point
+  on the bone: the trial's / session's ``point_prior`` when given, else the last confident pose's
+  surface point nearest the bone's centroid; its budget is ``smc_evaluations`` pose likelihood
+  evaluations (work, never seconds).
 
 Without any ok frame yet, the last confident pose is the start pose. After attempt k the next one
 waits at least ``cooldown_frames`` · 2^min(k, 3) frames (a scene that can never be tracked, e.g. a
-crest buried in tissue, is not re-initialised every few frames).
+crest buried in tissue, is not re-initialised every few frames). The slow trigger counts only
+frames the rules do not find ok: a found pose awaiting its confirmation (below) is reported
+uncertain, and counting those frames fired a re-spread at the old pose before it was confirmed.
 
 **Honesty.** For ``hold_frames`` weighed frames after a re-initialisation the status is at most
 uncertain, whatever the rules say; then the usual rules (status.py, with the refinement's fit,
@@ -82,11 +97,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.filter.motion import ParticleState
+from app.filter.visibility import point_visible, visible_share  # noqa: F401  (re-exported: the tracker's "When" inputs)
 from app.filter.status import TrackingStatus
 from app.filter.weights import uniform_log_weights
 from app.geometry import quaternion as quat
 
-RESPREAD, SMC = "respread", "smc"
+RESPREAD, SMC, SEARCH = "respread", "smc", "search"
+FOUND_SIGMA_M, FOUND_SIGMA_RAD = 0.003, math.radians(3.0)   # the cloud about a pose the wide search found
+SEARCH_RETRY_FRAMES = 30             # frames between two wide searches that found nothing (~0.33 s at 90 Hz)
+TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 of the last 90 not-lost estimates
 MAX_BACKOFF_DOUBLINGS = 3
 FAR_M, FAR_RAD = 0.005, math.radians(5.0)
 STILL_WINDOW_S = 0.5
@@ -101,19 +120,23 @@ class RecoveryConfig:
     hold_frames (weighed frames capped at uncertain after one); cooldown_frames (frames between two);
     min_visible_share (a due re-initialisation waits until this share of the bone's expected
     silhouette at the last confident pose is not hidden by an occluder); confirm_frames (after one,
-    weighed frames in a row that the rules find ok before a pose away from the last ok one may be ok)."""
+    weighed frames in a row that the rules find ok before a pose away from the last ok one may be ok);
+    search (the wide search, app/filter/wide_search.py, replaces the one-point SMC attempts);
+    search_evaluations (its likelihood evaluations per search)."""
 
-    enabled: bool = False
+    enabled: bool = True
     after_lost_frames: int = 10
     after_uncertain_frames: int = 90
     respread_sigma_p: float = 0.015
     respread_sigma_r: float = math.radians(10.0)
-    respreads: int = 2
+    respreads: int = 0
     smc_evaluations: int = 30_000
     hold_frames: int = 15
     cooldown_frames: int = 15
     min_visible_share: float = 0.6
     confirm_frames: int = 90
+    search: bool = True
+    search_evaluations: int = 4000
 
 
 @dataclass
@@ -157,9 +180,14 @@ class RecoveryPolicy:
         self._not_ok = 0                       # weighed frames not ok in a row
         self._attempts = 0                     # since the last ok frame
         self._since = 10**9                    # frames since the last re-initialisation
+        self._wait = 0                         # frames the next one waits after it (_due)
         self._hold = 0
         self._unconfirmed = False              # a re-initialised pose not yet confirmed (_confirmed)
         self._ok_run = 0
+        self._track: collections.deque = collections.deque(maxlen=TRACK_FRAMES)   # recent not-lost estimates
+        self._unseen = 0                       # not-weighed frames in a row while not ok
+        self._ever_ok = False                  # the slow trigger needs an ok frame: the start pose is no evidence
+        self.declined_searches = 0
 
     # -- inputs ------------------------------------------------------------------------------
     def set_start(self, T_base_bone: np.ndarray) -> None:
@@ -176,17 +204,22 @@ class RecoveryPolicy:
         """One frame's final status in, the status to report out (capped at uncertain while holding);
         remembers the confident pose and decides whether a re-initialisation is due (``pending``)."""
         self._since += 1
+        rules_ok = status == TrackingStatus.OK
+        if status != TrackingStatus.LOST:
+            self._track.append(np.array(T_base_bone, float))
         if self._hold > 0 and status == TrackingStatus.OK:
             status = TrackingStatus.UNCERTAIN
         if self._hold > 0 and weighed:
             self._hold -= 1
         status = self._confirmed(status, weighed, T_base_bone)
         if status == TrackingStatus.OK:
+            self._ever_ok = True
             self.T_base_bone_confident = np.array(T_base_bone, float)
-            self._attempts, self._bad, self._not_ok = 0, 0, 0
+            self._attempts, self._bad, self._not_ok, self._unseen = 0, 0, 0, 0
             return status
+        back = self._back_in_view(weighed)
         moving = self._moving(stamp, T_base_bone)
-        self._not_ok = 0 if moving else (self._not_ok + 1 if weighed else self._not_ok)
+        self._not_ok = 0 if moving or rules_ok else (self._not_ok + 1 if weighed else self._not_ok)
         reason = self._bad_reason(status, weighed, refined, fitness, T_base_bone)
         if reason is not None:
             self._bad += 1
@@ -195,9 +228,23 @@ class RecoveryPolicy:
         c = self.config
         if reason is not None and self._bad >= c.after_lost_frames:
             self._due(f"{reason} for {self._bad} frames")
-        elif c.after_uncertain_frames and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone):
+        elif back and self._far(T_base_bone):
+            self._due(f"weighed again after {back} frames unseen, {self._gap_text(T_base_bone)} from the last ok pose")
+        elif c.after_uncertain_frames and self._ever_ok and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone):
             self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
         return status
+
+    def _back_in_view(self, weighed: bool) -> int:
+        """The count of not-weighed frames (not ok) just ended by a weighed one when it reached
+        ``after_lost_frames``, else 0: the estimate is in view again after the bone was out of it
+        (or hidden); far from the last ok pose, a moved bone is searched for at once instead of
+        after the slow trigger's ``after_uncertain_frames`` (module docstring, "Trigger")."""
+        if not weighed:
+            self._unseen += 1
+            return 0
+        back = self._unseen if self._unseen >= self.config.after_lost_frames else 0
+        self._unseen = 0
+        return back
 
     def _confirmed(self, status: TrackingStatus, weighed: bool, T_base_bone: np.ndarray) -> TrackingStatus:
         """After a re-initialisation (module docstring, "Honesty"): ok only at a pose that agrees with
@@ -250,7 +297,7 @@ class RecoveryPolicy:
         return dist / dt > speed or angle / dt > angular
 
     def _due(self, reason: str) -> None:
-        if self._since >= self._cooldown() and self.pending is None:
+        if self._since >= self._wait and self.pending is None:
             self.pending = reason
 
     def _bad_reason(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float,
@@ -264,13 +311,31 @@ class RecoveryPolicy:
         return None
 
     def _cooldown(self) -> int:
+        """After attempt k (attempts counts it already): cooldown_frames * 2^min(k, 3)."""
         k = max(self._attempts - 1, 0)
         return self.config.cooldown_frames * 2 ** min(k, MAX_BACKOFF_DOUBLINGS)
 
     def next_kind(self) -> str:
         """The kind of the due attempt (module docstring)."""
         c = self.config
-        return RESPREAD if self._attempts % (c.respreads + 1) < c.respreads else SMC
+        if self._attempts % (c.respreads + 1) < c.respreads:
+            return RESPREAD
+        return SEARCH if c.search else SMC
+
+    def track_poses(self) -> list[np.ndarray]:
+        """Up to TRACK_POSES of the last TRACK_FRAMES not-lost estimates (base frame), evenly spaced:
+        the wide search's candidates from the track (it followed part of a move)."""
+        poses = list(self._track)
+        step = max(len(poses) // TRACK_POSES, 1)
+        return poses[::-1][::step][:TRACK_POSES]
+
+    def declined(self) -> None:
+        """The due wide search found nothing confirmed (the bone out of view): nothing was changed, so
+        it is no attempt (no hold, no backoff step, the bad-frame counts kept); the next search runs
+        SEARCH_RETRY_FRAMES later while the trigger still holds."""
+        self.pending = None
+        self.declined_searches += 1
+        self._since, self._wait = 0, SEARCH_RETRY_FRAMES
 
     def smc_point(self) -> np.ndarray:
         """The point on the bone (base frame) the one-point initialiser starts from."""
@@ -285,6 +350,7 @@ class RecoveryPolicy:
         self.pending = None
         self._attempts += 1
         self._since, self._bad, self._not_ok = 0, 0, 0
+        self._wait = self._cooldown()
         self._recent.clear()
         self._hold = self.config.hold_frames
         self._unconfirmed, self._ok_run = True, 0
@@ -293,56 +359,42 @@ class RecoveryPolicy:
     def may_run(self, visible_share: float) -> bool:
         """Whether the due attempt may run on this frame: ``visible_share`` of the bone's expected
         silhouette at the last confident pose is not hidden (:func:`visible_share`); under the hand
-        it waits (module docstring, "When")."""
-        return self.pending is not None and visible_share >= self.config.min_visible_share
+        it waits (module docstring, "When"). A wide search also runs where the last confident pose is
+        out of the image (``visible_share`` NaN): the camera has moved away from where the bone was,
+        and the search looks everywhere (crest_left_02 seed 1, or_fast_reposition: it waited 2.4 s)."""
+        if self.pending is None:
+            return False
+        if math.isnan(visible_share):
+            return self.next_kind() == SEARCH
+        return visible_share >= self.config.min_visible_share
 
     # -- the re-spread -----------------------------------------------------------------------
     def respread_state(self, n: int, rng: np.random.Generator) -> ParticleState:
         """n particles around the last confident pose (module docstring: rotations about the bone's
         centroid), at rest, equally weighted."""
-        p, q = self._around(self.T_base_bone_confident, n, rng)
+        return self.state_around(self.T_base_bone_confident, n, rng)
+
+    def state_around(self, T_base_bone: np.ndarray, n: int, rng: np.random.Generator,
+                     sigma_p: float | None = None, sigma_r: float | None = None) -> ParticleState:
+        """n particles around ``T_base_bone`` (default spread: the re-spread's), at rest, equally weighted."""
+        c = self.config
+        p, q = self._around(T_base_bone, n, rng, c.respread_sigma_p if sigma_p is None else sigma_p,
+                            c.respread_sigma_r if sigma_r is None else sigma_r)
         return ParticleState(p, np.zeros((n, 3)), q, np.zeros((n, 3)), uniform_log_weights(n))
 
-    def _around(self, T_base_bone: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    def _around(self, T_base_bone: np.ndarray, n: int, rng: np.random.Generator, sigma_p: float,
+                sigma_r: float) -> tuple[np.ndarray, np.ndarray]:
         """p' = c + R(r)(t - c) + ε, q' = exp(r) ⊗ q0 with c the centroid in the base frame."""
-        c = self.config
         R0, t0 = T_base_bone[:3, :3], T_base_bone[:3, 3]
         centre = R0 @ self.centroid_bone + t0
-        dq = quat.exp_map(rng.normal(0.0, c.respread_sigma_r, (n, 3)))
+        dq = quat.exp_map(rng.normal(0.0, sigma_r, (n, 3)))
         p = centre[None] + quat.rotate(dq, np.broadcast_to(t0 - centre, (n, 3)))
-        p = p + rng.normal(0.0, c.respread_sigma_p, (n, 3))
+        p = p + rng.normal(0.0, sigma_p, (n, 3))
         q = quat.normalize(quat.multiply(dq, np.broadcast_to(quat.from_matrix(R0), (n, 4))))
         return p, q
 
     def report(self) -> dict:
         """The re-initialisations for the summaries: count, stamps, kinds and reasons."""
         return {"enabled": self.config.enabled, "reinitialisations": len(self.events),
+                "declined_searches": self.declined_searches,
                 "events": [{"stamp": e.stamp, "kind": e.kind, "reason": e.reason} for e in self.events]}
-
-
-def visible_share(refiner, depth: np.ndarray, T_camera_bone: np.ndarray) -> float:
-    """The share of the model's expected silhouette at ``T_camera_bone`` (the refiner's z-buffer on its
-    grid) whose measurement is valid and not an occluder (not more than ``occluder_margin`` in
-    front of the model): 1 on a clear view, ~0.2 under an 80 % hand. 0 when the bone is out of view."""
-    zbuf, _ = refiner.model_depth(T_camera_bone)
-    expected = int(np.isfinite(zbuf).sum())
-    if expected == 0:
-        return 0.0
-    y, _ = refiner.measurements(depth, T_camera_bone)
-    return len(y) / expected
-
-
-def point_visible(camera, depth: np.ndarray, point_camera: np.ndarray, margin: float) -> bool:
-    """Whether a point (camera frame, m) projects into the image onto a valid depth that is not
-    more than ``margin`` in front of it (the pointed point not hidden by a hand)."""
-    if point_camera[2] <= 0:
-        return False
-    uv, z = camera.project(np.asarray(point_camera, float).reshape(1, 3))
-    u, v = int(round(uv[0, 0])), int(round(uv[0, 1]))
-    h, w = depth.shape
-    if not (0 <= u < w and 0 <= v < h):
-        return False
-    r0, r1, c0, c1 = max(v - 2, 0), min(v + 3, h), max(u - 2, 0), min(u + 3, w)
-    patch = depth[r0:r1, c0:c1]
-    patch = patch[np.isfinite(patch) & (patch > 0)]
-    return patch.size > 0 and float(np.median(patch)) >= float(z[0]) - margin

@@ -13,6 +13,7 @@ projector), else over ``PLAN_POINTS`` of the mesh's vertices (a conservative bou
 from __future__ import annotations
 
 import logging
+import time
 from collections import defaultdict
 from dataclasses import replace
 
@@ -22,7 +23,8 @@ import trimesh
 from app.config import TrackerConfig
 from app.depth_image import downsample_nearest
 from app.filter.particle_filter import FilterOutput, ParticleFilter
-from app.filter.recovery import RESPREAD, RecoveryPolicy, point_visible, visible_share
+from app.filter.recovery import (FOUND_SIGMA_M, FOUND_SIGMA_RAD, RESPREAD, SEARCH, RecoveryPolicy, point_visible,
+                                  visible_share)
 from app.filter.refine import Refiner, RefineParams
 from app.filter.refine_track import RefinedTrack
 from app.filter.status import RefinementEvidence, TrackingStatus, with_refinement
@@ -70,6 +72,8 @@ class DepthTracker:
         self._started_from_point = False
         self.init_result = None
         self.recovery = _recovery_policy(config, self.mesh_vertices, self.mesh_faces)
+        self.wide_search = _wide_search(config, self.backend, self.camera, self.refined_track, self.mesh_vertices)
+        self._search_work = {"searches": 0, "found": 0, "evaluations": 0, "refinements": 0, "cpu_s": 0.0, "wall_s": 0.0}
         self.template_points = "mesh_vertices"
         self._T_base_bone_last: np.ndarray | None = None
 
@@ -215,6 +219,11 @@ class DepthTracker:
         if policy.T_base_bone_confident is None:
             policy.set_start(T_now)
         kind = policy.next_kind()
+        if kind == SEARCH and (self.wide_search is None or depth_m is None):
+            kind = "smc"
+        if kind == SEARCH:
+            self._search(depth_small, depth_m, T_base_camera, stamp)
+            return
         if kind != RESPREAD and depth_m is not None and not self._smc_point_visible(depth_m, T_base_camera):
             kind = RESPREAD
         if kind == RESPREAD:
@@ -227,6 +236,33 @@ class DepthTracker:
                 self.refined_track.reset()
         log.info("recovery at %.3f s: %s (%s)", stamp, kind, policy.pending)
         policy.done(stamp, kind)
+
+    def _search(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray, stamp: float) -> None:
+        """The wide search for a moved bone (app/filter/wide_search.py): a found pose seeds the cloud
+        (FOUND_SIGMA_M / _RAD about it) and the refinement's track (which resets the static prior:
+        the old base-frame pose must not drag it back); nothing found changes nothing."""
+        policy = self.recovery
+        wall0, cpu0 = time.perf_counter(), time.process_time()
+        result = self.wide_search.run(depth_small, depth_m, T_base_camera, policy.T_base_bone_confident,
+                                      policy.track_poses(), self.filter.rng)
+        work = self._search_work
+        work["searches"] += 1
+        work["evaluations"] += result.evaluations
+        work["refinements"] += result.refinements
+        work["cpu_s"] += time.process_time() - cpu0
+        work["wall_s"] += time.perf_counter() - wall0
+        self._timings["recovery_search"] += time.perf_counter() - wall0
+        if result.T_base_bone is None:
+            log.info("recovery at %.3f s: wide search found nothing confirmed (best fit %.2f)", stamp, result.fitness)
+            policy.declined()
+            return
+        work["found"] += 1
+        self.filter.set_state(policy.state_around(result.T_base_bone, self.config.particles, self.filter.rng,
+                                                  FOUND_SIGMA_M, FOUND_SIGMA_RAD))
+        self.refined_track.seed(result.T_base_bone)
+        log.info("recovery at %.3f s: wide search found a pose (fit %.2f, sharp %.2f, from the %s) (%s)", stamp,
+                 result.fitness, result.sharp, result.source, policy.pending)
+        policy.done(stamp, SEARCH)
 
     def _smc_from(self, point_base: np.ndarray, depth_small: np.ndarray, T_base_camera: np.ndarray) -> None:
         """The one-point initialiser with the recovery's budget (likelihood evaluations), one run."""
@@ -241,6 +277,8 @@ class DepthTracker:
         the status's predicted template error was computed over ('plan' | 'mesh_vertices')."""
         recovery = self.recovery.report() if self.recovery is not None else \
             {"enabled": False, "reinitialisations": 0, "events": []}
+        if self.recovery is not None:
+            recovery["search"] = dict(self._search_work)
         return {"recovery": recovery, "template_points": self.template_points}
 
     def _not_started(self, stamp: float) -> FilterOutput:
@@ -325,6 +363,19 @@ def _recovery_policy(config: TrackerConfig, vertices: np.ndarray, faces: np.ndar
     st = config.status
     return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, st.min_fitness,
                           (st.uncertain_speed, st.uncertain_angular_speed, st.motion_window_s))
+
+
+def _wide_search(config: TrackerConfig, backend, camera: PinholeCamera, refined_track: RefinedTrack | None,
+                 vertices: np.ndarray):
+    """The recovery's wide search (app/filter/wide_search.py) on the filter's backend and the
+    refinement's refiner, or None (recovery off, ``recovery.search`` false, or no refinement)."""
+    from app.filter.wide_search import SearchConfig, WideSearch
+
+    r = config.recovery
+    if not (r.enabled and r.search) or refined_track is None:
+        return None
+    search = SearchConfig(evaluations=r.search_evaluations, min_fitness=config.status.min_fitness)
+    return WideSearch(backend, camera, refined_track.refiner, vertices, search)
 
 
 def _filter_config(config: TrackerConfig) -> TrackerConfig:

@@ -1,0 +1,313 @@
+"""A wide search for a moved bone: hypothesise, score with the likelihood, verify by the refinement.
+
+Import as ``from app.filter.wide_search import WideSearch``. Used by the recovery
+(app/filter/recovery.py, issue 12: "a lost track finds a MOVED bone again"): re-spreading around
+the last ok pose and the one-point SMC from the trial's point prior both search where the bone
+*was*; a pelvis moved 12 cm / 45 deg (or_fast_reposition) lies outside both. The search is the
+classic hypothesise-and-verify scheme of model-based object detection (Hinterstoisser et al., ACCV
+2012, "Model based training, detection and pose estimation of texture-less 3D objects": candidate
+poses scored against the image, the best ones refined by ICP and verified), with the candidates
+drawn from the image and the track instead of a template bank:
+
+1. **Candidate positions from the image.** The crest stands out of the tissue: its top is a local
+   height maximum of the measured point cloud (the filter's depth image back-projected into the
+   base frame, height along the base's z axis, up for a robot on the floor or a table; the
+   simulator's table lies in the base's xy plane). The ``anchors`` highest points at least
+   ``ANCHOR_SPACING_M`` apart (greedy non-maximum suppression) each carry the bone's top (the mesh
+   vertices along its ridge at the last ok pose, :func:`ridge_points`) in ``yaw_steps`` turns about the up axis (a pelvis
+   is repositioned on the table: mostly a translation and a turn about the vertical; Δ yaw = 360° /
+   ``yaw_steps``), plus draws around each with ``ANCHOR_SIGMA_M`` / ``ANCHOR_SIGMA_RAD``.
+2. **Candidates from the track.** The track's recent estimates (it followed part of the way during
+   the move) and the last ok pose, each with draws of ``TRACK_SIGMA_M`` / ``TRACK_SIGMA_RAD``.
+3. **Scoring** with the configured likelihood backend (DESIGN.md's depth likelihood at the
+   filter's resolution; app/filter/smc_init/levels.py's ``backend_level``) in one batch.
+4. **Local search** around the ``clusters`` best distinct candidates (more than
+   ``DISTINCT_M`` / ``DISTINCT_RAD`` apart; ``TRACK_CLUSTERS`` of them from the track, the rest from
+   the image: a wrong track's neighbourhood scored higher than the moved bone's anchors and took
+   every cluster on crest_left_02): ``CEM_ROUNDS`` rounds of the cross-entropy method
+   (Rubinstein and Kroese 2004: draw around the best, keep the best; σ halved per round; turns
+   about the bone's centroid, so the crest does not swing about the bone frame's origin).
+5. **Verification** by the refinement (app/filter/refine.py, robust point-to-plane Gauss-Newton at
+   the sensor's resolution) from the ``refine_top`` best (the best from the track and the others
+   from the image), once with twice the first Tukey width
+   (a wider capture, as refine_track.py's seeded start) and once more from its result; a candidate
+   is found only when its refined fit confirms at least ``min_fitness`` (status.min_fitness, 0.6)
+   of the expected visible surface within 3 σ and its consistent sharp share (within 1 σ, less the
+   share behind the model beyond the noise) is at least ``min_sharp`` = 0.5: a right pose leaves
+   Gaussian noise, ~68 % within 1 σ (0.83 at the truth of crest_left_02, or_fast_reposition at 5 s),
+   while wrong fits that confirmed 0.63-0.65 within 3 σ had 0.17-0.23; among those the one with the highest
+   :func:`app.filter.refine_track.consistent_sharp` wins (refine_track.py's rule for two fits).
+   Nothing confirmed (the bone out of view, hidden): the search declines, and the tracker keeps its state.
+
+The budget is counted in likelihood evaluations (``evaluations``: poses scored by the backend, 60 %
+to the image's candidates, 10 % to the track's, the rest to the local search) plus ``2 * refine_top``
+refinements: work, never seconds (0.52-0.60 s of CPU per search on the CT crests, BENCHMARKS.md §6b). A found pose is no evidence of being right: the recovery's confirmation rule
+(app/filter/recovery.py, "Honesty") keeps it from being ok until the rules have agreed for
+``confirm_frames`` weighed frames in a row.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from app.filter.refine_track import consistent_sharp
+from app.filter.smc_init.levels import backend_level
+from app.geometry import quaternion as quat
+from app.geometry import se3
+
+UP_BASE = np.array([0.0, 0.0, 1.0])
+ANCHOR_SPACING_M = 0.03
+PROMINENCE_RADIUS_M = 0.04
+MIN_PROMINENCE_M = 0.01
+RIDGE_POINTS, RIDGE_DEPTH_M = 5, 0.005
+ANCHOR_SIGMA_M, ANCHOR_SIGMA_RAD = 0.005, math.radians(5.0)
+TRACK_SIGMA_M, TRACK_SIGMA_RAD = 0.01, math.radians(10.0)
+DISTINCT_M, DISTINCT_RAD = 0.01, math.radians(10.0)
+CEM_ROUNDS = 2
+CEM_SIGMA_M, CEM_SIGMA_RAD = 0.004, math.radians(4.0)
+ANCHOR_SHARE = 0.6
+TRACK_CLUSTERS = 2
+MIN_SHARP = 0.5
+
+
+@dataclass
+class SearchConfig:
+    """evaluations : likelihood evaluations (poses scored) per search; anchors : image anchors;
+    yaw_steps : turns about the up axis per anchor; clusters : distinct candidates searched locally;
+    refine_top : of those, refined and verified; min_fitness : a refined fit confirming less is not
+    found (status.min_fitness)."""
+
+    evaluations: int = 4000
+    anchors: int = 8
+    yaw_steps: int = 24
+    clusters: int = 6
+    refine_top: int = 3
+    min_fitness: float = 0.6
+    min_sharp: float = MIN_SHARP
+
+
+@dataclass
+class SearchResult:
+    """T_base_bone : the found pose (None: declined); fitness, sharp : of its refined fit (NaN when
+    none converged); evaluations : poses scored; refinements : refiner calls; source : 'image' |
+    'track' of the winner; candidates : (fitness, consistent sharp, T_base_bone) of each verified one."""
+
+    T_base_bone: np.ndarray | None
+    fitness: float
+    sharp: float
+    evaluations: int
+    refinements: int
+    source: str = ""
+    candidates: list = field(default_factory=list)
+
+
+class WideSearch:
+    """The search of the module docstring for one mesh.
+
+    Parameters
+    ----------
+    backend : the likelihood backend (``log_likelihood(T_camera_bone, depth)``) at ``camera``
+    camera : the filter's camera (the backend's resolution)
+    refiner : app.filter.refine.Refiner at the full-resolution depth images
+    vertices : (V, 3) the mesh's vertices (bone frame, m)
+    config : SearchConfig
+    """
+
+    def __init__(self, backend, camera, refiner, vertices: np.ndarray, config: SearchConfig):
+        self.backend, self.camera, self.refiner, self.config = backend, camera, refiner, config
+        self.vertices = np.asarray(vertices, float)
+        self.centroid_bone = self.vertices.mean(axis=0)
+
+    def run(self, depth_small: np.ndarray, depth_full: np.ndarray, T_base_camera: np.ndarray,
+            T_base_bone_ok: np.ndarray, track: list[np.ndarray], rng: np.random.Generator) -> SearchResult:
+        """One search on this frame: ``depth_small`` at the backend's resolution, ``depth_full`` at the
+        refiner's; ``T_base_bone_ok`` the last ok pose (its orientation turned about up for the image's
+        anchors), ``track`` recent estimates (base frame)."""
+        c = self.config
+        level = backend_level(self.backend, self.camera, depth_small, se3.inverse(T_base_camera))
+        p, q, source = self._candidates(depth_small, T_base_camera, T_base_bone_ok, track, rng)
+        ll = _finite(level.score(p, q))
+        evaluations = len(p)
+        from_track = source == "track"
+        n_track = min(TRACK_CLUSTERS, c.clusters - 1)
+        seeds = _distinct_best(p, q, np.where(from_track, -np.inf, ll), c.clusters - n_track) + \
+            _distinct_best(p, q, np.where(from_track, ll, -np.inf), n_track)
+        per_cluster = max((c.evaluations - evaluations) // max(len(seeds) * CEM_ROUNDS, 1), 1)
+        found = {"image": [], "track": []}
+        for k in seeds:
+            pk, qk, llk, spent = self._cem(level, p[k], q[k], ll[k], per_cluster, rng)
+            evaluations += spent
+            found[source[k]].append((llk, pk, qk, source[k]))
+        n_verify_track = min(1, len(found["track"]), c.refine_top - 1)
+        best = sorted(found["image"], key=lambda f: -f[0])[:c.refine_top - n_verify_track] + \
+            sorted(found["track"], key=lambda f: -f[0])[:n_verify_track]
+        return self._verify(best, depth_full, T_base_camera, evaluations)
+
+    # -- candidates ---------------------------------------------------------------------------
+    def _candidates(self, depth_small, T_base_camera, T_base_bone_ok, track, rng):
+        c = self.config
+        anchors = image_anchors(depth_small, self.camera, T_base_camera, c.anchors)
+        n_image = int(ANCHOR_SHARE * c.evaluations)
+        per_hypothesis = max(n_image // max(len(anchors) * c.yaw_steps * RIDGE_POINTS, 1), 1)
+        p_img, q_img = self._anchored(anchors, T_base_bone_ok, per_hypothesis, rng)
+        poses = [np.asarray(T, float) for T in track] + [np.asarray(T_base_bone_ok, float)]
+        per_pose = max((c.evaluations - n_image) // (4 * len(poses)), 1)
+        p_trk, q_trk = [], []
+        for T in poses:
+            p0, q0 = _pose_pq(T)
+            pt, qt = self._around(p0, q0, per_pose, TRACK_SIGMA_M, TRACK_SIGMA_RAD, rng, keep_first=True)
+            p_trk.append(pt)
+            q_trk.append(qt)
+        p = np.concatenate([p_img] + p_trk)
+        q = np.concatenate([q_img] + q_trk)
+        source = np.array(["image"] * len(p_img) + ["track"] * (len(p) - len(p_img)))
+        return p, q, source
+
+    def _anchored(self, anchors: np.ndarray, T_base_bone_ok: np.ndarray, per_hypothesis: int, rng):
+        """Poses putting the bone's top on each anchor, turned about up by each yaw step (module
+        docstring, 1), with ``per_hypothesis`` - 1 draws around each."""
+        if len(anchors) == 0:
+            return np.zeros((0, 3)), np.zeros((0, 4))
+        ridge = ridge_points(self.vertices, T_base_bone_ok[:3, :3])
+        R_ok = T_base_bone_ok[:3, :3]
+        yaws = 2.0 * np.pi * np.arange(self.config.yaw_steps) / self.config.yaw_steps
+        q_yaw = quat.multiply(quat.exp_map(yaws[:, None] * UP_BASE[None]),
+                              np.broadcast_to(quat.from_matrix(R_ok), (len(yaws), 4)))
+        ps, qs = [], []
+        for anchor in anchors:
+            for qk in q_yaw:
+                p0 = anchor[None] - quat.rotate(np.broadcast_to(qk, (len(ridge), 4)), ridge)
+                for pj in p0:
+                    pk, qk_ = self._around(pj, qk, per_hypothesis, ANCHOR_SIGMA_M, ANCHOR_SIGMA_RAD, rng, keep_first=True)
+                    ps.append(pk)
+                    qs.append(qk_)
+        return np.concatenate(ps), np.concatenate(qs)
+
+    def _around(self, p0, q0, n, sigma_p, sigma_r, rng, keep_first=False):
+        """n poses about (p0, q0): a turn r ~ N(0, σ_r² I) about the bone's centroid c (base frame),
+        p' = c + R(r)(p0 - c) + ε, q' = exp(r) ⊗ q0 (app/filter/recovery.py's re-spread)."""
+        centre = p0 + quat.rotate(q0[None], self.centroid_bone[None])[0]
+        r = rng.normal(0.0, sigma_r, (n, 3))
+        eps = rng.normal(0.0, sigma_p, (n, 3))
+        if keep_first:
+            r[0], eps[0] = 0.0, 0.0
+        dq = quat.exp_map(r)
+        p = centre[None] + quat.rotate(dq, np.broadcast_to(p0 - centre, (n, 3))) + eps
+        q = quat.normalize(quat.multiply(dq, np.broadcast_to(q0, (n, 4))))
+        return p, q
+
+    # -- local search and verification ------------------------------------------------------------
+    def _cem(self, level, p0, q0, ll0, per_round: int, rng):
+        """CEM_ROUNDS rounds of draws around the best so far (σ halved each round); the best kept."""
+        best_p, best_q, best_ll, spent = p0, q0, ll0, 0
+        sigma_p, sigma_r = CEM_SIGMA_M, CEM_SIGMA_RAD
+        for _ in range(CEM_ROUNDS):
+            p, q = self._around(best_p, best_q, per_round, sigma_p, sigma_r, rng)
+            ll = _finite(level.score(p, q))
+            spent += len(p)
+            k = int(np.argmax(ll))
+            if ll[k] > best_ll:
+                best_p, best_q, best_ll = p[k], q[k], ll[k]
+            sigma_p, sigma_r = sigma_p / 2.0, sigma_r / 2.0
+        return best_p, best_q, best_ll, spent
+
+    def _verify(self, found, depth_full, T_base_camera, evaluations: int) -> SearchResult:
+        """Refine each candidate (wide first step, then again) and keep the best confirmed fit."""
+        T_camera_base = se3.inverse(T_base_camera)
+        width = 2.0 * self.refiner.params.start_width
+        verified, refinements = [], 0
+        for _, p, q, source in found:
+            T_camera_bone = T_camera_base @ se3.from_quat_trans(q, p)
+            result = self.refiner.refine(depth_full, T_camera_bone, width)
+            result = self.refiner.refine(depth_full, result.T_camera_bone)
+            refinements += 2
+            if result.converged and np.isfinite(result.fitness):
+                verified.append((result.fitness, consistent_sharp(result), T_base_camera @ result.T_camera_bone, source))
+        candidates = [(f, s, T) for f, s, T, _ in verified]
+        confirmed = [v for v in verified if v[0] >= self.config.min_fitness and v[1] >= self.config.min_sharp]
+        if not confirmed:
+            best = max(verified, key=lambda v: v[1], default=(math.nan, math.nan, None, ""))
+            return SearchResult(None, best[0], best[1], evaluations, refinements, "", candidates)
+        fitness, sharp, T_base_bone, source = max(confirmed, key=lambda v: v[1])
+        return SearchResult(T_base_bone, fitness, sharp, evaluations, refinements, source, candidates)
+
+
+def image_anchors(depth: np.ndarray, camera, T_base_camera: np.ndarray, count: int,
+                  spacing: float = ANCHOR_SPACING_M) -> np.ndarray:
+    """(K <= count, 3) base-frame points where something stands out: local height maxima (along
+    UP_BASE) of the measured cloud within ``spacing`` / 2 that stand at least ``MIN_PROMINENCE_M``
+    over the lowest point within ``PROMINENCE_RADIUS_M`` (a top-hat transform of the height map,
+    Serra 1982: the crest stands 1-3 cm out of the tissue, the flat table not at all), highest first,
+    at least ``spacing`` apart (greedy non-maximum suppression). An instrument above the bone takes
+    a few anchors (or_fast_reposition, crest_left_02 at 5 s: the five highest 12-21 cm from the
+    crest's top, the sixth on it)."""
+    from scipy import ndimage
+
+    valid = np.isfinite(depth) & (depth > 0)
+    if not valid.any():
+        return np.zeros((0, 3))
+    rows, cols = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
+    z = np.where(valid, depth, 0.0)
+    rays = np.linalg.solve(camera.K, np.stack([cols.ravel(), rows.ravel(), np.ones(cols.size)]).astype(float)).T
+    points = ((rays * z.ravel()[:, None]) @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]).reshape(*depth.shape, 3)
+    height = np.where(valid, points @ UP_BASE, np.nan)
+    pixel = float(np.median(z[valid])) / float(camera.K[0, 0])          # m per pixel at the scene's depth
+    local = ndimage.maximum_filter(np.where(valid, height, -np.inf), size=_window(spacing / 2.0, pixel))
+    floor = ndimage.minimum_filter(np.where(valid, height, np.inf), size=_window(PROMINENCE_RADIUS_M, pixel))
+    peaks = valid & (height >= local) & (height - floor >= MIN_PROMINENCE_M)
+    rank = np.where(peaks, height, -np.inf).ravel()
+    flat_points = points.reshape(-1, 3)
+    chosen: list[np.ndarray] = []
+    for i in np.argsort(-rank):
+        if not np.isfinite(rank[i]) or len(chosen) >= count:
+            break
+        if all(np.linalg.norm(flat_points[i] - a) >= spacing for a in chosen):
+            chosen.append(flat_points[i])
+    return np.array(chosen).reshape(-1, 3)
+
+
+def ridge_points(vertices: np.ndarray, R_base_bone: np.ndarray, count: int = RIDGE_POINTS,
+                 depth: float = RIDGE_DEPTH_M) -> np.ndarray:
+    """(<= count, 3) bone-frame vertices along the top of the bone at orientation ``R_base_bone``:
+    within ``depth`` of the highest along UP_BASE, spread by farthest-point sampling (the measured
+    local maximum lies anywhere along the crest's ridge: 14 mm from its highest vertex on
+    crest_left_02)."""
+    height = (vertices @ R_base_bone.T) @ UP_BASE
+    top = vertices[height >= height.max() - depth]
+    chosen = [int(np.argmax(height[height >= height.max() - depth]))]
+    dist = np.linalg.norm(top - top[chosen[0]], axis=1)
+    while len(chosen) < min(count, len(top)):
+        chosen.append(int(np.argmax(dist)))
+        dist = np.minimum(dist, np.linalg.norm(top - top[chosen[-1]], axis=1))
+    return top[chosen]
+
+
+def _window(radius_m: float, pixel_m: float) -> int:
+    """An odd filter size (pixels) covering ``radius_m`` either side."""
+    return 2 * max(int(round(radius_m / max(pixel_m, 1e-6))), 1) + 1
+
+
+def _distinct_best(p: np.ndarray, q: np.ndarray, ll: np.ndarray, count: int) -> list[int]:
+    """Indices of the ``count`` best-scoring poses at least DISTINCT_M / DISTINCT_RAD apart."""
+    chosen: list[int] = []
+    for i in np.argsort(-ll):
+        if not np.isfinite(ll[i]):
+            break
+        if all(np.linalg.norm(p[i] - p[j]) >= DISTINCT_M or
+               float(quat.angle_between(q[i], q[j])) >= DISTINCT_RAD for j in chosen):
+            chosen.append(int(i))
+            if len(chosen) >= count:
+                break
+    return chosen
+
+
+def _pose_pq(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    q, p = se3.to_quat_trans(T)
+    return np.asarray(p, float), np.asarray(q, float)
+
+
+def _finite(ll) -> np.ndarray:
+    ll = np.asarray(ll, float)
+    return np.where(np.isfinite(ll), ll, -np.inf)
