@@ -8,6 +8,7 @@ before). Frames are taken every 3rd (30 Hz) to keep the test short; budgets coun
 """
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -436,3 +437,33 @@ def test_the_slow_trigger_needs_an_ok_frame_since_the_start():
     for k in range(10):
         was_ok.update(unc, True, True, 0.9, T_off, 0.1 * (k + 1))
     assert was_ok.pending is not None and "not ok" in was_ok.pending
+
+
+def test_a_never_ok_track_outside_the_start_prior_is_searched_for():
+    """Never ok, but farther from the start than its own prior allows (START_SIGMAS x init.sigma_p /
+    sigma_r: 40 mm / 23 deg with the defaults' 10 mm / 0.1 rad): the slow trigger fires (a coarse
+    start that converged onto the tissue 45 mm off, BENCHMARKS.md §6b); inside it (the deep-tissue
+    tracks' ~5 mm), it does not."""
+    from app.filter.recovery import START_SIGMAS
+    unc = TrackingStatus.UNCERTAIN
+
+    def run(offset_m=0.0, angle_rad=0.0):
+        policy = RecoveryPolicy(RecoveryConfig(after_uncertain_frames=5, cooldown_frames=1), np.zeros(3),
+                                np.array([0.0, 0.0, 0.01]), refine_enabled=True, start_sigmas=(0.01, 0.1))
+        policy.set_start(np.eye(4))
+        T = se3.from_rotvec_trans(np.array([0.0, 0.0, angle_rad]), np.array([offset_m, 0.0, 0.0]))
+        for k in range(10):
+            policy.update(unc, True, True, 0.9, T, 0.1 * k)
+        return policy.pending
+
+    assert run(offset_m=0.006) is None
+    assert run(offset_m=0.99 * START_SIGMAS * 0.01) is None
+    assert run(angle_rad=0.99 * START_SIGMAS * 0.1) is None
+    assert "not ok" in run(offset_m=1.01 * START_SIGMAS * 0.01)
+    assert "not ok" in run(angle_rad=1.01 * START_SIGMAS * 0.1)
+    assert "not ok" in run(offset_m=0.045, angle_rad=math.radians(80.0))
+    # without a start prior (the policy's default) a never-ok track is never searched for by this rule
+    default = _policy(after_uncertain_frames=5, cooldown_frames=1)
+    for k in range(10):
+        default.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.2, 0, 0])), 0.1 * k)
+    assert default.pending is None

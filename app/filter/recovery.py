@@ -22,7 +22,10 @@ than the status's 0.2 s: a wrong track's refined pose jumps a few millimetres be
 over 0.2 s read as motion and kept the count at 0 on crest_left_02 while 64-100 mm off); a moving
 estimate restarts that count, and it needs an ok frame since the start (a track that was never
 ok, e.g. or_deep_tissue, sits ~5 mm from the coarse start pose it converged from; measured: it
-fired 2-3 times there per run for nothing, BENCHMARKS.md §6b); a bone being repositioned is uncertain for seconds (status.py's motion
+fired 2-3 times there per run for nothing, BENCHMARKS.md §6b) unless the never-ok estimate lies
+outside the start's own prior: farther than ``START_SIGMAS`` = 4.03 (χ²₃'s 99.9 % point, √16.27)
+times ``init.sigma_p`` / ``sigma_r`` from the start pose (or_coarse_start crest_left_03 seed 1 sat
+45 mm / 80 deg off, uncertain, refined at a fit of 0.85, never searched; BENCHMARKS.md §6b); a bone being repositioned is uncertain for seconds (status.py's motion
 rule), and a re-spread around its pose before the move would lose it. The low-fit and the slow
 trigger also need the estimate more than ``FAR_M`` / ``FAR_RAD`` = 5 mm / 5 deg (refine_track.py's
 competitor gap) from the last confident pose: under an 80 % hand a correct track is uncertain for
@@ -108,6 +111,7 @@ SEARCH_RETRY_FRAMES = 30             # frames between two wide searches that fou
 TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 of the last 90 not-lost estimates
 MAX_BACKOFF_DOUBLINGS = 3
 FAR_M, FAR_RAD = 0.005, math.radians(5.0)
+START_SIGMAS = math.sqrt(16.27)   # chi-square, 3 dof, 99.9 %: a never-ok track this many start sigmas off
 STILL_WINDOW_S = 0.5
 
 
@@ -164,8 +168,10 @@ class RecoveryPolicy:
 
     def __init__(self, config: RecoveryConfig, centroid_bone: np.ndarray, surface_point_bone: np.ndarray,
                  refine_enabled: bool, min_fitness: float = 0.6,
-                 still: tuple[float, float, float] = (0.03, math.radians(20.0), 0.2)):
+                 still: tuple[float, float, float] = (0.03, math.radians(20.0), 0.2),
+                 start_sigmas: tuple[float, float] = (math.inf, math.inf)):
         self.config = config
+        self.start_sigmas = start_sigmas       # init.sigma_p (m), sigma_r (rad): the start pose's prior
         self.centroid_bone = np.asarray(centroid_bone, float).reshape(3)
         self.surface_point_bone = np.asarray(surface_point_bone, float).reshape(3)
         self.refine_enabled = refine_enabled
@@ -174,6 +180,7 @@ class RecoveryPolicy:
         self._recent: collections.deque = collections.deque()   # (stamp, T_base_bone) over the window
         self.point_prior: np.ndarray | None = None
         self.T_base_bone_confident: np.ndarray | None = None
+        self.T_base_bone_start: np.ndarray | None = None
         self.events: list[Reinitialisation] = []
         self.pending: str | None = None        # the reason of a due re-initialisation
         self._bad = 0
@@ -193,6 +200,7 @@ class RecoveryPolicy:
     def set_start(self, T_base_bone: np.ndarray) -> None:
         """The start pose: the confident pose until a frame is ok."""
         self.T_base_bone_confident = np.array(T_base_bone, float)
+        self.T_base_bone_start = np.array(T_base_bone, float)
 
     def set_point_prior(self, point_base: np.ndarray | None) -> None:
         """A point on the bone in the base frame (m; trial or session ``point_prior``), or None."""
@@ -230,7 +238,8 @@ class RecoveryPolicy:
             self._due(f"{reason} for {self._bad} frames")
         elif back and self._far(T_base_bone):
             self._due(f"weighed again after {back} frames unseen, {self._gap_text(T_base_bone)} from the last ok pose")
-        elif c.after_uncertain_frames and self._ever_ok and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone):
+        elif (c.after_uncertain_frames and (self._ever_ok or self._beyond_start(T_base_bone))
+              and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone)):
             self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
         return status
 
@@ -264,10 +273,7 @@ class RecoveryPolicy:
         return TrackingStatus.UNCERTAIN
 
     def _gap(self, T_base_bone: np.ndarray) -> tuple[float, float]:
-        T0 = self.T_base_bone_confident
-        dist = float(np.linalg.norm(T_base_bone[:3, 3] - T0[:3, 3]))
-        cos = (np.trace(T0[:3, :3].T @ T_base_bone[:3, :3]) - 1.0) / 2.0
-        return dist, float(np.arccos(np.clip(cos, -1.0, 1.0)))
+        return _pose_gap(self.T_base_bone_confident, T_base_bone)
 
     def _far(self, T_base_bone: np.ndarray) -> bool:
         """Whether the estimate lies more than FAR_M / FAR_RAD from the last confident pose."""
@@ -275,6 +281,13 @@ class RecoveryPolicy:
             return True
         dist, angle = self._gap(T_base_bone)
         return dist > FAR_M or angle > FAR_RAD
+
+    def _beyond_start(self, T_base_bone: np.ndarray) -> bool:
+        """Never ok and outside the start's prior: more than START_SIGMAS start sigmas from it."""
+        if self._ever_ok or self.T_base_bone_start is None:
+            return False
+        dist, angle = _pose_gap(self.T_base_bone_start, T_base_bone)
+        return dist > START_SIGMAS * self.start_sigmas[0] or angle > START_SIGMAS * self.start_sigmas[1]
 
     def _gap_text(self, T_base_bone: np.ndarray) -> str:
         dist, angle = self._gap(T_base_bone) if self.T_base_bone_confident is not None else (math.nan, math.nan)
@@ -398,3 +411,9 @@ class RecoveryPolicy:
         return {"enabled": self.config.enabled, "reinitialisations": len(self.events),
                 "declined_searches": self.declined_searches,
                 "events": [{"stamp": e.stamp, "kind": e.kind, "reason": e.reason} for e in self.events]}
+
+
+def _pose_gap(T0: np.ndarray, T1: np.ndarray) -> tuple[float, float]:
+    """(translation m, rotation angle rad) between two base-frame poses."""
+    cos = (np.trace(T0[:3, :3].T @ T1[:3, :3]) - 1.0) / 2.0
+    return float(np.linalg.norm(T1[:3, 3] - T0[:3, 3])), float(np.arccos(np.clip(cos, -1.0, 1.0)))

@@ -362,7 +362,8 @@ def _recovery_policy(config: TrackerConfig, vertices: np.ndarray, faces: np.ndar
     surface_point = vertices[np.argmin(np.linalg.norm(vertices - centroid, axis=1))]
     st = config.status
     return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, st.min_fitness,
-                          (st.uncertain_speed, st.uncertain_angular_speed, st.motion_window_s))
+                          (st.uncertain_speed, st.uncertain_angular_speed, st.motion_window_s),
+                          (config.init_sigma_p, config.init_sigma_r))
 
 
 def _wide_search(config: TrackerConfig, backend, camera: PinholeCamera, refined_track: RefinedTrack | None,
