@@ -29,15 +29,21 @@ def static_pairs(T_gt: np.ndarray, stamps: np.ndarray, settle_s: float = JITTER_
 REST_DELAY_S = 0.3   # issue 12: back within 1 mm ADD 0.3 s after the bone comes to rest
 
 
+def _last_motion(T_gt: np.ndarray, t: np.ndarray) -> int | None:
+    """Index of the last frame whose ground truth differs from the previous one; None when it never moves."""
+    moving = ~static_pairs(T_gt, np.asarray(t), settle_s=0.0)
+    moving[0] = False
+    return int(np.nonzero(moving)[0][-1]) if moving.any() else None
+
+
 def after_rest(T_gt: np.ndarray, t: np.ndarray, add_mm: np.ndarray, delay_s: float = REST_DELAY_S) -> dict | None:
     """The error once a moved bone has come to rest: ``rest_s`` (time of the last frame whose
     ground truth differs from the previous one), and the max / median ADD over the frames from
     ``rest_s + delay_s`` on. None when the bone never moves (or is still moving at the end)."""
-    moving = ~static_pairs(T_gt, np.asarray(t), settle_s=0.0)
-    moving[0] = False
-    if not moving.any():
+    rest = _last_motion(T_gt, t)
+    if rest is None:
         return None
-    rest_s = float(t[np.nonzero(moving)[0][-1]])
+    rest_s = float(t[rest])
     late = np.asarray(t) >= rest_s + delay_s
     if not late.any():
         return None
@@ -73,11 +79,9 @@ def refound(T_gt: np.ndarray, t: np.ndarray, add_mm: np.ndarray, in_view: np.nda
     (``refound_s``: 0 when it never left; None when the last frame is off or the bone is never in view
     after rest). None when the bone never moves (or is still moving at the end)."""
     t = np.asarray(t, float)
-    moving = ~static_pairs(T_gt, t, settle_s=0.0)
-    moving[0] = False
-    if not moving.any() or moving[-1]:
+    rest = _last_motion(T_gt, t)
+    if rest is None or rest == len(t) - 1:
         return None
-    rest = int(np.nonzero(moving)[0][-1])
     seen = np.nonzero(np.asarray(in_view)[rest:] >= visible_share)[0]
     out = {"rest_s": float(t[rest]), "visible_s": None, "refound_s": None, "threshold_mm": threshold_mm}
     if len(seen) == 0:

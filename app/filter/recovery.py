@@ -99,7 +99,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app.filter.motion import ParticleState
+from app.filter.motion import ParticleState, draws_about_centroid
+from app.filter.refine_track import pose_gap
 from app.filter.visibility import point_visible, visible_share  # noqa: F401  (re-exported: the tracker's "When" inputs)
 from app.filter.status import TrackingStatus
 from app.filter.weights import uniform_log_weights
@@ -273,7 +274,7 @@ class RecoveryPolicy:
         return TrackingStatus.UNCERTAIN
 
     def _gap(self, T_base_bone: np.ndarray) -> tuple[float, float]:
-        return _pose_gap(self.T_base_bone_confident, T_base_bone)
+        return pose_gap(self.T_base_bone_confident, T_base_bone)
 
     def _far(self, T_base_bone: np.ndarray) -> bool:
         """Whether the estimate lies more than FAR_M / FAR_RAD from the last confident pose."""
@@ -286,7 +287,7 @@ class RecoveryPolicy:
         """Never ok and outside the start's prior: more than START_SIGMAS start sigmas from it."""
         if self._ever_ok or self.T_base_bone_start is None:
             return False
-        dist, angle = _pose_gap(self.T_base_bone_start, T_base_bone)
+        dist, angle = pose_gap(self.T_base_bone_start, T_base_bone)
         return dist > START_SIGMAS * self.start_sigmas[0] or angle > START_SIGMAS * self.start_sigmas[1]
 
     def _gap_text(self, T_base_bone: np.ndarray) -> str:
@@ -397,14 +398,9 @@ class RecoveryPolicy:
 
     def _around(self, T_base_bone: np.ndarray, n: int, rng: np.random.Generator, sigma_p: float,
                 sigma_r: float) -> tuple[np.ndarray, np.ndarray]:
-        """p' = c + R(r)(t - c) + ε, q' = exp(r) ⊗ q0 with c the centroid in the base frame."""
+        """:func:`draws_about_centroid` of ``T_base_bone``, c = R0 c_bone + t0."""
         R0, t0 = T_base_bone[:3, :3], T_base_bone[:3, 3]
-        centre = R0 @ self.centroid_bone + t0
-        dq = quat.exp_map(rng.normal(0.0, sigma_r, (n, 3)))
-        p = centre[None] + quat.rotate(dq, np.broadcast_to(t0 - centre, (n, 3)))
-        p = p + rng.normal(0.0, sigma_p, (n, 3))
-        q = quat.normalize(quat.multiply(dq, np.broadcast_to(quat.from_matrix(R0), (n, 4))))
-        return p, q
+        return draws_about_centroid(R0 @ self.centroid_bone + t0, t0, quat.from_matrix(R0), n, sigma_p, sigma_r, rng)
 
     def report(self) -> dict:
         """The re-initialisations for the summaries: count, stamps, kinds and reasons."""
@@ -412,8 +408,3 @@ class RecoveryPolicy:
                 "declined_searches": self.declined_searches,
                 "events": [{"stamp": e.stamp, "kind": e.kind, "reason": e.reason} for e in self.events]}
 
-
-def _pose_gap(T0: np.ndarray, T1: np.ndarray) -> tuple[float, float]:
-    """(translation m, rotation angle rad) between two base-frame poses."""
-    cos = (np.trace(T0[:3, :3].T @ T1[:3, :3]) - 1.0) / 2.0
-    return float(np.linalg.norm(T1[:3, 3] - T0[:3, 3])), float(np.arccos(np.clip(cos, -1.0, 1.0)))

@@ -52,6 +52,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from app.filter.motion import draws_about_centroid
 from app.filter.refine_track import consistent_sharp
 from app.filter.smc_init.levels import backend_level
 from app.geometry import quaternion as quat
@@ -186,17 +187,10 @@ class WideSearch:
         return np.concatenate(ps), np.concatenate(qs)
 
     def _around(self, p0, q0, n, sigma_p, sigma_r, rng, keep_first=False):
-        """n poses about (p0, q0): a turn r ~ N(0, σ_r² I) about the bone's centroid c (base frame),
-        p' = c + R(r)(p0 - c) + ε, q' = exp(r) ⊗ q0 (app/filter/recovery.py's re-spread)."""
+        """n poses about (p0, q0) turned about the bone's centroid (the recovery's re-spread,
+        :func:`app.filter.motion.draws_about_centroid`)."""
         centre = p0 + quat.rotate(q0[None], self.centroid_bone[None])[0]
-        r = rng.normal(0.0, sigma_r, (n, 3))
-        eps = rng.normal(0.0, sigma_p, (n, 3))
-        if keep_first:
-            r[0], eps[0] = 0.0, 0.0
-        dq = quat.exp_map(r)
-        p = centre[None] + quat.rotate(dq, np.broadcast_to(p0 - centre, (n, 3))) + eps
-        q = quat.normalize(quat.multiply(dq, np.broadcast_to(q0, (n, 4))))
-        return p, q
+        return draws_about_centroid(centre, p0, q0, n, sigma_p, sigma_r, rng, keep_first)
 
     # -- local search and verification ------------------------------------------------------------
     def _cem(self, level, p0, q0, ll0, per_round: int, rng):
@@ -248,9 +242,8 @@ def image_anchors(depth: np.ndarray, camera, T_base_camera: np.ndarray, count: i
     valid = np.isfinite(depth) & (depth > 0)
     if not valid.any():
         return np.zeros((0, 3))
-    rows, cols = np.mgrid[0:depth.shape[0], 0:depth.shape[1]]
     z = np.where(valid, depth, 0.0)
-    rays = np.linalg.solve(camera.K, np.stack([cols.ravel(), rows.ravel(), np.ones(cols.size)]).astype(float)).T
+    rays = camera.pixel_rays().reshape(-1, 3)
     points = ((rays * z.ravel()[:, None]) @ T_base_camera[:3, :3].T + T_base_camera[:3, 3]).reshape(*depth.shape, 3)
     height = np.where(valid, points @ UP_BASE, np.nan)
     pixel = float(np.median(z[valid])) / float(camera.K[0, 0])          # m per pixel at the scene's depth
@@ -275,8 +268,9 @@ def ridge_points(vertices: np.ndarray, R_base_bone: np.ndarray, count: int = RID
     local maximum lies anywhere along the crest's ridge: 14 mm from its highest vertex on
     crest_left_02)."""
     height = (vertices @ R_base_bone.T) @ UP_BASE
-    top = vertices[height >= height.max() - depth]
-    chosen = [int(np.argmax(height[height >= height.max() - depth]))]
+    near_top = height >= height.max() - depth
+    top = vertices[near_top]
+    chosen = [int(np.argmax(height[near_top]))]
     dist = np.linalg.norm(top - top[chosen[0]], axis=1)
     while len(chosen) < min(count, len(top)):
         chosen.append(int(np.argmax(dist)))
