@@ -180,6 +180,8 @@ KEYS: dict[str, _Key] = {
     "refine.prior_clear_ratio": _f("refine.prior_clear_ratio", 1.0, 1e6),
     "refine.prior_information_frames": _f("refine.prior_information_frames", 1.0, 1e6),
     "refine.prior_motion_frames": _i("refine.prior_motion_frames", 0, 100_000),
+    "refine.seed_starts": _i("refine.seed_starts", 0, 10_000),
+    "refine.seed_spread": _f("refine.seed_spread", 0.0, 10.0),
     "recovery.enabled": _Key(("recovery", "enabled"), "bool"),
     "recovery.after_lost_frames": _i("recovery.after_lost_frames", 1, 100_000),
     "recovery.after_uncertain_frames": _i("recovery.after_uncertain_frames", 0, 1_000_000),

@@ -26,7 +26,11 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   two seeds, BENCHMARKS.md §6d), and at 1x, 2x and 4x (``SEED_WIDTHS``) a chain of refinements until
   one no longer moves the pose (``SEED_CHAIN``), whose most consistent link competes when the image's
   noise explains its share behind the model (:meth:`RefinedTrack._seed_fits`: from 16 mm / 12 deg on
-  crest_right_03 one anneal reached 8 mm / 9 deg, four chained at 4x the truth);
+  crest_right_03 one anneal reached 8 mm / 9 deg, four chained at 4x the truth); and, when the start
+  came with its prior (``init.sigma_p`` / ``sigma_r``), a multi-start: ``seed_starts`` (16) poses drawn
+  about the start at ``seed_spread`` (0.5) times that prior, each refined once, every fit a candidate
+  (:meth:`RefinedTrack._start_fits`: Gauss-Newton from the start alone ended in a minimum 8-9 deg off
+  under tissue patches on crest_right_02, BENCHMARKS.md §6e);
 - the static-bone prior (``static_prior``, app/filter/static_prior.py): the kept fit is fused with
   the track's held base-frame pose; a frame whose image constrains the template clearly worse than
   the clearest view since the last release (a hand over the bone; both errors on the configured grid,
@@ -52,14 +56,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.filter.motion import draws_about_centroid
 from app.filter.refine import RENDER_LEVER as REFINE_LEVER
 from app.filter.refine import Refiner, RefineResult, template_std
 from app.filter.static_prior import StaticPrior, StaticPriorConfig
+from app.geometry import quaternion as quat
 from app.geometry import se3
 
 FALLBACK_BEHIND_SHARE = 0.02   # the former fixed share, when too few pixels estimate the noise
 SEED_WIDTHS = (1.0, 2.0, 4.0)  # the seeded first frame's Tukey widths (x RefineParams.start_width; BENCHMARKS.md §6d)
 SEED_CHAIN = 6                 # at most this many refinements chained at each seeded width (BENCHMARKS.md §6d)
+SEED_STARTS_RNG = 20261124    # the multi-start's own generator seed (:meth:`RefinedTrack._start_fits`)
 SEED_SINGLE = (1.0, 2.0)       # widths whose first link is a candidate whatever its consistency (the single refinements of §6d)
 
 
@@ -69,7 +76,8 @@ class RefineConfig:
     resolution); iterations; samples (model points); keep_fitness; reseed_fitness;
     competitor_distance (m) / competitor_angle (rad); competitor_margin; feedback; feedback_fitness;
     static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames, prior_motion_frames
-    (app/filter/static_prior.py)."""
+    (app/filter/static_prior.py); seed_starts, seed_spread (the seeded first frame's multi-start,
+    :meth:`RefinedTrack._start_fits`)."""
 
     enabled: bool = True
     stride: int = 2
@@ -87,6 +95,8 @@ class RefineConfig:
     prior_clear_ratio: float = 1.5
     prior_information_frames: float = 300.0
     prior_motion_frames: int = 9
+    seed_starts: int = 16
+    seed_spread: float = 0.5
 
 
 @dataclass
@@ -150,15 +160,19 @@ class RefinedTrack:
 
     def reset(self) -> None:
         self.T_base_bone, self.fitness = None, float("nan")
-        self._seeded = False
+        self._seeded, self._spread = False, None
         self.last_info: dict = {}
         if getattr(self, "prior", None) is not None:
             self.prior.reset()
 
-    def seed(self, T_base_bone: np.ndarray) -> None:
+    def seed(self, T_base_bone: np.ndarray, spread: tuple[float, float] | None = None) -> None:
         """Start the track at a given pose (the coarse initial alignment): the first frame refines from
-        it with the wide first step as well as from the filter's estimate, and keeps the better fit."""
+        it with the wide first step as well as from the filter's estimate, and keeps the better fit.
+        ``spread`` = (σ_p m, σ_r rad), the start's own prior (``init.sigma_p`` / ``sigma_r``): the
+        first frame also refines from ``seed_starts`` poses drawn about the start
+        (:meth:`_start_fits`); None (a recovery's pose) draws none."""
         self.T_base_bone, self.fitness, self._seeded = np.array(T_base_bone, float), 1.0, True
+        self._spread = spread
         if self.prior is not None:
             self.prior.reset()
 
@@ -208,6 +222,31 @@ class RefinedTrack:
                 fits.append(max(consistent, key=lambda f: consistent_sharp(f[2])))
         return fits
 
+    def _start_fits(self, depth, T_camera_base) -> list:
+        """The seeded first frame's multi-start: ``seed_starts`` poses drawn about the start pose from
+        its prior scaled by ``seed_spread`` (turned about the bone's centroid, app/filter/motion.py's
+        :func:`draws_about_centroid`; a fixed generator, so a replay repeats), each refined once at
+        the default first width; every converged fit is a candidate. Gauss-Newton from the start
+        pose alone ends in the nearest minimum: under 3 mm tissue patches on crest_right_02
+        (or_model_mismatch, seed 1) every refinement from the start (5 mm / 3 deg off) ended 8-9 deg
+        off with 2.5 % of the measurements behind the model, while from one of 16 draws at half the
+        start prior the fit ended 0.9 mm / 1.8 deg off and was clearly more consistent (0.68 against
+        0.39); the same on static_far crest_right_02 seed 1 (9.9 -> 0.75 deg; BENCHMARKS.md §6e)."""
+        c = self.config
+        if self._spread is None or c.seed_starts <= 0 or c.seed_spread <= 0.0:
+            return []
+        sigma_p, sigma_r = self._spread
+        T0 = self.T_base_bone
+        centre = se3.transform_points(T0, self.refiner.center[None])[0]
+        p, q = draws_about_centroid(centre, T0[:3, 3], quat.from_matrix(T0[:3, :3]), c.seed_starts,
+                                    c.seed_spread * sigma_p, c.seed_spread * sigma_r,
+                                    np.random.default_rng(SEED_STARTS_RNG))
+        fits = []
+        for i in range(c.seed_starts):
+            T_new, result = self._refine(depth, T_camera_base, se3.make_pose(quat.to_matrix(q[i]), p[i]))
+            fits.append(("track", T_new, result))
+        return fits
+
     def _needs_filter(self, T_filter: np.ndarray) -> bool:
         c = self.config
         if self.T_base_bone is None or not self.fitness >= c.reseed_fitness:
@@ -240,7 +279,7 @@ class RefinedTrack:
         fits = []
         if self.T_base_bone is not None and self.fitness >= c.keep_fitness:
             if self._seeded:
-                fits += self._seed_fits(depth, T_camera_base)
+                fits += self._seed_fits(depth, T_camera_base) + self._start_fits(depth, T_camera_base)
             else:
                 fits.append(("track", *self._refine(depth, T_camera_base, self.T_base_bone, start_width=0.0)))
         self._seeded = False

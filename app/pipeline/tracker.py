@@ -23,7 +23,7 @@ import trimesh
 from app.config import TrackerConfig
 from app.depth_image import downsample_nearest
 from app.filter.particle_filter import FilterOutput, ParticleFilter
-from app.filter.recovery import (FOUND_SIGMA_M, FOUND_SIGMA_RAD, RESPREAD, SEARCH, RecoveryPolicy, point_visible,
+from app.filter.recovery import (FOUND_SIGMA_M, FOUND_SIGMA_RAD, RESPREAD, SEARCH, SMC, RecoveryPolicy, point_visible,
                                   visible_share)
 from app.filter.refine import Refiner, RefineParams
 from app.filter.refine_track import RefinedTrack
@@ -81,7 +81,7 @@ class DepthTracker:
         """Spread the particles around a coarse initial pose (the surgeon's alignment)."""
         self.filter.initialise(T_base_bone)
         if self.refined_track is not None:
-            self.refined_track.seed(T_base_bone)
+            self.refined_track.seed(T_base_bone, (self.config.init_sigma_p, self.config.init_sigma_r))
         if self.recovery is not None:
             self.recovery.set_start(T_base_bone)
 
@@ -220,7 +220,7 @@ class DepthTracker:
             policy.set_start(T_now)
         kind = policy.next_kind()
         if kind == SEARCH and (self.wide_search is None or depth_m is None):
-            kind = "smc"
+            kind = SMC
         if kind == SEARCH:
             self._search(depth_small, depth_m, T_base_camera, stamp)
             return
