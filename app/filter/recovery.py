@@ -65,7 +65,9 @@ crest_left_03 78-105 mm off with a fit of 0.95).
   refinement's track (RefinedTrack.seed, which resets the static-bone prior: its held base-frame
   pose is where the bone WAS and must not drag the track back). A search that confirms nothing
   (the bone out of view) changes nothing and is no attempt (:meth:`RecoveryPolicy.declined`): it
-  is retried every SEARCH_RETRY_FRAMES while the trigger holds. Re-spreading around the last ok
+  is retried every SEARCH_RETRY_FRAMES on weighed frames away from the last ok pose until a frame
+  is ok or a search finds a pose, whether or not the trigger still holds (a wrong track sliding
+  over the tissue restarts the slow trigger's count). Re-spreading around the last ok
   pose and the SMC from the trial's point prior both search where the bone was: on
   or_fast_reposition (12 cm / 45 deg) neither found it (BENCHMARKS.md §6);
 - or, with ``search: false``, the *one-point SMC initialiser* (app/filter/smc_init/) around a point
@@ -196,6 +198,7 @@ class RecoveryPolicy:
         self._unseen = 0                       # not-weighed frames in a row while not ok
         self._ever_ok = False                  # the slow trigger needs an ok frame: the start pose is no evidence
         self.declined_searches = 0
+        self._searching = False                # a search found nothing: retried until an ok frame or a found pose
 
     # -- inputs ------------------------------------------------------------------------------
     def set_start(self, T_base_bone: np.ndarray) -> None:
@@ -225,6 +228,7 @@ class RecoveryPolicy:
             self._ever_ok = True
             self.T_base_bone_confident = np.array(T_base_bone, float)
             self._attempts, self._bad, self._not_ok, self._unseen = 0, 0, 0, 0
+            self._searching = False
             return status
         back = self._back_in_view(weighed)
         moving = self._moving(stamp, T_base_bone)
@@ -242,6 +246,9 @@ class RecoveryPolicy:
         elif (c.after_uncertain_frames and (self._ever_ok or self._beyond_start(T_base_bone))
               and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone)):
             self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
+        elif self._searching and weighed and self._far(T_base_bone):
+            self._due(f"still searching ({self.declined_searches} searches found nothing), "
+                      f"{self._gap_text(T_base_bone)} from the last ok pose")
         return status
 
     def _back_in_view(self, weighed: bool) -> int:
@@ -346,9 +353,14 @@ class RecoveryPolicy:
     def declined(self) -> None:
         """The due wide search found nothing confirmed (the bone out of view): nothing was changed, so
         it is no attempt (no hold, no backoff step, the bad-frame counts kept); the next search runs
-        SEARCH_RETRY_FRAMES later while the trigger still holds."""
+        SEARCH_RETRY_FRAMES later, and keeps being retried so, on weighed frames away from the last ok
+        pose, until a frame is ok or a search finds a pose: the trigger found the track suspect, and a
+        wrong track that moves (sliding over the tissue) or fits the tissue well is no less so
+        (or_fast_reposition crest_left_03 seed 1: with the retry tied to the trigger, the bone was not
+        searched for again for 2.4 s; BENCHMARKS.md §6e)."""
         self.pending = None
         self.declined_searches += 1
+        self._searching = True
         self._since, self._wait = 0, SEARCH_RETRY_FRAMES
 
     def smc_point(self) -> np.ndarray:
@@ -368,6 +380,7 @@ class RecoveryPolicy:
         self._recent.clear()
         self._hold = self.config.hold_frames
         self._unconfirmed, self._ok_run = True, 0
+        self._searching = False
 
     # -- when a due attempt may run ------------------------------------------------------------
     def may_run(self, visible_share: float) -> bool:
