@@ -540,3 +540,5 @@ def test_a_never_ok_track_sliding_outside_the_start_prior_is_searched_for_withou
     assert slide(inside, 30, x0=-0.015) is None                 # -15 mm -> +18 mm: within 40 mm of the start
     hidden = policy()
     assert slide(hidden, 30, weighed=False) is None              # not weighed: no evidence
+    sliding.done(1.0, "search")                                  # a found pose may lie outside the start's prior
+    assert slide(sliding, 60, start=30) is None

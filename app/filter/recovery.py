@@ -25,8 +25,14 @@ ok, e.g. or_deep_tissue, sits ~5 mm from the coarse start pose it converged from
 fired 2-3 times there per run for nothing, BENCHMARKS.md §6b) unless the never-ok estimate lies
 outside the start's own prior: farther than ``START_SIGMAS`` = 4.03 (χ²₃'s 99.9 % point, √16.27)
 times ``init.sigma_p`` / ``sigma_r`` from the start pose (or_coarse_start crest_left_03 seed 1 sat
-45 mm / 80 deg off, uncertain, refined at a fit of 0.85, never searched; BENCHMARKS.md §6b); a bone being repositioned is uncertain for seconds (status.py's motion
-rule), and a re-spread around its pose before the move would lose it. The low-fit and the slow
+45 mm / 80 deg off, uncertain, refined at a fit of 0.85, never searched; BENCHMARKS.md §6b). Such
+an estimate is searched for after ``after_lost_frames`` weighed frames outside that prior in any
+case, moving or not (or_coarse_start crest_left_04 seed 1 slid from 7 to 33 mm / 70 deg within
+0.3 s, which restarted the slow count, and was searched for 1.5 s later; BENCHMARKS.md §6e), until
+the first re-initialisation: a pose the search found may rightly lie outside the start's prior (a
+bone moved before it was ever ok), and its settling frames must not search again. A bone
+being repositioned is uncertain for seconds (status.py's motion rule), and a re-spread around its
+pose before the move would lose it. The low-fit and the slow
 trigger also need the estimate more than ``FAR_M`` / ``FAR_RAD`` = 5 mm / 5 deg (refine_track.py's
 competitor gap) from the last confident pose: under an 80 % hand a correct track is uncertain for
 seconds (the predicted template error), and re-initialising it there raised crest_left_05's lost
@@ -199,6 +205,8 @@ class RecoveryPolicy:
         self._ever_ok = False                  # the slow trigger needs an ok frame: the start pose is no evidence
         self.declined_searches = 0
         self._searching = False                # a search found nothing: retried until an ok frame or a found pose
+        self._outside = 0                      # weighed frames in a row never ok and outside the start's prior
+        self._from_start = True                # no re-initialisation yet: the start's prior still speaks
 
     # -- inputs ------------------------------------------------------------------------------
     def set_start(self, T_base_bone: np.ndarray) -> None:
@@ -232,6 +240,8 @@ class RecoveryPolicy:
             return status
         back = self._back_in_view(weighed)
         moving = self._moving(stamp, T_base_bone)
+        if weighed:
+            self._outside = self._outside + 1 if self._from_start and self._beyond_start(T_base_bone) else 0
         self._not_ok = 0 if moving or rules_ok else (self._not_ok + 1 if weighed else self._not_ok)
         reason = self._bad_reason(status, weighed, refined, fitness, T_base_bone)
         if reason is not None:
@@ -241,6 +251,9 @@ class RecoveryPolicy:
         c = self.config
         if reason is not None and self._bad >= c.after_lost_frames:
             self._due(f"{reason} for {self._bad} frames")
+        elif self._outside >= c.after_lost_frames:
+            self._due(f"never ok, {self._outside} weighed frames outside the start's prior "
+                      f"({self._gap_text(T_base_bone)} from the start)")
         elif back and self._far(T_base_bone):
             self._due(f"weighed again after {back} frames unseen, {self._gap_text(T_base_bone)} from the last ok pose")
         elif (c.after_uncertain_frames and (self._ever_ok or self._beyond_start(T_base_bone))
@@ -380,7 +393,7 @@ class RecoveryPolicy:
         self._recent.clear()
         self._hold = self.config.hold_frames
         self._unconfirmed, self._ok_run = True, 0
-        self._searching = False
+        self._searching, self._outside, self._from_start = False, 0, False
 
     # -- when a due attempt may run ------------------------------------------------------------
     def may_run(self, visible_share: float) -> bool:
