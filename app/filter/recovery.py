@@ -1,9 +1,10 @@
 """Automatic recovery of a lost track: when to re-initialise the filter, and around what.
 
-Import as ``from app.filter.recovery import RecoveryPolicy``. Wired in
-:class:`app.pipeline.tracker.DepthTracker` (issue 12, item 4), so replay, ``osteonav track`` and the
-bench all get it (``recovery.enabled``, **on by default** since the wide search: harmless on the
-eight CT crests, finds a moved bone; before it, re-spreads under a hand lost tracks: BENCHMARKS.md §6b).
+Import as ``from app.filter.recovery import RecoveryPolicy``. Run on the tracker's parts by
+app/pipeline/recovery_runner.py in :class:`app.pipeline.tracker.DepthTracker` (issue 12, item 4), so
+replay, ``osteonav track`` and the bench all get it (``recovery.enabled``, **on by default** since
+the wide search: harmless on the eight CT crests, finds a moved bone; before it, re-spreads under a
+hand lost tracks: BENCHMARKS.md §6b).
 
 **Trigger.** A frame is *bad* when its status is lost, or (with the refinement on) it was weighed
 and the refined fit no longer confirms the visible bone: not refined at all (refine_track.py kept no

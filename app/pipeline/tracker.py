@@ -13,7 +13,6 @@ projector), else over ``PLAN_POINTS`` of the mesh's vertices (a conservative bou
 from __future__ import annotations
 
 import logging
-import time
 from collections import defaultdict
 from dataclasses import replace
 
@@ -23,12 +22,11 @@ import trimesh
 from app.config import TrackerConfig
 from app.depth_image import downsample_nearest
 from app.filter.particle_filter import FilterOutput, ParticleFilter
-from app.filter.recovery import (FOUND_SIGMA_M, FOUND_SIGMA_RAD, RESPREAD, SEARCH, SMC, RecoveryPolicy, point_visible,
-                                  visible_share)
 from app.filter.refine import Refiner, RefineParams
 from app.filter.refine_track import RefinedTrack
 from app.filter.status import RefinementEvidence, TrackingStatus, with_refinement
 from app.geometry.camera import PinholeCamera
+from app.pipeline.recovery_runner import make_recovery, usable_frame
 
 log = logging.getLogger(__name__)
 
@@ -71,9 +69,10 @@ class DepthTracker:
         self._pending_point: np.ndarray | None = None
         self._started_from_point = False
         self.init_result = None
-        self.recovery = _recovery_policy(config, self.mesh_vertices, self.mesh_faces)
-        self.wide_search = _wide_search(config, self.backend, self.camera, self.refined_track, self.mesh_vertices)
-        self._search_work = {"searches": 0, "found": 0, "evaluations": 0, "refinements": 0, "cpu_s": 0.0, "wall_s": 0.0}
+        self.recovery_runner = make_recovery(config, self.backend, self.camera, self.filter, self.refined_track,
+                                             self.mesh_vertices, self._run_smc)
+        self.recovery = self.recovery_runner.policy if self.recovery_runner is not None else None
+        self.wide_search = self.recovery_runner.wide_search if self.recovery_runner is not None else None
         self.template_points = "mesh_vertices"
         self._T_base_bone_last: np.ndarray | None = None
 
@@ -144,13 +143,14 @@ class DepthTracker:
         width, height = self.config.resolution
         depth_small = downsample_nearest(depth_m, width, height)
         if self._pending_point is not None:
-            if not _usable(depth_small, T_base_camera):
+            if not usable_frame(depth_small, T_base_camera):
                 return self._not_started(stamp)
             self._initialise_from_point(depth_small, T_base_camera)
-        reinitialised = (self.recovery is not None and self.recovery.pending is not None
-                         and _usable(depth_small, T_base_camera) and self._recovery_may_run(depth_m, T_base_camera))
+        runner = self.recovery_runner
+        reinitialised = runner is not None and runner.may_run(depth_small, depth_m, T_base_camera)
         if reinitialised:
-            self._reinitialise(depth_small, T_base_camera, stamp, depth_m)
+            self._timings["recovery_search"] += runner.run(depth_small, depth_m, T_base_camera, stamp,
+                                                           self._T_base_bone_last)
         result = self.filter.step(depth_small, stamp, T_base_camera)
         if self.refined_track is not None:
             result = self._refine(result, depth_m, T_base_camera)
@@ -192,93 +192,11 @@ class DepthTracker:
         return replace(result, T_base_bone=T_base_bone, status=status, timings=timings, refine_fitness=out.fitness,
                        template_std=out.template_std, refined=out.T_base_bone is not None, competitor=out.competitor)
 
-    def _recovery_may_run(self, depth_m: np.ndarray, T_base_camera: np.ndarray) -> bool:
-        """A due re-initialisation waits while the bone's expected silhouette at the last confident
-        pose is mostly hidden (the hand has not withdrawn; app/filter/recovery.py)."""
-        policy = self.recovery
-        if self.refined_track is None or policy.T_base_bone_confident is None:
-            return True
-        T_camera_bone = np.linalg.inv(T_base_camera) @ policy.T_base_bone_confident
-        return policy.may_run(visible_share(self.refined_track.refiner, depth_m, T_camera_bone))
-
-    def _smc_point_visible(self, depth_m: np.ndarray, T_base_camera: np.ndarray) -> bool:
-        """Whether the SMC's pointed point is seen (not behind a hand): else a re-spread instead."""
-        point_camera = (np.linalg.inv(T_base_camera) @ np.append(self.recovery.smc_point(), 1.0))[:3]
-        camera = self.refined_track.refiner.camera if self.refined_track is not None else None
-        if camera is None or camera.width != depth_m.shape[1]:
-            return True
-        return point_visible(camera, depth_m, point_camera, self.config.likelihood.occluder_margin)
-
-    def _reinitialise(self, depth_small: np.ndarray, T_base_camera: np.ndarray, stamp: float,
-                      depth_m: np.ndarray | None = None) -> None:
-        """The recovery's due attempt (app/filter/recovery.py): a wide re-spread around the last
-        confident pose, or the one-point SMC initialiser on this frame (a re-spread instead while
-        the pointed point is hidden)."""
-        policy = self.recovery
-        T_now = self._T_base_bone_last if self._T_base_bone_last is not None else policy.T_base_bone_confident
-        if policy.T_base_bone_confident is None:
-            policy.set_start(T_now)
-        kind = policy.next_kind()
-        if kind == SEARCH and (self.wide_search is None or depth_m is None):
-            kind = SMC
-        if kind == SEARCH:
-            self._search(depth_small, depth_m, T_base_camera, stamp)
-            return
-        if kind != RESPREAD and depth_m is not None and not self._smc_point_visible(depth_m, T_base_camera):
-            kind = RESPREAD
-        if kind == RESPREAD:
-            self.filter.set_state(policy.respread_state(self.config.particles, self.filter.rng))
-            if self.refined_track is not None:
-                self.refined_track.seed(policy.T_base_bone_confident)
-        else:
-            self._smc_from(policy.smc_point(), depth_small, T_base_camera)
-            if self.refined_track is not None:
-                self.refined_track.reset()
-        log.info("recovery at %.3f s: %s (%s)", stamp, kind, policy.pending)
-        policy.done(stamp, kind)
-
-    def _search(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray, stamp: float) -> None:
-        """The wide search for a moved bone (app/filter/wide_search.py): a found pose seeds the cloud
-        (FOUND_SIGMA_M / _RAD about it) and the refinement's track (which resets the static prior:
-        the old base-frame pose must not drag it back); nothing found changes nothing."""
-        policy = self.recovery
-        wall0, cpu0 = time.perf_counter(), time.process_time()
-        result = self.wide_search.run(depth_small, depth_m, T_base_camera, policy.T_base_bone_confident,
-                                      policy.track_poses(), self.filter.rng)
-        work = self._search_work
-        work["searches"] += 1
-        work["evaluations"] += result.evaluations
-        work["refinements"] += result.refinements
-        work["cpu_s"] += time.process_time() - cpu0
-        work["wall_s"] += time.perf_counter() - wall0
-        self._timings["recovery_search"] += time.perf_counter() - wall0
-        if result.T_base_bone is None:
-            log.info("recovery at %.3f s: wide search found nothing confirmed (best fit %.2f)", stamp, result.fitness)
-            policy.declined()
-            return
-        work["found"] += 1
-        self.filter.set_state(policy.state_around(result.T_base_bone, self.config.particles, self.filter.rng,
-                                                  FOUND_SIGMA_M, FOUND_SIGMA_RAD))
-        self.refined_track.seed(result.T_base_bone)
-        log.info("recovery at %.3f s: wide search found a pose (fit %.2f, sharp %.2f, from the %s) (%s)", stamp,
-                 result.fitness, result.sharp, result.source, policy.pending)
-        policy.done(stamp, SEARCH)
-
-    def _smc_from(self, point_base: np.ndarray, depth_small: np.ndarray, T_base_camera: np.ndarray) -> None:
-        """The one-point initialiser with the recovery's budget (likelihood evaluations), one run."""
-        from app.filter.smc_init import smc_config_for
-
-        budget = self.config.recovery.smc_evaluations
-        smc = smc_config_for(self.config, max_evaluations=budget, prior_draws=max(budget // 3, 1), restarts=1)
-        self._run_smc(point_base, depth_small, T_base_camera, smc)
-
     def report(self) -> dict:
         """For the summaries: the re-initialisations (count, stamps, kinds, reasons) and which points
         the status's predicted template error was computed over ('plan' | 'mesh_vertices')."""
-        recovery = self.recovery.report() if self.recovery is not None else \
+        recovery = self.recovery_runner.report() if self.recovery_runner is not None else \
             {"enabled": False, "reinitialisations": 0, "events": []}
-        if self.recovery is not None:
-            recovery["search"] = dict(self._search_work)
         return {"recovery": recovery, "template_points": self.template_points}
 
     def _not_started(self, stamp: float) -> FilterOutput:
@@ -300,12 +218,6 @@ class DepthTracker:
 
     def release(self) -> None:
         self.backend.release()
-
-
-def _usable(depth_small: np.ndarray, T_base_camera: np.ndarray | None) -> bool:
-    """A frame an initialiser can use: a camera pose and at least one valid depth pixel (only
-    checked when an initialisation is due, not every frame)."""
-    return T_base_camera is not None and bool(np.any(np.isfinite(depth_small) & (depth_small > 0)))
 
 
 PLAN_POINTS = 300   # mesh vertices standing in for the template's points in the status's error bound
@@ -351,32 +263,6 @@ def use_projector_plan(tracker, sinks) -> None:
     """A session: the plan of the first projector output (plugins/projector_output.py's ``sink.plan``)."""
     plans = (getattr(getattr(s, "sink", None), "plan", None) for s in sinks)
     use_plan(tracker, next((p for p in plans if p is not None), None))
-
-
-def _recovery_policy(config: TrackerConfig, vertices: np.ndarray, faces: np.ndarray) -> RecoveryPolicy | None:
-    """The recovery policy (app/filter/recovery.py) with the mesh's centroid and the surface point
-    nearest it, or None when ``recovery.enabled`` is false."""
-    if not config.recovery.enabled:
-        return None
-    centroid = vertices.mean(axis=0)
-    surface_point = vertices[np.argmin(np.linalg.norm(vertices - centroid, axis=1))]
-    st = config.status
-    return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, st.min_fitness,
-                          (st.uncertain_speed, st.uncertain_angular_speed, st.motion_window_s),
-                          (config.init_sigma_p, config.init_sigma_r))
-
-
-def _wide_search(config: TrackerConfig, backend, camera: PinholeCamera, refined_track: RefinedTrack | None,
-                 vertices: np.ndarray):
-    """The recovery's wide search (app/filter/wide_search.py) on the filter's backend and the
-    refinement's refiner, or None (recovery off, ``recovery.search`` false, or no refinement)."""
-    from app.filter.wide_search import SearchConfig, WideSearch
-
-    r = config.recovery
-    if not (r.enabled and r.search) or refined_track is None:
-        return None
-    search = SearchConfig(evaluations=r.search_evaluations, min_fitness=config.status.min_fitness)
-    return WideSearch(backend, camera, refined_track.refiner, vertices, search)
 
 
 def _filter_config(config: TrackerConfig) -> TrackerConfig:

@@ -1,0 +1,177 @@
+"""The recovery wired into the depth tracker: whether a due re-initialisation runs on this frame, and running it.
+
+Import as ``from app.pipeline.recovery_runner import make_recovery``. The policy
+(when a re-initialisation is due, which kind, the honesty rules) is app/filter/recovery.py's
+:class:`~app.filter.recovery.RecoveryPolicy`; the wide search is app/filter/wide_search.py's. This
+module does the policy's attempts on the tracker's parts (app/pipeline/tracker.py):
+
+- **may it run** (:meth:`RecoveryRunner.may_run`): an attempt is due, the frame has a camera pose
+  and valid depth, and the bone's expected silhouette at the last confident pose is not mostly
+  hidden (:func:`app.filter.visibility.visible_share`, the policy's ``may_run``);
+- **the attempt** (:meth:`RecoveryRunner.run`): the wide search (a found pose seeds the particles,
+  FOUND_SIGMA_M / FOUND_SIGMA_RAD about it, and the refinement's track; nothing found changes
+  nothing), a re-spread around the last confident pose, or the one-point SMC initialiser at the
+  policy's point (a re-spread instead while that point is behind a hand,
+  :func:`app.filter.visibility.point_visible`);
+- **the work** the searches cost (searches, found, likelihood evaluations, refinements, CPU and
+  wall seconds) for the summaries (:meth:`RecoveryRunner.report`).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD, RESPREAD, SEARCH, SMC, RecoveryPolicy
+from app.filter.refine_track import RefinedTrack
+from app.filter.visibility import point_visible, visible_share
+from app.geometry.camera import PinholeCamera
+
+log = logging.getLogger(__name__)
+
+
+class RecoveryRunner:
+    """The recovery's attempts on the tracker's filter, refinement and wide search (module docstring).
+
+    Parameters
+    ----------
+    config : TrackerConfig
+    policy : RecoveryPolicy
+    wide_search : app.filter.wide_search.WideSearch, or None (``recovery.search`` off, no refinement)
+    particle_filter : the tracker's ParticleFilter (its state is replaced, its generator drawn from)
+    refined_track : the tracker's RefinedTrack, or None (refinement off)
+    run_smc : ``(point_base, depth_small, T_base_camera, smc_config) -> result``: the tracker's
+        one-point initialiser, which seeds the particles
+    """
+
+    def __init__(self, config, policy: RecoveryPolicy, wide_search, particle_filter,
+                 refined_track: RefinedTrack | None, run_smc: Callable):
+        self.config = config
+        self.policy = policy
+        self.wide_search = wide_search
+        self.filter = particle_filter
+        self.refined_track = refined_track
+        self.run_smc = run_smc
+        self.work = {"searches": 0, "found": 0, "evaluations": 0, "refinements": 0, "cpu_s": 0.0, "wall_s": 0.0}
+
+    def may_run(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray | None) -> bool:
+        """Whether the due attempt runs on this frame (module docstring)."""
+        if self.policy.pending is None or not usable_frame(depth_small, T_base_camera):
+            return False
+        if self.refined_track is None or self.policy.T_base_bone_confident is None:
+            return True
+        T_camera_bone = np.linalg.inv(T_base_camera) @ self.policy.T_base_bone_confident
+        return self.policy.may_run(visible_share(self.refined_track.refiner, depth_m, T_camera_bone))
+
+    def run(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray, stamp: float,
+            T_base_bone_now: np.ndarray | None) -> float:
+        """The due attempt on this frame; returns the seconds a wide search took (0 otherwise).
+        ``T_base_bone_now``: the last frame's estimate (the confident pose when there was none yet)."""
+        policy = self.policy
+        if policy.T_base_bone_confident is None:
+            policy.set_start(T_base_bone_now)
+        kind = policy.next_kind()
+        if kind == SEARCH and self.wide_search is None:
+            kind = SMC
+        if kind == SEARCH:
+            return self._search(depth_small, depth_m, T_base_camera, stamp)
+        if kind != RESPREAD and not self._smc_point_visible(depth_m, T_base_camera):
+            kind = RESPREAD
+        if kind == RESPREAD:
+            self.filter.set_state(policy.respread_state(self.config.particles, self.filter.rng))
+            if self.refined_track is not None:
+                self.refined_track.seed(policy.T_base_bone_confident)
+        else:
+            self._smc_from(policy.smc_point(), depth_small, T_base_camera)
+            if self.refined_track is not None:
+                self.refined_track.reset()
+        log.info("recovery at %.3f s: %s (%s)", stamp, kind, policy.pending)
+        policy.done(stamp, kind)
+        return 0.0
+
+    def _search(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray, stamp: float) -> float:
+        """The wide search for a moved bone (app/filter/wide_search.py): a found pose seeds the cloud
+        (FOUND_SIGMA_M / _RAD about it) and the refinement's track (which resets the static prior:
+        the old base-frame pose must not drag it back); nothing found changes nothing."""
+        policy = self.policy
+        wall0, cpu0 = time.perf_counter(), time.process_time()
+        result = self.wide_search.run(depth_small, depth_m, T_base_camera, policy.T_base_bone_confident,
+                                      policy.track_poses(), self.filter.rng)
+        work = self.work
+        work["searches"] += 1
+        work["evaluations"] += result.evaluations
+        work["refinements"] += result.refinements
+        work["cpu_s"] += time.process_time() - cpu0
+        seconds = time.perf_counter() - wall0
+        work["wall_s"] += seconds
+        if result.T_base_bone is None:
+            log.info("recovery at %.3f s: wide search found nothing confirmed (best fit %.2f)", stamp, result.fitness)
+            policy.declined()
+            return seconds
+        work["found"] += 1
+        self.filter.set_state(policy.state_around(result.T_base_bone, self.config.particles, self.filter.rng,
+                                                  FOUND_SIGMA_M, FOUND_SIGMA_RAD))
+        self.refined_track.seed(result.T_base_bone)
+        log.info("recovery at %.3f s: wide search found a pose (fit %.2f, sharp %.2f, from the %s) (%s)", stamp,
+                 result.fitness, result.sharp, result.source, policy.pending)
+        policy.done(stamp, SEARCH)
+        return seconds
+
+    def _smc_from(self, point_base: np.ndarray, depth_small: np.ndarray, T_base_camera: np.ndarray) -> None:
+        """The one-point initialiser with the recovery's budget (likelihood evaluations), one run."""
+        from app.filter.smc_init import smc_config_for
+
+        budget = self.config.recovery.smc_evaluations
+        smc = smc_config_for(self.config, max_evaluations=budget, prior_draws=max(budget // 3, 1), restarts=1)
+        self.run_smc(point_base, depth_small, T_base_camera, smc)
+
+    def _smc_point_visible(self, depth_m: np.ndarray, T_base_camera: np.ndarray) -> bool:
+        """Whether the SMC's pointed point is seen (not behind a hand): else a re-spread instead."""
+        point_camera = (np.linalg.inv(T_base_camera) @ np.append(self.policy.smc_point(), 1.0))[:3]
+        camera = self.refined_track.refiner.camera if self.refined_track is not None else None
+        if camera is None or camera.width != depth_m.shape[1]:
+            return True
+        return point_visible(camera, depth_m, point_camera, self.config.likelihood.occluder_margin)
+
+    def report(self) -> dict:
+        """The policy's re-initialisations with the searches' work."""
+        return {**self.policy.report(), "search": dict(self.work)}
+
+
+def make_recovery(config, backend, camera: PinholeCamera, particle_filter, refined_track: RefinedTrack | None,
+                  vertices: np.ndarray, run_smc: Callable) -> RecoveryRunner | None:
+    """The runner with the policy (the mesh's centroid and the surface point nearest it) and the wide
+    search (on the filter's backend at ``camera``, the filter's resolution, and the refinement's
+    refiner), or None when ``recovery.enabled`` is false."""
+    if not config.recovery.enabled:
+        return None
+    return RecoveryRunner(config, _policy(config, vertices), _wide_search(config, backend, camera, refined_track, vertices),
+                          particle_filter, refined_track, run_smc)
+
+
+def _policy(config, vertices: np.ndarray) -> RecoveryPolicy:
+    centroid = vertices.mean(axis=0)
+    surface_point = vertices[np.argmin(np.linalg.norm(vertices - centroid, axis=1))]
+    st = config.status
+    return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, st.min_fitness,
+                          (st.uncertain_speed, st.uncertain_angular_speed, st.motion_window_s),
+                          (config.init_sigma_p, config.init_sigma_r))
+
+
+def _wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedTrack | None, vertices: np.ndarray):
+    """The recovery's wide search (app/filter/wide_search.py), or None (``recovery.search`` false, or
+    no refinement to verify with)."""
+    from app.filter.wide_search import SearchConfig, WideSearch
+
+    if not config.recovery.search or refined_track is None:
+        return None
+    search = SearchConfig(evaluations=config.recovery.search_evaluations, min_fitness=config.status.min_fitness)
+    return WideSearch(backend, camera, refined_track.refiner, vertices, search)
+
+
+def usable_frame(depth_small: np.ndarray, T_base_camera: np.ndarray | None) -> bool:
+    """A frame an initialiser can use: a camera pose and at least one valid depth pixel (only
+    checked when an initialisation is due, not every frame)."""
+    return T_base_camera is not None and bool(np.any(np.isfinite(depth_small) & (depth_small > 0)))
