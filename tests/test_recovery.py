@@ -305,7 +305,7 @@ def test_a_due_reinitialisation_waits_while_the_bone_is_mostly_hidden():
     slab 10 cm in front of the left part of the bone; may_run only above min_visible_share."""
     import trimesh
 
-    from app.filter.recovery import point_visible, visible_share
+    from app.filter.visibility import point_visible, visible_share
     from app.filter.refine import Refiner
     from app.geometry.camera import PinholeCamera
 

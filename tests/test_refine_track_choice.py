@@ -147,14 +147,13 @@ def test_the_seeded_multi_start_refines_from_draws_of_the_start_prior():
     draws it keeps the truth because (and only because) a draw lay in its basin."""
     from app.filter.motion import draws_about_centroid
     from app.filter.refine_track import SEED_STARTS_RNG
-    from app.geometry import quaternion as quat
 
     track, refiner, T_true, T_seed = _basin_case(spread=(0.010, 0.1))
     out = track.update(np.zeros((2, 2)), np.eye(4), T_seed)
     centre = se3.transform_points(T_seed, refiner.center[None])[0]
-    p, q = draws_about_centroid(centre, T_seed[:3, 3], quat.from_matrix(T_seed[:3, :3]), 16, 0.005, 0.05,
-                                np.random.default_rng(SEED_STARTS_RNG))
-    expected = [se3.make_pose(quat.to_matrix(q[i]), p[i]) for i in range(16)]
+    q0, p0 = se3.to_quat_trans(T_seed)
+    p, q = draws_about_centroid(centre, p0, q0, 16, 0.005, 0.05, np.random.default_rng(SEED_STARTS_RNG))
+    expected = list(se3.from_quat_trans(q, p))
     drawn = refiner.starts[6:]                                 # after the 1x / 2x / 4x chains of two
     np.testing.assert_allclose(np.array(drawn), np.array(expected), atol=1e-12)
     in_basin = any(se3.translation_distance(T, T_true) < 0.004 for T in expected)

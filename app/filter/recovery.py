@@ -21,37 +21,37 @@ error), never lost (BENCHMARKS.md §6b). The estimate is still when it moved les
 ``status.uncertain_speed`` / ``uncertain_angular_speed`` over ``STILL_WINDOW_S`` = 0.5 s (longer
 than the status's 0.2 s: a wrong track's refined pose jumps a few millimetres between frames, which
 over 0.2 s read as motion and kept the count at 0 on crest_left_02 while 64-100 mm off); a moving
-estimate restarts that count, and it needs an ok frame since the start (a track that was never
-ok, e.g. or_deep_tissue, sits ~5 mm from the coarse start pose it converged from; measured: it
-fired 2-3 times there per run for nothing, BENCHMARKS.md §6b) unless the never-ok estimate lies
-outside the start's own prior: farther than ``START_SIGMAS`` = 4.03 (χ²₃'s 99.9 % point, √16.27)
-times ``init.sigma_p`` / ``sigma_r`` from the start pose (or_coarse_start crest_left_03 seed 1 sat
-45 mm / 80 deg off, uncertain, refined at a fit of 0.85, never searched; BENCHMARKS.md §6b). Such
-an estimate is searched for after ``after_lost_frames`` weighed frames outside that prior in any
-case, moving or not (or_coarse_start crest_left_04 seed 1 slid from 7 to 33 mm / 70 deg within
-0.3 s, which restarted the slow count, and was searched for 1.5 s later; BENCHMARKS.md §6e), until
-the first re-initialisation: a pose the search found may rightly lie outside the start's prior (a
-bone moved before it was ever ok), and its settling frames must not search again. A bone
-being repositioned is uncertain for seconds (status.py's motion rule), and a re-spread around its
-pose before the move would lose it. The low-fit and the slow
-trigger also need the estimate more than ``FAR_M`` / ``FAR_RAD`` = 5 mm / 5 deg (refine_track.py's
-competitor gap) from the last confident pose: under an 80 % hand a correct track is uncertain for
-seconds (the predicted template error), and re-initialising it there raised crest_left_05's lost
-share from 1.6 to 16 %. It did not save crest_right_04 / _05, whose tracks had been > 5 mm off for a
-moment (and came back by themselves without recovery; BENCHMARKS.md §6b). A third: a weighed
-frame after at least ``after_lost_frames`` not weighed (the estimate out of the image or hidden)
-while not ok and more than FAR_M / FAR_RAD from the last confident pose: a bone moved out of view
-and back (or_fast_reposition) is searched for as soon as it is seen again; the slow trigger took
-1.5 s more there. The re-initialisation runs on the next frame that has a camera pose and valid depth.
+estimate restarts that count, and it needs an ok frame since the start (a track that was never ok,
+e.g. or_deep_tissue, sits ~5 mm from the coarse start pose it converged from; measured: it fired 2-3
+times there per run for nothing, BENCHMARKS.md §6b) unless the never-ok estimate lies outside the
+start's own prior: farther than ``START_SIGMAS`` = 4.03 (χ²₃'s 99.9 % point, √16.27) times
+``init.sigma_p`` / ``sigma_r`` from the start pose (or_coarse_start crest_left_03 seed 1 sat 45 mm /
+80 deg off, uncertain, refined at a fit of 0.85, never searched; BENCHMARKS.md §6b). Such an
+estimate is searched for after ``after_lost_frames`` weighed frames outside that prior in any case,
+moving or not (or_coarse_start crest_left_04 seed 1 slid from 7 to 33 mm / 70 deg within 0.3 s,
+which restarted the slow count, and was searched for 1.5 s later; BENCHMARKS.md §6e), until the
+first re-initialisation: a pose the search found may rightly lie outside the start's prior (a bone
+moved before it was ever ok), and its settling frames must not search again. A bone being
+repositioned is uncertain for seconds (status.py's motion rule), and a re-spread around its pose
+before the move would lose it. The low-fit and the slow trigger also need the estimate more than
+``FAR_M`` / ``FAR_RAD`` = 5 mm / 5 deg (refine_track.py's competitor gap) from the last confident
+pose: under an 80 % hand a correct track is uncertain for seconds (the predicted template error),
+and re-initialising it there raised crest_left_05's lost share from 1.6 to 16 %. It did not save
+crest_right_04 / _05, whose tracks had been > 5 mm off for a moment (and came back by themselves
+without recovery; BENCHMARKS.md §6b). A third: a weighed frame after at least ``after_lost_frames``
+not weighed (the estimate out of the image or hidden) while not ok and more than FAR_M / FAR_RAD
+from the last confident pose: a bone moved out of view and back (or_fast_reposition) is searched for
+as soon as it is seen again; the slow trigger took 1.5 s more there. The re-initialisation runs on
+the next frame that has a camera pose and valid depth.
 
 **When.** A due attempt waits while the bone is mostly hidden: it runs only on a frame where at
 least ``min_visible_share`` (0.6) of the model's expected silhouette at the last confident pose is
-not hidden by an occluder (:func:`visible_share`: valid depth, not more than the likelihood's
-``occluder_margin`` in front of the model). Re-spreading while 80 % of the crest is under the hand
-is what lost crest_right_04 and _05 in BENCHMARKS.md §6b: the filter and the refinement settled on
-a wrong fit of the visible 20 %. An SMC attempt while the pointed point is hidden
-(:func:`point_visible`) is replaced by a re-spread (§6b: with the point under the hand the SMC put
-crest_left_03 78-105 mm off with a fit of 0.95).
+not hidden by an occluder (:func:`app.filter.visibility.visible_share`: valid depth, not more than
+the likelihood's ``occluder_margin`` in front of the model). Re-spreading while 80 % of the crest is
+under the hand is what lost crest_right_04 and _05 in BENCHMARKS.md §6b: the filter and the
+refinement settled on a wrong fit of the visible 20 %. An SMC attempt while the pointed point is
+hidden (:func:`app.filter.visibility.point_visible`) is replaced by a re-spread (§6b: with the point
+under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
 
 **What.** Attempts since the last ok frame are numbered k = 0, 1, ...; attempt k is
 
@@ -110,7 +110,6 @@ import numpy as np
 
 from app.filter.motion import ParticleState, draws_about_centroid
 from app.filter.refine_track import pose_gap
-from app.filter.visibility import point_visible, visible_share  # noqa: F401  (re-exported: the tracker's "When" inputs)
 from app.filter.status import TrackingStatus
 from app.filter.weights import uniform_log_weights
 from app.geometry import quaternion as quat
@@ -207,7 +206,6 @@ class RecoveryPolicy:
         self.declined_searches = 0
         self._searching = False                # a search found nothing: retried until an ok frame or a found pose
         self._outside = 0                      # weighed frames in a row never ok and outside the start's prior
-        self._from_start = True                # no re-initialisation yet: the start's prior still speaks
 
     # -- inputs ------------------------------------------------------------------------------
     def set_start(self, T_base_bone: np.ndarray) -> None:
@@ -241,8 +239,9 @@ class RecoveryPolicy:
             return status
         back = self._back_in_view(weighed)
         moving = self._moving(stamp, T_base_bone)
-        if weighed:
-            self._outside = self._outside + 1 if self._from_start and self._beyond_start(T_base_bone) else 0
+        beyond = self._beyond_start(T_base_bone)
+        if weighed:                            # until the first re-initialisation (module docstring, "Trigger")
+            self._outside = self._outside + 1 if beyond and not self.events else 0
         self._not_ok = 0 if moving or rules_ok else (self._not_ok + 1 if weighed else self._not_ok)
         reason = self._bad_reason(status, weighed, refined, fitness, T_base_bone)
         if reason is not None:
@@ -257,7 +256,7 @@ class RecoveryPolicy:
                       f"({self._gap_text(T_base_bone)} from the start)")
         elif back and self._far(T_base_bone):
             self._due(f"weighed again after {back} frames unseen, {self._gap_text(T_base_bone)} from the last ok pose")
-        elif (c.after_uncertain_frames and (self._ever_ok or self._beyond_start(T_base_bone))
+        elif (c.after_uncertain_frames and (self._ever_ok or beyond)
               and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone)):
             self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
         elif self._searching and weighed and self._far(T_base_bone):
@@ -394,7 +393,7 @@ class RecoveryPolicy:
         self._recent.clear()
         self._hold = self.config.hold_frames
         self._unconfirmed, self._ok_run = True, 0
-        self._searching, self._outside, self._from_start = False, 0, False
+        self._searching, self._outside = False, 0
 
     # -- when a due attempt may run ------------------------------------------------------------
     def may_run(self, visible_share: float) -> bool:
@@ -434,4 +433,3 @@ class RecoveryPolicy:
         return {"enabled": self.config.enabled, "reinitialisations": len(self.events),
                 "declined_searches": self.declined_searches,
                 "events": [{"stamp": e.stamp, "kind": e.kind, "reason": e.reason} for e in self.events]}
-

@@ -60,14 +60,13 @@ from app.filter.motion import draws_about_centroid
 from app.filter.refine import RENDER_LEVER as REFINE_LEVER
 from app.filter.refine import Refiner, RefineResult, template_std
 from app.filter.static_prior import StaticPrior, StaticPriorConfig
-from app.geometry import quaternion as quat
 from app.geometry import se3
 
 FALLBACK_BEHIND_SHARE = 0.02   # the former fixed share, when too few pixels estimate the noise
 SEED_WIDTHS = (1.0, 2.0, 4.0)  # the seeded first frame's Tukey widths (x RefineParams.start_width; BENCHMARKS.md §6d)
 SEED_CHAIN = 6                 # at most this many refinements chained at each seeded width (BENCHMARKS.md §6d)
-SEED_STARTS_RNG = 20261124    # the multi-start's own generator seed (:meth:`RefinedTrack._start_fits`)
 SEED_SINGLE = (1.0, 2.0)       # widths whose first link is a candidate whatever its consistency (the single refinements of §6d)
+SEED_STARTS_RNG = 20261124     # the multi-start's own generator seed (:meth:`RefinedTrack._start_fits`)
 
 
 @dataclass
@@ -236,16 +235,11 @@ class RefinedTrack:
         if self._spread is None or c.seed_starts <= 0 or c.seed_spread <= 0.0:
             return []
         sigma_p, sigma_r = self._spread
-        T0 = self.T_base_bone
-        centre = se3.transform_points(T0, self.refiner.center[None])[0]
-        p, q = draws_about_centroid(centre, T0[:3, 3], quat.from_matrix(T0[:3, :3]), c.seed_starts,
-                                    c.seed_spread * sigma_p, c.seed_spread * sigma_r,
+        q0, p0 = se3.to_quat_trans(self.T_base_bone)
+        centre = se3.transform_points(self.T_base_bone, self.refiner.center[None])[0]
+        p, q = draws_about_centroid(centre, p0, q0, c.seed_starts, c.seed_spread * sigma_p, c.seed_spread * sigma_r,
                                     np.random.default_rng(SEED_STARTS_RNG))
-        fits = []
-        for i in range(c.seed_starts):
-            T_new, result = self._refine(depth, T_camera_base, se3.make_pose(quat.to_matrix(q[i]), p[i]))
-            fits.append(("track", T_new, result))
-        return fits
+        return [("track", *self._refine(depth, T_camera_base, T_start)) for T_start in se3.from_quat_trans(q, p)]
 
     def _needs_filter(self, T_filter: np.ndarray) -> bool:
         c = self.config

@@ -150,8 +150,11 @@ class StaticPrior:
             return False
         H1 = np.asarray(H, float) / self.inflation
         delta = log_increment(self.T_base_bone, T_base_bone_image, self.center)
-        chi2 = float(delta @ H1 @ delta)
-        return chi2 > self.config.release_chi2 or self._motion_chi2(T_base_bone_image, H1) > self.config.release_chi2
+        return self._releases(float(delta @ H1 @ delta), self._motion_chi2(T_base_bone_image, H1))
+
+    def _releases(self, chi2: float, motion_chi2: float) -> bool:
+        """A clear frame releases the prior: the contradiction test or the motion test (module docstring)."""
+        return chi2 > self.config.release_chi2 or motion_chi2 > self.config.release_chi2
 
     def _motion_chi2(self, T_base_bone_image: np.ndarray, H1: np.ndarray) -> float:
         """The motion test (module docstring): Δχ²_W = dᵀ (H'_old⁻¹ + H'⁻¹)⁻¹ d between this frame's fit
@@ -186,7 +189,7 @@ class StaticPrior:
             self._fits.append((np.array(T_base_bone_image, float), H1))
         else:
             self._fits.clear()   # the window spans consecutive clear frames only
-        self.released = clear and (self.chi2 > self.config.release_chi2 or self.motion_chi2 > self.config.release_chi2)
+        self.released = clear and self._releases(self.chi2, self.motion_chi2)
         if self.released:
             self.held = False
             return self.start(T_base_bone_image, H, image_std)

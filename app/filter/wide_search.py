@@ -41,7 +41,8 @@ drawn from the image and the track instead of a template bank:
 
 The budget is counted in likelihood evaluations (``evaluations``: poses scored by the backend, 60 %
 to the image's candidates, 10 % to the track's, the rest to the local search) plus ``2 * refine_top``
-refinements: work, never seconds (0.52-0.60 s of CPU per search on the CT crests, BENCHMARKS.md §6b). A found pose is no evidence of being right: the recovery's confirmation rule
+refinements: work, never seconds (0.52-0.60 s of CPU per search on the CT crests, BENCHMARKS.md §6b).
+A found pose is no evidence of being right: the recovery's confirmation rule
 (app/filter/recovery.py, "Honesty") keeps it from being ok until the rules have agreed for
 ``confirm_frames`` weighed frames in a row.
 """

@@ -71,10 +71,18 @@ class DepthTracker:
         self.init_result = None
         self.recovery_runner = make_recovery(config, self.backend, self.camera, self.filter, self.refined_track,
                                              self.mesh_vertices, self._run_smc)
-        self.recovery = self.recovery_runner.policy if self.recovery_runner is not None else None
-        self.wide_search = self.recovery_runner.wide_search if self.recovery_runner is not None else None
         self.template_points = "mesh_vertices"
         self._T_base_bone_last: np.ndarray | None = None
+
+    @property
+    def recovery(self):
+        """The recovery policy (app/filter/recovery.py), or None with ``recovery.enabled`` false."""
+        return self.recovery_runner.policy if self.recovery_runner is not None else None
+
+    @property
+    def wide_search(self):
+        """The recovery's wide search (app/filter/wide_search.py), or None."""
+        return self.recovery_runner.wide_search if self.recovery_runner is not None else None
 
     def start(self, T_base_bone: np.ndarray) -> None:
         """Spread the particles around a coarse initial pose (the surgeon's alignment)."""
