@@ -1,9 +1,9 @@
 """Whether the bone is seen: the inputs of the recovery's "When" (app/filter/recovery.py).
 
-Import as ``from app.filter.visibility import visible_share, point_visible`` (also re-exported by
-app.filter.recovery). ``visible_share``: the share of the model's expected silhouette at a pose that
-is not hidden by an occluder (the hand has withdrawn); ``point_visible``: the pointed point of the
-one-point initialiser is not behind a hand. Both use the likelihood's occluder rule (DESIGN.md: a
+Import as ``from app.filter.visibility import visible_share, point_visible`` (used by
+app/pipeline/recovery_runner.py). ``visible_share``: the share of the model's expected silhouette at
+a pose that is not hidden by an occluder (the hand has withdrawn); ``point_visible``: the pointed
+point of the one-point initialiser is not behind a hand. Both use the likelihood's occluder rule (DESIGN.md: a
 measurement more than ``occluder_margin`` in front of the model is an occluder).
 """
 from __future__ import annotations
