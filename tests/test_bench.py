@@ -145,6 +145,14 @@ def test_bench_writes_a_row_per_configuration_and_trial(bench_run, capsys):
         # dangerous frames are exactly the ok frames with ADD > 5 mm
         s = r["series"]
         assert r["dangerous_frames"] == sum(st == "ok" and a > 5.0 for st, a in zip(s["status"], s["add_mm"]))
+        # the calibration is exact here: the camera-frame ADD is the base-frame ADD (up to the joints'
+        # linear interpolation), and every ok frame's outline is scored (app/bench/template.py)
+        t = r["template"]
+        assert t["camera_truth"] == "camera_truth.txt"
+        assert t["add_camera_mm"]["median"] == pytest.approx(r["add_mm"]["median"], abs=0.02)
+        assert t["ok_frames_scored"] == s["status"].count("ok")
+        if t["ok_frames_scored"]:
+            assert 0.0 <= t["outline_mean_mm"]["median"] <= t["outline_max_mm"]
     # the ICP baseline starts 5 mm / 3 deg off and locks onto the clear static bone
     icp = rows[1]
     assert icp["add_mm"]["median"] < 3.0

@@ -11,7 +11,7 @@ from app.metrics import DANGEROUS_ADD_MM, LOST_ADD_MM
 
 
 COLUMNS = ("config", "scenario", "fps", "ADD med", "ADD p95", "rot med", "rot p95", "VSD rec",
-           "lost %", "ok %", "danger", "jit mm", "jit deg", "refound s")
+           "lost %", "ok %", "danger", "jit mm", "jit deg", "refound s", "ADD cam", "outline max")
 
 
 def _row_cells(r: dict) -> list[str]:
@@ -21,7 +21,16 @@ def _row_cells(r: dict) -> list[str]:
     return [r["config"], r["trial"], f(r["fps"], 1), f(r["add_mm"]["median"]), f(r["add_mm"]["p95"]),
             f(r["rotation_deg"]["median"]), f(r["rotation_deg"]["p95"]), f(r["vsd_recall"]),
             f(r["lost_pct"], 1), f(r["status_pct"]["ok"], 1), str(r["dangerous_frames"]),
-            f(r["jitter"]["translation_mm"], 3), f(r["jitter"]["rotation_deg"], 3), _refound_cell(r.get("refound"))]
+            f(r["jitter"]["translation_mm"], 3), f(r["jitter"]["rotation_deg"], 3), _refound_cell(r.get("refound")),
+            f(_template(r, "add_camera_mm", "median")), f(_template(r, "outline_max_mm"))]
+
+
+def _template(r: dict, key: str, sub: str | None = None) -> float:
+    """A value of the row's ``template`` block (app/bench/template.py); NaN when the row has none."""
+    value = (r.get("template") or {}).get(key)
+    if sub is not None and isinstance(value, dict):
+        value = value.get(sub)
+    return float("nan") if value is None else float(value)
 
 
 def _refound_cell(found: dict | None) -> str:
@@ -69,13 +78,16 @@ def table(rows: list[dict], markdown: bool = False) -> str:
 
 SUMMARY_COLUMNS = ("config", "scenario", "runs", "ADD med: median / worst", "ADD p95: median / worst",
                    "rot med: median / worst", "lost %: median / worst", "ok %: median / min", "danger (total)",
-                   "after rest + 0.3 s: max ADD worst", "refound s: median / worst")
+                   "after rest + 0.3 s: max ADD worst", "refound s: median / worst",
+                   "ADD cam med: median / worst", "outline max on ok: median / worst")
 
 
 def summary(rows: list[dict]) -> list[dict]:
     """Per configuration x scenario, over meshes and seeds: the median run and the worst run (named
     ``mesh#seed``) of ADD median / p95, rotation median, lost %, ok % (worst = least), the dangerous
-    frames in total and, for a moving bone, the worst max ADD from 0.3 s after it comes to rest."""
+    frames in total, for a moving bone the worst max ADD from 0.3 s after it comes to rest, and the
+    camera-frame ADD median and the projected outline's largest displacement on ok frames
+    (app/bench/template.py)."""
     out = []
     for key in dict.fromkeys((r["config"], r["scenario"]) for r in rows):
         rs = [r for r in rows if (r["config"], r["scenario"]) == key]
@@ -97,7 +109,9 @@ def summary(rows: list[dict]) -> list[dict]:
                     "ok_pct": stat([r["status_pct"]["ok"] for r in rs], worst=np.nanargmin),
                     "dangerous_frames": int(sum(r["dangerous_frames"] for r in rs)),
                     "dangerous_runs": [w for w, r in zip(who, rs) if r["dangerous_frames"]],
-                    "after_rest_max_add": stat(rest), "refound_s": refound_stat(rs, who)})
+                    "after_rest_max_add": stat(rest), "refound_s": refound_stat(rs, who),
+                    "add_camera_median": stat([_template(r, "add_camera_mm", "median") for r in rs]),
+                    "outline_max": stat([_template(r, "outline_max_mm") for r in rs])})
     return out
 
 
@@ -125,7 +139,7 @@ def summary_table(rows: list[dict], markdown: bool = False) -> str:
             f"{s['after_rest_max_add']['worst']:.2f} ({s['after_rest_max_add']['worst_run']})"
         lines.append([s["config"], s["scenario"], str(s["runs"]), cell(s["add_median"]), cell(s["add_p95"]),
                       cell(s["rot_median"]), cell(s["lost_pct"], 1), cell(s["ok_pct"], 1), danger, rest,
-                      _refound_summary(s["refound_s"])])
+                      _refound_summary(s["refound_s"]), cell(s["add_camera_median"]), cell(s["outline_max"])])
     header = list(SUMMARY_COLUMNS)
     if markdown:
         return "\n".join(["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
@@ -153,6 +167,7 @@ def write_json(rows: list[dict], path: str | Path, meta: dict | None = None) -> 
         "add_mm": "ADD, mm", "rotation_deg": "rotation error, deg", "vsd_recall": "fraction of frames with e_VSD < 0.3 (tau 20 mm)",
         "lost_pct": f"% frames with ADD > {LOST_ADD_MM} mm", "dangerous_frames": f"frames with status ok and ADD > {DANGEROUS_ADD_MM} mm",
         "jitter": "RMS frame-to-frame change of the estimate while the ground truth is static (after settling)",
+        "template": "the projected outline on the real bone on ok frames and the camera-frame ADD (app/bench/template.py)",
     }, "rows": rows}), indent=1))
     tmp.replace(path)
 

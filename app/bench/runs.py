@@ -10,6 +10,7 @@ import numpy as np
 from app.bench.configs import BenchConfig
 from app.bench.parallel import pmap
 from app.bench.scoring import after_rest, in_view_share, jitter, refound, static_pairs, vsd_series
+from app.bench.template import template_scores
 from app.bench.trials import TrialSpec
 from app.metrics import DANGEROUS_ADD_MM, LOST_ADD_MM
 
@@ -64,6 +65,7 @@ def run_one(config: BenchConfig, trial: TrialSpec, out_dir: str | Path | None = 
         "after_rest": after_rest(T_gt, t_rel, add_mm),
         "refound": found, "refound_s": None if found is None else found["refound_s"],
         "recovery": result.summary.get("recovery"),
+        "template": template_scores(reader, T_est, result.statuses, n),
         "series": {"t": t_rel.round(4).tolist(), "add_mm": np.round(add_mm, 4).tolist(),
                    "rot_deg": np.round(result.errors["rot_deg"], 4).tolist(),
                    "vsd": [None if not np.isfinite(v) else round(float(v), 4) for v in vsd],

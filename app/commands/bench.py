@@ -115,7 +115,9 @@ def run(args) -> int:
         print("\nper scenario over meshes and seeds: median / worst (worst run: mesh#seed)\n")
         print(bench.summary_table(rows, markdown=args.markdown))
     print("\nADD, rot: median / p95 of every frame (mm, deg); VSD rec: e_VSD < 0.3 (tau 20 mm); lost %: ADD > 10 mm; "
-          "danger: status ok with ADD > 5 mm; jit: RMS frame-to-frame change while the bone is static")
+          "danger: status ok with ADD > 5 mm; jit: RMS frame-to-frame change while the bone is static; "
+          "ADD cam: median ADD in the camera frame (the true camera when the trial records it); "
+          "outline max: the projected outline's largest displacement on the bone on ok frames (mm)")
     bench.write_json(rows, args.json, {**meta, "gl": gl, "elapsed_s": elapsed})
     print(f"wrote {args.json}")
     if args.plots:

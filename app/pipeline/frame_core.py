@@ -9,7 +9,9 @@ newest frame from the bus. Per frame (:meth:`FrameCore.process`):
 2. the status is capped at ``status_floor`` (the live loop's rule for a frame without a camera pose);
 3. the :class:`app.interfaces.Estimate` is built: pose, status, latency (``now() - stamp`` when the
    core has a clock), and diagnostics for the sinks (``frame``, ``result``, ``particles``, the
-   tracker's spreads and ESS ratio, ``T_base_bone_true`` when the caller knows it);
+   tracker's spreads and ESS ratio, ``T_base_bone_true`` when the caller knows it, and
+   ``T_base_bone_seen``: the true bone as the calibrated camera sees it, which the projector's
+   template error is scored against (:func:`app.sim.truth.bone_seen`; the truth when not given));
 4. every sink (:mod:`app.pipeline.sinks`, or a session output plugin) gets it, in order.
 """
 from __future__ import annotations
@@ -41,14 +43,16 @@ class FrameCore:
         self.t_estimate: float | None = None   # host time the last estimate was made (None without a clock)
 
     def process(self, frame: DepthFrame, T_base_camera: np.ndarray | None, reasons: Sequence[str] = (),
-                status_floor: str | None = None, T_base_bone_true: np.ndarray | None = None) -> Estimate:
+                status_floor: str | None = None, T_base_bone_true: np.ndarray | None = None,
+                T_base_bone_seen: np.ndarray | None = None) -> Estimate:
         """Track one frame and hand the estimate to every sink (module docstring)."""
-        est = self.estimate(frame, T_base_camera, reasons, status_floor, T_base_bone_true)
+        est = self.estimate(frame, T_base_camera, reasons, status_floor, T_base_bone_true, T_base_bone_seen)
         self.emit(est)
         return est
 
     def estimate(self, frame: DepthFrame, T_base_camera: np.ndarray | None, reasons: Sequence[str] = (),
-                 status_floor: str | None = None, T_base_bone_true: np.ndarray | None = None) -> Estimate:
+                 status_floor: str | None = None, T_base_bone_true: np.ndarray | None = None,
+                 T_base_bone_seen: np.ndarray | None = None) -> Estimate:
         """Steps 1-3 of the module docstring, without the sinks."""
         if self.tracker is None:
             self.t_estimate = None
@@ -64,7 +68,8 @@ class FrameCore:
                        "position_spread": getattr(result, "position_spread", None),
                        "rotation_spread": getattr(result, "rotation_spread", None),
                        "frame": frame, "result": result, "particles": self.tracker.particle_positions(),
-                       "T_base_bone_true": T_base_bone_true}
+                       "T_base_bone_true": T_base_bone_true,
+                       "T_base_bone_seen": T_base_bone_true if T_base_bone_seen is None else T_base_bone_seen}
         return Estimate(frame.stamp, frame.frame_id, np.asarray(result.T_base_bone, float), status, T_base_camera,
                         latency, tuple(reasons), diagnostics)
 

@@ -23,7 +23,9 @@ The projector (``projector=True``, configuration ``configs/projector.yaml`` or
 ``projector_config``) is rendered every ``projector_every``-th frame at the tracked pose; with
 ground truth, the summary's ``projector`` block gives the template error: how far the lit outline,
 traced back onto the bone at its true pose, lands from the plan (mean / p95 / max mm over the
-frames where the template was shown; app/projector/accuracy.py).
+frames where the template was shown; app/projector/accuracy.py). The true pose is taken as the
+trial's calibrated camera sees it when the trial records the true camera (a simulated calibration
+error: the projector draws with the calibrated camera pose; app/sim/truth.py).
 """
 from __future__ import annotations
 
@@ -107,6 +109,7 @@ def _run(core: FrameCore, reader, max_frames: int | None, realtime: bool, progre
     """Every frame in order through the core (paced at the recorded stamps with ``realtime``); seconds taken."""
     T_base_camera, pose_valid = reader.camera_poses()
     truth = reader.groundtruth
+    seen = _bone_seen(reader, T_base_camera, truth)
     n_total = len(reader.stamps) if max_frames is None else min(max_frames, len(reader.stamps))
     t_start = time.perf_counter()
     stamp0 = None
@@ -121,10 +124,22 @@ def _run(core: FrameCore, reader, max_frames: int | None, realtime: bool, progre
                 time.sleep(delay)
         depth_frame = DepthFrame(frame.frame_id, frame.stamp, frame.depth_m, frame.stamp, frame.infrared, frame.color)
         core.process(depth_frame, T_base_camera[i] if pose_valid[i] else None,
-                     T_base_bone_true=truth[i] if truth is not None else None)
+                     T_base_bone_true=truth[i] if truth is not None else None,
+                     T_base_bone_seen=seen[i] if seen is not None and pose_valid[i] else None)
         if progress:
             progress(i + 1, n_total)
     return time.perf_counter() - t_start
+
+
+def _bone_seen(reader, T_base_camera: np.ndarray, truth: np.ndarray | None) -> np.ndarray | None:
+    """The truth as the trial's camera sees it, for the projector's template error (app/sim/truth.py,
+    eq. S1); None without ground truth or without a true camera apart from the trial's own."""
+    from app.sim.truth import FROM_TRIAL, bone_seen, true_camera_poses
+
+    if truth is None:
+        return None
+    T_true, source = true_camera_poses(reader)
+    return None if source == FROM_TRIAL else bone_seen(T_base_camera, T_true, truth)
 
 
 @dataclass

@@ -222,7 +222,8 @@ class ProjectorEstimates:
         age = est.latency_s if self.age_s is None else self.age_s
         self.last = self.projector.step(est.frame_id if est.frame_id is not None else self._n, est.T_base_camera,
                                         est.T_base_bone, est.status, age_s=age,
-                                        T_base_bone_true=est.diagnostics.get("T_base_bone_true"))
+                                        T_base_bone_true=est.diagnostics.get("T_base_bone_seen",
+                                                                             est.diagnostics.get("T_base_bone_true")))
 
     def close(self) -> dict:
         summary = self.projector.summary()

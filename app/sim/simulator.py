@@ -13,7 +13,8 @@ format 1.1), rendered through the appearance model of :mod:`app.sim.appearance` 
 :mod:`app.sim.images`; depth alone (version 1) stays the default.
 
 Besides the trial format's files it writes ``simulation.csv`` (per frame: occlusion fraction,
-visible bone pixels) and ``simulation.yaml`` (scenario, seed, the true hand-eye); readers ignore them.
+visible bone pixels), ``simulation.yaml`` (scenario, seed, the true hand-eye) and ``camera_truth.txt``
+(the camera's true poses, TUM rows; :mod:`app.sim.truth`); readers of the format ignore them.
 """
 from __future__ import annotations
 
@@ -32,6 +33,8 @@ from app.geometry.ur import UR_MODELS, forward_kinematics
 from app.sim import world
 from app.sim.scenarios import Scenario, get_scenario
 from app.sim.sensor import SensorModel, apply_sensor
+from app.sim.truth import CAMERA_TRUTH_FILE
+from app.trial.tum import write_tum
 
 log = logging.getLogger(__name__)
 
@@ -209,6 +212,7 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
                 sim_csv.write(f"{frame_id},{stamp:.6f},{occlusion:.4f},{n_bone}\n")
                 if progress:
                     progress(k + 1, len(stamps))
+        write_tum(out / CAMERA_TRUTH_FILE, stamps, T_base_camera)
         _write_simulation_yaml(out, scenario, seed, T_flange_camera, mesh_path)
     renderer.release()
     if images is not None:
