@@ -183,14 +183,14 @@ KEYS: dict[str, _Key] = {
     "refine.seed_starts": _i("refine.seed_starts", 0, 10_000),
     "refine.seed_spread": _f("refine.seed_spread", 0.0, 10.0),
     "recovery.enabled": _Key(("recovery", "enabled"), "bool"),
-    "recovery.after_lost_frames": _i("recovery.after_lost_frames", 1, 100_000),
-    "recovery.after_uncertain_frames": _i("recovery.after_uncertain_frames", 0, 1_000_000),
+    "recovery.after_lost_s": _f("recovery.after_lost_s", 0.0, 3600.0, lo_open=True),
+    "recovery.after_uncertain_s": _f("recovery.after_uncertain_s", 0.0, 3600.0),
     "recovery.respread_sigma_p": _f("recovery.respread_sigma_p", 0.0, 0.2, lo_open=True),
     "recovery.respread_sigma_r": _f("recovery.respread_sigma_r", 0.0, math.pi, lo_open=True),
     "recovery.respreads": _i("recovery.respreads", 0, 100),
     "recovery.smc_evaluations": _i("recovery.smc_evaluations", 600, 10_000_000),
     "recovery.hold_frames": _i("recovery.hold_frames", 0, 100_000),
-    "recovery.cooldown_frames": _i("recovery.cooldown_frames", 1, 100_000),
+    "recovery.cooldown_s": _f("recovery.cooldown_s", 0.0, 3600.0, lo_open=True),
     "recovery.min_visible_share": _f("recovery.min_visible_share", 0.0, 1.0),
     "recovery.confirm_frames": _i("recovery.confirm_frames", 0, 1_000_000),
     "recovery.search": _Key(("recovery", "search"), "bool"),
@@ -239,6 +239,8 @@ def config_from_dict(data: Any, source: str | None = None) -> TrackerConfig:
             raise ConfigError(section, f"expected a mapping of keys, got {type(values).__name__} {values!r}", source)
         for name, value in values.items():
             key = f"{section}.{name}"
+            if key in RENAMED:
+                raise ConfigError(key, RENAMED[key], source)
             if key not in KEYS:
                 raise ConfigError(key, f"unknown key{_suggest_key(key)}; valid keys of '{section}': "
                                   f"{', '.join(k.split('.', 1)[1] for k in KEYS if k.startswith(section + '.'))}",
@@ -316,6 +318,16 @@ def _check_consistency(c: TrackerConfig, source) -> None:
     if st.lost_inlier_fraction > st.uncertain_inlier_fraction:
         raise ConfigError("status.lost_inlier_fraction", f"{st.lost_inlier_fraction:g} exceeds "
                           f"status.uncertain_inlier_fraction ({st.uncertain_inlier_fraction:g})", source)
+
+
+RENAMED = {   # keys of earlier configurations: what replaced them
+    "recovery.after_lost_frames": "replaced by recovery.after_lost_s, in seconds (counted in processed frames "
+                                  "whatever their rate; app/filter/recovery.py): frames / 90 at 90 Hz, e.g. 10 -> 0.11",
+    "recovery.after_uncertain_frames": "replaced by recovery.after_uncertain_s, in seconds (counted in processed "
+                                       "frames whatever their rate): frames / 90 at 90 Hz, e.g. 90 -> 1.0; 0 = off",
+    "recovery.cooldown_frames": "replaced by recovery.cooldown_s, in seconds (counted in processed frames whatever "
+                                "their rate): frames / 90 at 90 Hz, e.g. 15 -> 0.16",
+}
 
 
 def _suggest(word: str, options) -> str:

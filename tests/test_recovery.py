@@ -123,6 +123,11 @@ def test_recovery_disabled_keeps_a_knocked_off_track_off(trial):
 
 # -- the policy alone -----------------------------------------------------------------------------
 
+def _s(frames: int, hz: float = 90.0) -> float:
+    """Seconds of ``frames`` at ``hz``: the recovery's durations are seconds, counted in processed frames."""
+    return frames / hz
+
+
 def _policy(**kw) -> RecoveryPolicy:
     policy = RecoveryPolicy(RecoveryConfig(**kw), np.zeros(3), np.array([0.0, 0.0, 0.01]), refine_enabled=True)
     policy.set_start(np.eye(4))
@@ -130,7 +135,7 @@ def _policy(**kw) -> RecoveryPolicy:
 
 
 def test_policy_counts_bad_frames_waits_while_hidden_and_holds_after():
-    policy = _policy(after_lost_frames=3, hold_frames=2, cooldown_frames=1, respreads=1)
+    policy = _policy(after_lost_s=_s(3), hold_frames=2, cooldown_s=_s(1), respreads=1)   # stamps 0: the nominal 90 Hz
     lost, unc = TrackingStatus.LOST, TrackingStatus.UNCERTAIN
     for _ in range(2):
         policy.update(lost, True, False, 0.9, np.eye(4), 0.0)
@@ -147,7 +152,7 @@ def test_policy_counts_bad_frames_waits_while_hidden_and_holds_after():
 
 
 def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
-    policy = _policy(after_lost_frames=1, respreads=2, cooldown_frames=4, search=False)
+    policy = _policy(after_lost_s=0.01, respreads=2, cooldown_s=0.04, search=False)   # 1 and 4 frames at 100 Hz
     T = se3.from_rotvec_trans(np.array([0.0, 0.0, 0.3]), np.array([0.1, 0.2, 0.3]))
     policy.set_start(T)
     np.testing.assert_allclose(policy.smc_point(), T[:3, :3] @ [0, 0, 0.01] + T[:3, 3])
@@ -166,9 +171,9 @@ def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
 
 
 def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retries_without_backoff():
-    from app.filter.recovery import SEARCH_RETRY_FRAMES
+    from app.filter.recovery import SEARCH_RETRY_S
 
-    policy = _policy(after_lost_frames=1, respreads=1, cooldown_frames=4)
+    policy = _policy(after_lost_s=0.01, respreads=1, cooldown_s=0.04)   # 1 and 4 frames at the stamps' 100 Hz
     T = np.eye(4)
     frames, due = 0, []
 
@@ -186,7 +191,8 @@ def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retrie
     assert run_until_due() == "search"
     policy.declined()                                        # found nothing: no attempt, no hold
     assert policy.report()["declined_searches"] == 1 and len(policy.events) == 1
-    assert run_until_due() == "search" and due[-1] == SEARCH_RETRY_FRAMES   # retried, not backed off
+    # retried, not backed off: SEARCH_RETRY_S (0.33 s, 30 frames at 90 Hz) is 33 frames at 100 Hz
+    assert run_until_due() == "search" and due[-1] == math.ceil(SEARCH_RETRY_S / 0.01 - 0.01) == 33
     policy.done(1.0, "search")
     assert run_until_due() == "respread"
 
@@ -194,7 +200,7 @@ def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retrie
 def test_the_slow_trigger_does_not_count_frames_the_rules_find_ok_while_unconfirmed():
     """After a re-initialisation away from the last ok pose the reported status is uncertain until
     confirmed; those frames must not fire the slow trigger (it would re-spread at the old pose)."""
-    policy = _policy(after_uncertain_frames=5, hold_frames=0, confirm_frames=8, cooldown_frames=1)
+    policy = _policy(after_uncertain_s=0.5, hold_frames=0, confirm_frames=8, cooldown_s=0.1)   # 5 and 1 frames at 10 Hz
     policy.done(0.0, "search")
     T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.1, 0.0, 0.0]))
     statuses = [policy.update(TrackingStatus.OK, True, True, 0.9, T_far, 0.1 * k) for k in range(8)]
@@ -270,10 +276,10 @@ def test_image_anchors_are_peaks_that_stand_out_highest_first():
 
 
 def test_a_moving_estimate_is_not_reinitialised_for_being_uncertain():
-    """The slow trigger (not ok for after_uncertain_frames) counts only while the estimate is still:
+    """The slow trigger (not ok for after_uncertain_s) counts only while the estimate is still:
     a bone being repositioned is uncertain for seconds."""
     unc = TrackingStatus.UNCERTAIN
-    policy = _policy(after_uncertain_frames=20)
+    policy = _policy(after_uncertain_s=_s(20))
     policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), -1 / 90)   # ok once before (the slow trigger needs it)
     for k in range(100):                                    # 5 cm/s, 90 frames/s, refined at a good fit
         policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.05 * k / 90, 0, 0])), k / 90)
@@ -347,12 +353,18 @@ def test_respread_is_about_the_bone_centroid_with_the_configured_spread(rng):
 # -- configuration ----------------------------------------------------------------------------------
 
 def test_recovery_keys_are_checked_and_named_with_the_fix():
-    config = config_from_dict({"recovery": {"enabled": True, "after_lost_frames": 5, "smc_evaluations": 2000}})
-    assert config.recovery == RecoveryConfig(enabled=True, after_lost_frames=5, smc_evaluations=2000)
-    with pytest.raises(ConfigError, match=r"recovery\.after_lost_frame.*did you mean 'recovery\.after_lost_frames'"):
-        config_from_dict({"recovery": {"after_lost_frame": 5}})
-    with pytest.raises(ConfigError, match=r"recovery\.after_lost_frames.*integer"):
-        config_from_dict({"recovery": {"after_lost_frames": 2.5}})
+    config = config_from_dict({"recovery": {"enabled": True, "after_lost_s": 0.2, "smc_evaluations": 2000}})
+    assert config.recovery == RecoveryConfig(enabled=True, after_lost_s=0.2, smc_evaluations=2000)
+    with pytest.raises(ConfigError, match=r"recovery\.after_lost_sec.*did you mean 'recovery\.after_lost_s'"):
+        config_from_dict({"recovery": {"after_lost_sec": 0.2}})
+    with pytest.raises(ConfigError, match=r"recovery\.after_lost_s.*outside"):
+        config_from_dict({"recovery": {"after_lost_s": 0.0}})
+    # a key of an earlier configuration names what replaced it and how to convert
+    for old, new, example in (("after_lost_frames", "after_lost_s", "10 -> 0.11"),
+                              ("after_uncertain_frames", "after_uncertain_s", "90 -> 1.0"),
+                              ("cooldown_frames", "cooldown_s", "15 -> 0.16")):
+        with pytest.raises(ConfigError, match=rf"recovery\.{old}.*replaced by recovery\.{new}, in seconds.*{example}"):
+            config_from_dict({"recovery": {old: 10}})
     with pytest.raises(ConfigError, match=r"recovery\.respread_sigma_p.*outside"):
         config_from_dict({"recovery": {"respread_sigma_p": 0.0}})
     with pytest.raises(ConfigError, match=r"recovery\.enabled.*true or false"):
@@ -406,7 +418,7 @@ def test_a_ct_crest_moved_out_of_view_is_found_again_within_2_s_of_being_visible
 
 
 def test_a_track_weighed_again_after_being_out_of_view_far_from_the_last_ok_pose_is_searched_at_once():
-    policy = _policy(after_lost_frames=3, after_uncertain_frames=1000, cooldown_frames=1)
+    policy = _policy(after_lost_s=0.3, after_uncertain_s=100.0, cooldown_s=0.1)   # 3, 1000 and 1 frames at 10 Hz
     unc = TrackingStatus.UNCERTAIN
     T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.1, 0.0, 0.0]))
     for k in range(5):
@@ -414,7 +426,7 @@ def test_a_track_weighed_again_after_being_out_of_view_far_from_the_last_ok_pose
     assert policy.pending is None
     policy.update(unc, True, True, 0.9, T_far, 0.6)                          # seen again, 10 cm from the last ok pose
     assert policy.pending and "unseen" in policy.pending and policy.next_kind() == "search"
-    near = _policy(after_lost_frames=3, after_uncertain_frames=1000, cooldown_frames=1)
+    near = _policy(after_lost_s=0.3, after_uncertain_s=100.0, cooldown_s=0.1)
     for k in range(5):
         near.update(unc, False, False, float("nan"), np.eye(4), 0.1 * k)
     near.update(unc, True, True, 0.9, np.eye(4), 0.6)                       # back where it was ok: nothing due
@@ -423,13 +435,14 @@ def test_a_track_weighed_again_after_being_out_of_view_far_from_the_last_ok_pose
 
 def test_a_declined_search_is_retried_while_not_ok_even_when_the_estimate_moves():
     """A wide search that found nothing leaves the track suspect: it is retried every
-    SEARCH_RETRY_FRAMES while no frame is ok and the estimate is away from the last ok pose, whether or
+    SEARCH_RETRY_S while no frame is ok and the estimate is away from the last ok pose, whether or
     not the estimate is still or its fit good (or_fast_reposition crest_left_03 seed 1: after a declined
     search the wrong track slid across the tissue, the slow trigger's count restarted with every move,
     and the bone in view was not searched for again for 2.4 s; BENCHMARKS.md §6e). An ok frame or a
     found pose ends it."""
-    from app.filter.recovery import SEARCH_RETRY_FRAMES
+    from app.filter.recovery import SEARCH_RETRY_S
 
+    retry_frames = math.ceil(SEARCH_RETRY_S * 90 - 0.01)      # 30 at the stamps' 90 Hz
     unc = TrackingStatus.UNCERTAIN
 
     def drift(policy, frames, start=0):
@@ -441,18 +454,18 @@ def test_a_declined_search_is_retried_while_not_ok_even_when_the_estimate_moves(
                 due = k - start + 1
         return due
 
-    policy = _policy(after_lost_frames=3, after_uncertain_frames=1000, cooldown_frames=1)
+    policy = _policy(after_lost_s=_s(3), after_uncertain_s=_s(1000), cooldown_s=_s(1))
     policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0)
     T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.1, 0.0, 0.0]))
     for k in range(5):
-        policy.update(unc, False, False, float("nan"), T_far, 0.1 + 0.1 * k)   # out of view
-    policy.update(unc, True, True, 0.9, T_far, 0.6)
+        policy.update(unc, False, False, float("nan"), T_far, (1 + k) / 90)   # out of view
+    policy.update(unc, True, True, 0.9, T_far, 6 / 90)
     assert policy.pending and "unseen" in policy.pending
     policy.declined()
-    assert drift(policy, 100) == SEARCH_RETRY_FRAMES
+    assert drift(policy, 100) == retry_frames
     assert "search" in policy.pending
     policy.declined()
-    assert drift(policy, 100, start=100) == SEARCH_RETRY_FRAMES           # and again
+    assert drift(policy, 100, start=100) == retry_frames                  # and again
     policy.declined()
     policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 5.0)        # an ok frame ends it
     assert drift(policy, 100, start=200) is None
@@ -464,10 +477,10 @@ def test_a_declined_search_is_retried_while_not_ok_even_when_the_estimate_moves(
 
 
 def test_a_due_search_runs_where_the_last_ok_pose_is_out_of_the_image():
-    policy = _policy(after_lost_frames=1)
+    policy = _policy(after_lost_s=_s(1))
     policy.update(TrackingStatus.LOST, True, False, float("nan"), np.eye(4), 0.0)
     assert policy.next_kind() == "search" and policy.may_run(float("nan"))
-    smc = _policy(after_lost_frames=1, search=False)
+    smc = _policy(after_lost_s=_s(1), search=False)
     smc.update(TrackingStatus.LOST, True, False, float("nan"), np.eye(4), 0.0)
     assert not smc.may_run(float("nan"))            # an SMC at the point prior waits for the old place in view
 
@@ -477,11 +490,11 @@ def test_the_slow_trigger_needs_an_ok_frame_since_the_start():
     re-initialisation for that alone; after an ok frame the same gap counts."""
     unc = TrackingStatus.UNCERTAIN
     T_off = se3.from_rotvec_trans(np.zeros(3), np.array([0.006, 0.0, 0.0]))
-    never = _policy(after_uncertain_frames=5, cooldown_frames=1)
+    never = _policy(after_uncertain_s=0.5, cooldown_s=0.1)   # 5 and 1 frames at the stamps' 10 Hz
     for k in range(10):
         never.update(unc, True, True, 0.9, T_off, 0.1 * k)
     assert never.pending is None
-    was_ok = _policy(after_uncertain_frames=5, cooldown_frames=1)
+    was_ok = _policy(after_uncertain_s=0.5, cooldown_s=0.1)
     was_ok.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0)
     for k in range(10):
         was_ok.update(unc, True, True, 0.9, T_off, 0.1 * (k + 1))
@@ -497,7 +510,8 @@ def test_a_never_ok_track_outside_the_start_prior_is_searched_for():
     unc = TrackingStatus.UNCERTAIN
 
     def run(offset_m=0.0, angle_rad=0.0):
-        policy = RecoveryPolicy(RecoveryConfig(after_uncertain_frames=5, cooldown_frames=1), np.zeros(3),
+        # 10 Hz stamps: the slow trigger after 5 frames; after_lost_s 1 s (10 frames, as the 10 the count had)
+        policy = RecoveryPolicy(RecoveryConfig(after_lost_s=1.0, after_uncertain_s=0.5, cooldown_s=0.1), np.zeros(3),
                                 np.array([0.0, 0.0, 0.01]), refine_enabled=True, start_sigmas=(0.01, 0.1))
         policy.set_start(np.eye(4))
         T = se3.from_rotvec_trans(np.array([0.0, 0.0, angle_rad]), np.array([offset_m, 0.0, 0.0]))
@@ -512,7 +526,7 @@ def test_a_never_ok_track_outside_the_start_prior_is_searched_for():
     assert "not ok" in run(angle_rad=1.01 * START_SIGMAS * 0.1)
     assert "not ok" in run(offset_m=0.045, angle_rad=math.radians(80.0))
     # without a start prior (the policy's default) a never-ok track is never searched for by this rule
-    default = _policy(after_uncertain_frames=5, cooldown_frames=1)
+    default = _policy(after_lost_s=1.0, after_uncertain_s=0.5, cooldown_s=0.1)
     for k in range(10):
         default.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.2, 0, 0])), 0.1 * k)
     assert default.pending is None
@@ -520,14 +534,14 @@ def test_a_never_ok_track_outside_the_start_prior_is_searched_for():
 
 def test_a_never_ok_track_sliding_outside_the_start_prior_is_searched_for_without_waiting_to_be_still():
     """A never-ok estimate that left the start's own prior (START_SIGMAS x init sigmas) is searched
-    for after ``after_lost_frames`` weighed frames out there, moving or not: the slow trigger's count
+    for after ``after_lost_s`` of weighed frames out there, moving or not: the slow trigger's count
     restarts with every move, and or_coarse_start crest_left_04 seed 1 slid from 7 to 33 mm / 70 deg
     within 0.3 s and was searched for only 1.5 s later (BENCHMARKS.md §6e). Frames inside the prior
     (or not weighed) do not count; they restart the count."""
     unc = TrackingStatus.UNCERTAIN
 
     def policy():
-        p = RecoveryPolicy(RecoveryConfig(after_lost_frames=10, after_uncertain_frames=90, cooldown_frames=1),
+        p = RecoveryPolicy(RecoveryConfig(after_lost_s=_s(10), after_uncertain_s=1.0, cooldown_s=_s(1)),
                            np.zeros(3), np.array([0.0, 0.0, 0.01]), refine_enabled=True, start_sigmas=(0.01, 0.1))
         p.set_start(np.eye(4))
         return p
@@ -549,3 +563,39 @@ def test_a_never_ok_track_sliding_outside_the_start_prior_is_searched_for_withou
     assert slide(hidden, 30, weighed=False) is None              # not weighed: no evidence
     sliding.done(1.0, "search")                                  # a found pose may lie outside the start's prior
     assert slide(sliding, 60, start=30) is None
+
+
+# -- seconds, counted in processed frames -----------------------------------------------------------
+
+def test_frame_period_is_the_median_stamp_difference_robust_to_a_dropout():
+    from app.filter.recovery import NOMINAL_PERIOD_S, FramePeriod
+
+    period = FramePeriod()
+    assert period.seconds == NOMINAL_PERIOD_S and period.frames(1.0) == 90 and period.frames(0.11) == 10
+    stamps = list(100.0 + np.round(np.arange(20) / 30, 6)) + [100.0 + 19 / 30 + 0.3]   # 30 Hz, then a 300 ms dropout
+    for t in stamps + [stamps[-1], float("nan")]:       # a repeated or NaN stamp is ignored
+        period.add(t)
+    assert period.seconds == pytest.approx(1 / 30, abs=1e-6)
+    assert period.frames(1.0) == 30 and period.frames(0.11) == 4 and period.frames(1e-6) == 1
+    microseconds = FramePeriod()                        # a 90 Hz clock written with 6 decimals: 0.011111 s
+    for k in range(40):
+        microseconds.add(round(k / 90, 6))
+    assert microseconds.frames(1.0) == 90 and microseconds.frames(0.33) == 30
+
+
+@pytest.mark.parametrize("hz", [30.0, 90.0])
+def test_the_slow_trigger_fires_after_its_seconds_whatever_the_frame_rate(hz):
+    """A track that slid off and sits still, not ok, after an ok frame: the slow trigger fires after
+    after_uncertain_s (1 s) at 30 Hz as at 90 Hz (counting 90 frames waited 3 s at 30 Hz)."""
+    policy = _policy(after_uncertain_s=1.0)
+    unc = TrackingStatus.UNCERTAIN
+    T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.02, 0.0, 0.0]))
+    policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0)
+    fired = None
+    for k in range(1, int(3 * hz)):
+        policy.update(unc, True, True, 0.9, T_far, k / hz)
+        if policy.pending:
+            fired = k / hz
+            break
+    # the estimate must first be still over STILL_WINDOW_S (0.5 s): the jump to T_far counts as motion
+    assert fired is not None and 1.0 <= fired <= 1.0 + 0.5 + 2 / hz

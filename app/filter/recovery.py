@@ -13,8 +13,8 @@ rule's 0.6; a crest turned 90 deg on the synthetic trial of tests/test_recovery.
 a lower fit, uncertain, never lost). A weighed frame that is neither resets the count; a frame that
 was not weighed and not lost (the bone hidden by a hand, no camera pose) neither counts nor resets:
 the particles are held there (particle_filter.py), and the recovery waits for the bone to be
-visible. After ``after_lost_frames`` bad frames in a row a re-initialisation is due. A second,
-slower trigger: ``after_uncertain_frames`` weighed frames in a row that are not ok while the
+visible. After ``after_lost_s`` of bad frames in a row a re-initialisation is due. A second,
+slower trigger: ``after_uncertain_s`` of weighed frames in a row that are not ok while the
 estimate is still (0 = off): on the CT crests under a rising hand the filter and the refinement slid
 together along the crest to 47 mm off with a fit of 0.65-0.9, uncertain (the predicted template
 error), never lost (BENCHMARKS.md §6b). The estimate is still when it moved less than
@@ -27,7 +27,7 @@ times there per run for nothing, BENCHMARKS.md §6b) unless the never-ok estimat
 start's own prior: farther than ``START_SIGMAS`` = 4.03 (χ²₃'s 99.9 % point, √16.27) times
 ``init.sigma_p`` / ``sigma_r`` from the start pose (or_coarse_start crest_left_03 seed 1 sat 45 mm /
 80 deg off, uncertain, refined at a fit of 0.85, never searched; BENCHMARKS.md §6b). Such an
-estimate is searched for after ``after_lost_frames`` weighed frames outside that prior in any case,
+estimate is searched for after ``after_lost_s`` of weighed frames outside that prior in any case,
 moving or not (or_coarse_start crest_left_04 seed 1 slid from 7 to 33 mm / 70 deg within 0.3 s,
 which restarted the slow count, and was searched for 1.5 s later; BENCHMARKS.md §6e), until the
 first re-initialisation: a pose the search found may rightly lie outside the start's prior (a bone
@@ -38,8 +38,8 @@ before the move would lose it. The low-fit and the slow trigger also need the es
 pose: under an 80 % hand a correct track is uncertain for seconds (the predicted template error),
 and re-initialising it there raised crest_left_05's lost share from 1.6 to 16 %. It did not save
 crest_right_04 / _05, whose tracks had been > 5 mm off for a moment (and came back by themselves
-without recovery; BENCHMARKS.md §6b). A third: a weighed frame after at least ``after_lost_frames``
-not weighed (the estimate out of the image or hidden) while not ok and more than FAR_M / FAR_RAD
+without recovery; BENCHMARKS.md §6b). A third: a weighed frame after at least ``after_lost_s`` of
+frames not weighed (the estimate out of the image or hidden) while not ok and more than FAR_M / FAR_RAD
 from the last confident pose: a bone moved out of view and back (or_fast_reposition) is searched for
 as soon as it is seen again; the slow trigger took 1.5 s more there. The re-initialisation runs on
 the next frame that has a camera pose and valid depth.
@@ -72,7 +72,7 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
   refinement's track (RefinedTrack.seed, which resets the static-bone prior: its held base-frame
   pose is where the bone WAS and must not drag the track back). A search that confirms nothing
   (the bone out of view) changes nothing and is no attempt (:meth:`RecoveryPolicy.declined`): it
-  is retried every SEARCH_RETRY_FRAMES on weighed frames away from the last ok pose until a frame
+  is retried every SEARCH_RETRY_S on weighed frames away from the last ok pose until a frame
   is ok or a search finds a pose, whether or not the trigger still holds (a wrong track sliding
   over the tissue restarts the slow trigger's count). Re-spreading around the last ok
   pose and the SMC from the trial's point prior both search where the bone was: on
@@ -83,7 +83,7 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
   evaluations (work, never seconds).
 
 Without any ok frame yet, the last confident pose is the start pose. After attempt k the next one
-waits at least ``cooldown_frames`` · 2^min(k, 3) frames (a scene that can never be tracked, e.g. a
+waits at least ``cooldown_s`` · 2^min(k, 3) (a scene that can never be tracked, e.g. a
 crest buried in tissue, is not re-initialised every few frames). The slow trigger counts only
 frames the rules do not find ok: a found pose awaiting its confirmation (below) is reported
 uncertain, and counting those frames fired a re-spread at the old pose before it was confirmed.
@@ -96,6 +96,16 @@ after a re-initialisation a pose is ok only when it agrees with the last ok pose
 FAR_RAD: the bone is usually static in the robot's base frame), or, away from it (the bone was
 moved while hidden), after ``confirm_frames`` (90, ~1 s) weighed frames in a row that the rules
 find ok: evidence, not a timer.
+
+**Seconds and frames.** The triggers' and the cooldown's durations are seconds, counted in the
+frames the tracker processes: a duration T is ``ceil(T / period)`` frames in a row, with ``period``
+the median of the last PERIOD_FRAMES - 1 stamp differences of the frames the policy saw
+(:class:`FramePeriod`; NOMINAL_PERIOD_S, the D415's 90 Hz, until two stamps are known). So a live
+session that processes 30 frames/s fires after the same seconds as a 90 Hz replay, where counting
+frames waited 3x as long (1 s became 3 s; ``after_uncertain_frames`` before 2026-11-24), and a
+camera dropout (one long gap) does not count as many frames. ``hold_frames`` and ``confirm_frames``
+stay counts: they ask for evidence (weighed frames the rules judge), which a slower rate gives more
+slowly; the wait grows with it, on the safe side.
 
 Each re-initialisation is recorded as (stamp, kind, reason); :meth:`RecoveryPolicy.report` gives
 them for the summaries.
@@ -116,7 +126,9 @@ from app.geometry import quaternion as quat
 
 RESPREAD, SMC, SEARCH = "respread", "smc", "search"
 FOUND_SIGMA_M, FOUND_SIGMA_RAD = 0.003, math.radians(3.0)   # the cloud about a pose the wide search found
-SEARCH_RETRY_FRAMES = 30             # frames between two wide searches that found nothing (~0.33 s at 90 Hz)
+SEARCH_RETRY_S = 0.33                # s between two wide searches that found nothing (30 frames at 90 Hz)
+NOMINAL_PERIOD_S = 1.0 / 90.0        # the frame period until two stamps are known (the D415's 90 Hz, the trials')
+PERIOD_FRAMES = 31                   # the period is the median of the last 30 stamp differences
 TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 of the last 90 not-lost estimates
 MAX_BACKOFF_DOUBLINGS = 3
 FAR_M, FAR_RAD = 0.005, math.radians(5.0)
@@ -126,11 +138,12 @@ STILL_WINDOW_S = 0.5
 
 @dataclass
 class RecoveryConfig:
-    """``recovery.*`` of the configuration (module docstring). enabled; after_lost_frames (bad frames
-    in a row before a re-initialisation); after_uncertain_frames (weighed frames not ok in a row
+    """``recovery.*`` of the configuration (module docstring). enabled; after_lost_s (s of bad frames
+    in a row before a re-initialisation); after_uncertain_s (s of weighed frames not ok in a row
     before one; 0 = off); respread_sigma_p (m) / respread_sigma_r (rad); respreads
     (re-spreads before each SMC attempt); smc_evaluations (the initialiser's likelihood evaluations);
-    hold_frames (weighed frames capped at uncertain after one); cooldown_frames (frames between two);
+    hold_frames (weighed frames capped at uncertain after one); cooldown_s (s between two, doubled
+    per attempt); the seconds are counted in processed frames (module docstring, "Seconds and frames");
     min_visible_share (a due re-initialisation waits until this share of the bone's expected
     silhouette at the last confident pose is not hidden by an occluder); confirm_frames (after one,
     weighed frames in a row that the rules find ok before a pose away from the last ok one may be ok);
@@ -138,18 +151,42 @@ class RecoveryConfig:
     search_evaluations (its likelihood evaluations per search)."""
 
     enabled: bool = True
-    after_lost_frames: int = 10
-    after_uncertain_frames: int = 90
+    after_lost_s: float = 0.11
+    after_uncertain_s: float = 1.0
     respread_sigma_p: float = 0.015
     respread_sigma_r: float = math.radians(10.0)
     respreads: int = 0
     smc_evaluations: int = 30_000
     hold_frames: int = 15
-    cooldown_frames: int = 15
+    cooldown_s: float = 0.16
     min_visible_share: float = 0.6
     confirm_frames: int = 90
     search: bool = True
     search_evaluations: int = 4000
+
+
+class FramePeriod:
+    """The period of the frames the policy sees (module docstring, "Seconds and frames"): the median
+    of the last PERIOD_FRAMES - 1 positive stamp differences, NOMINAL_PERIOD_S before there is one."""
+
+    def __init__(self):
+        self._stamps: collections.deque = collections.deque(maxlen=PERIOD_FRAMES)
+        self.seconds = NOMINAL_PERIOD_S
+
+    def add(self, stamp: float) -> None:
+        """One processed frame's stamp (s); a stamp not after the last one is ignored."""
+        stamp = float(stamp)
+        if not math.isfinite(stamp) or (self._stamps and stamp <= self._stamps[-1]):
+            return
+        self._stamps.append(stamp)
+        if len(self._stamps) >= 2:
+            self.seconds = float(np.median(np.diff(self._stamps)))
+
+    def frames(self, seconds: float) -> int:
+        """The frames in a row that span ``seconds`` at this period: ceil(seconds / period), at least 1;
+        a hundredth of a frame over an integer counts as it (stamps in microseconds make the 90 Hz
+        period 0.011111 s: 1.0 s is 90 frames, not 91)."""
+        return max(1, math.ceil(seconds / self.seconds - 0.01))
 
 
 @dataclass
@@ -206,6 +243,7 @@ class RecoveryPolicy:
         self.declined_searches = 0
         self._searching = False                # a search found nothing: retried until an ok frame or a found pose
         self._outside = 0                      # weighed frames in a row never ok and outside the start's prior
+        self.period = FramePeriod()            # the processed frames' period: seconds to frames
 
     # -- inputs ------------------------------------------------------------------------------
     def set_start(self, T_base_bone: np.ndarray) -> None:
@@ -222,6 +260,7 @@ class RecoveryPolicy:
                T_base_bone: np.ndarray, stamp: float) -> TrackingStatus:
         """One frame's final status in, the status to report out (capped at uncertain while holding);
         remembers the confident pose and decides whether a re-initialisation is due (``pending``)."""
+        self.period.add(stamp)
         self._since += 1
         rules_ok = status == TrackingStatus.OK
         if status != TrackingStatus.LOST:
@@ -249,15 +288,16 @@ class RecoveryPolicy:
         elif weighed:
             self._bad = 0
         c = self.config
-        if reason is not None and self._bad >= c.after_lost_frames:
+        after_lost = self.period.frames(c.after_lost_s)
+        if reason is not None and self._bad >= after_lost:
             self._due(f"{reason} for {self._bad} frames")
-        elif self._outside >= c.after_lost_frames:
+        elif self._outside >= after_lost:
             self._due(f"never ok, {self._outside} weighed frames outside the start's prior "
                       f"({self._gap_text(T_base_bone)} from the start)")
         elif back and self._far(T_base_bone):
             self._due(f"weighed again after {back} frames unseen, {self._gap_text(T_base_bone)} from the last ok pose")
-        elif (c.after_uncertain_frames and (self._ever_ok or beyond)
-              and self._not_ok >= c.after_uncertain_frames and self._far(T_base_bone)):
+        elif (c.after_uncertain_s and (self._ever_ok or beyond)
+              and self._not_ok >= self.period.frames(c.after_uncertain_s) and self._far(T_base_bone)):
             self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
         elif self._searching and weighed and self._far(T_base_bone):
             self._due(f"still searching ({self.declined_searches} searches found nothing), "
@@ -266,13 +306,13 @@ class RecoveryPolicy:
 
     def _back_in_view(self, weighed: bool) -> int:
         """The count of not-weighed frames (not ok) just ended by a weighed one when it reached
-        ``after_lost_frames``, else 0: the estimate is in view again after the bone was out of it
+        ``after_lost_s`` (in frames), else 0: the estimate is in view again after the bone was out of it
         (or hidden); far from the last ok pose, a moved bone is searched for at once instead of
-        after the slow trigger's ``after_uncertain_frames`` (module docstring, "Trigger")."""
+        after the slow trigger's ``after_uncertain_s`` (module docstring, "Trigger")."""
         if not weighed:
             self._unseen += 1
             return 0
-        back = self._unseen if self._unseen >= self.config.after_lost_frames else 0
+        back = self._unseen if self._unseen >= self.period.frames(self.config.after_lost_s) else 0
         self._unseen = 0
         return back
 
@@ -345,9 +385,9 @@ class RecoveryPolicy:
         return None
 
     def _cooldown(self) -> int:
-        """After attempt k (attempts counts it already): cooldown_frames * 2^min(k, 3)."""
+        """After attempt k (attempts counts it already): cooldown_s (in frames) * 2^min(k, 3)."""
         k = max(self._attempts - 1, 0)
-        return self.config.cooldown_frames * 2 ** min(k, MAX_BACKOFF_DOUBLINGS)
+        return self.period.frames(self.config.cooldown_s) * 2 ** min(k, MAX_BACKOFF_DOUBLINGS)
 
     def next_kind(self) -> str:
         """The kind of the due attempt (module docstring)."""
@@ -366,7 +406,7 @@ class RecoveryPolicy:
     def declined(self) -> None:
         """The due wide search found nothing confirmed (the bone out of view): nothing was changed, so
         it is no attempt (no hold, no backoff step, the bad-frame counts kept); the next search runs
-        SEARCH_RETRY_FRAMES later, and keeps being retried so, on weighed frames away from the last ok
+        SEARCH_RETRY_S later, and keeps being retried so, on weighed frames away from the last ok
         pose, until a frame is ok or a search finds a pose: the trigger found the track suspect, and a
         wrong track that moves (sliding over the tissue) or fits the tissue well is no less so
         (or_fast_reposition crest_left_03 seed 1: with the retry tied to the trigger, the bone was not
@@ -374,7 +414,7 @@ class RecoveryPolicy:
         self.pending = None
         self.declined_searches += 1
         self._searching = True
-        self._since, self._wait = 0, SEARCH_RETRY_FRAMES
+        self._since, self._wait = 0, self.period.frames(SEARCH_RETRY_S)
 
     def smc_point(self) -> np.ndarray:
         """The point on the bone (base frame) the one-point initialiser starts from."""
