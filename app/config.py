@@ -163,6 +163,7 @@ KEYS: dict[str, _Key] = {
     "status.settle_s": _f("status.settle_s", 0.0, 60.0),
     "status.min_fitness": _f("status.min_fitness", 0.0, 1.0),
     "status.max_template_std": _f("status.max_template_std", 0.0, 1.0, lo_open=True),
+    "status.max_held_chi2": _f("status.max_held_chi2", 0.0, 1e6, lo_open=True),
     "status.covariance_inflation": _f("status.covariance_inflation", 1.0, 1e6),
     "refine.enabled": _Key(("refine", "enabled"), "bool"),
     "refine.stride": _i("refine.stride", 1, 8),

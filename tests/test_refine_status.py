@@ -98,6 +98,18 @@ def test_measurements_behind_the_refined_model_are_not_ok():
     assert with_refinement(TrackingStatus.OK, RefinementEvidence(0.9, 0.0003, False), t) == "ok"   # unknown: no rule
 
 
+def test_a_held_pose_the_images_own_fit_contradicts_is_not_ok():
+    """status.max_held_chi2 (4): the static prior kept a pose this frame's fit lies Δχ² > 4 from
+    (a bone starting to move, fused behind it); released (0) or without the prior (NaN): no rule."""
+    t = StatusThresholds()
+    assert t.max_held_chi2 == 4.0
+    for chi2, expected in ((0.0, "ok"), (1.1, "ok"), (3.99, "ok"), (4.01, "uncertain"), (25.0, "uncertain"),
+                           (float("nan"), "ok")):
+        evidence = RefinementEvidence(0.9, 0.0003, False, -0.004, chi2)
+        assert with_refinement(TrackingStatus.OK, evidence, t) == expected, chi2
+    assert "contradicts the held pose" in refinement_reasons(RefinementEvidence(0.9, 0.0003, False, 0.0, 5.0), t)[0]
+
+
 def test_behind_excess_uses_the_noise_bound_or_the_fixed_share():
     from app.filter.refine import RefineResult
     from app.filter.refine_track import FALLBACK_BEHIND_SHARE, behind_excess

@@ -106,7 +106,9 @@ def test_a_bone_moving_in_small_steps_is_followed_not_fused():
     T0 = np.eye(4)
     lags = {}
     for frames in (0, 9):
-        prior = StaticPrior(StaticPriorConfig(motion_frames=frames), CENTER, inflation=6.0)
+        # the release's threshold as it was when the motion test was built (25; 4 now follows this bone by
+        # its contradiction test alone, from a lag of 0.155 mm): the motion test must follow it even so
+        prior = StaticPrior(StaticPriorConfig(release_chi2=25.0, motion_frames=frames), CENTER, inflation=6.0)
         for _ in range(100):
             prior.update(T0, _info(), image_std=CLEAR_STD)
         lags[frames] = _moving_bone(prior, T0, 1e-4, 40)
@@ -114,10 +116,60 @@ def test_a_bone_moving_in_small_steps_is_followed_not_fused():
     assert max(lags[9][:5]) > 0 and max(lags[9][5:]) < 1e-9, "from the 6th moving frame the anchor is the image's fit"
 
 
-def test_static_fits_scattered_by_the_images_own_noise_never_release():
+def _starting_bone(release_chi2: float) -> tuple[list[float], list[float], list[bool]]:
+    """A bone accelerating from rest along a constrained axis (each frame 0.01 mm farther than the last,
+    up to 0.2 mm a frame: 0.9-18 mm/s at 90 Hz), every frame's fit exactly at the bone: the anchor's
+    lag behind it, the prior's Δχ² and whether it released, per frame."""
+    T0 = np.eye(4)
+    prior = StaticPrior(StaticPriorConfig(release_chi2=release_chi2), CENTER, inflation=6.0)
+    for _ in range(100):
+        prior.update(T0, _info(), image_std=CLEAR_STD)
+    lags, chi2, released, position = [], [], [], 0.0
+    for k in range(1, 21):
+        position += 1e-5 * k
+        bone = _moved(T0, np.array([0, 0, 0, 0, position, 0]))
+        T = prior.update(bone, _info(), image_std=CLEAR_STD)
+        lags.append(se3.translation_distance(T, bone))
+        chi2.append(prior.chi2)
+        released.append(prior.released)
+    return lags, chi2, released
+
+
+def test_a_slowly_starting_bone_is_followed_and_a_held_lag_is_never_ok():
+    """With the release at 25 (before 2026-11-24) the anchor was fused behind a bone starting to move
+    slowly (crest_left_05 bone_moves: up to 1 mm while ok, BENCHMARKS.md §6f); every frame lagging
+    more than 0.2 mm has Δχ² > 4 (closed form: δ² · 1e9 / 6 > 4 from δ = 0.155 mm), which the status
+    rule status.max_held_chi2 = 4 does not let be ok. At the default release (4) the image's fit is
+    followed once it lies Δχ² > 4 away: the anchor never lags by more than a frame's step."""
+    lags, chi2, released = _starting_bone(25.0)
+    lagging = [c for lag, c, r in zip(lags, chi2, released) if not r and lag > 2e-4]
+    assert len(lagging) >= 3 and min(lagging) > 4.0
+    assert StaticPriorConfig().release_chi2 == 4.0
+    lags, chi2, released = _starting_bone(StaticPriorConfig().release_chi2)
+    assert any(released)
+    assert all(lag < 2e-4 for lag in lags), lags                         # the largest step is 0.2 mm
+    assert all(c <= 4.0 for c, r in zip(chi2, released) if not r)       # never held against the image
+
+
+def test_at_rest_the_held_pose_chi2_stays_under_the_status_threshold():
+    """Fits of a static bone scattered with the image's own covariance H⁻¹ (χ²₆ / 6 against the
+    anchor, P(> 4) ~ 5e-4): at most a few frames in 2,000 are over status.max_held_chi2 = 4."""
+    rng = np.random.default_rng(5)
+    std = 1.0 / np.sqrt(np.diag(_info()))
+    rest = StaticPrior(StaticPriorConfig(), CENTER, inflation=6.0)
+    chi2 = []
+    for _ in range(2000):
+        rest.update(_moved(np.eye(4), rng.normal(0.0, std)), _info(), image_std=CLEAR_STD)
+        chi2.append(rest.chi2)
+    assert np.mean(np.array(chi2[100:]) > 4.0) < 0.005
+
+
+def test_static_fits_scattered_by_the_images_own_noise_rarely_release():
     """Fits of a static bone scattered with the image's own covariance H⁻¹ (the inflation's 6 covers
-    correlated pixels and model error on top): the motion test's Δχ² has mean 6 · 2 / 12 = 1 (χ²(6)
-    scaled by 1/6), P(> 25) ~ 1e-24: 1,000 frames never release and the anchor stays within the noise."""
+    correlated pixels and model error on top): both tests' Δχ² are about χ²(6) / 6 (mean 1), P(> 4)
+    ~ 5e-4 each: over 1,000 frames about one release is expected (a Poisson count: 5 or more has
+    P < 0.5 %), and the anchor stays within the noise. On the CT crests at rest the measured Δχ²
+    never exceeded 1.1 (the real fits scatter less than the inflated H⁻¹; BENCHMARKS.md §6f)."""
     rng = np.random.default_rng(12)
     std = 1.0 / np.sqrt(np.diag(_info()))
     prior = StaticPrior(StaticPriorConfig(), CENTER, inflation=6.0)
@@ -126,14 +178,15 @@ def test_static_fits_scattered_by_the_images_own_noise_never_release():
     for _ in range(1000):
         prior.update(_moved(T0, rng.normal(0.0, std)), _info(), image_std=CLEAR_STD)
         released += prior.released
-    assert released == 1, "only the first frame starts the prior"
+    assert 1 <= released <= 5, "the first frame starts the prior; the noise releases it rarely"
     assert se3.translation_distance(prior.T_base_bone, T0) < 2e-5
 
 
 def test_the_motion_window_spans_clear_frames_only():
     """A weak frame (a hand) empties the window: the first clear frame after it cannot compare with a
     fit from before the hand (that contradiction is the anchor's own Δχ² test)."""
-    prior = StaticPrior(StaticPriorConfig(), CENTER, inflation=6.0)
+    # the release's old threshold, 25, so that the anchor's own test lets this 0.3 mm through (4 would release)
+    prior = StaticPrior(StaticPriorConfig(release_chi2=25.0), CENTER, inflation=6.0)
     T0 = np.eye(4)
     for _ in range(20):
         prior.update(T0, _info(), image_std=CLEAR_STD)

@@ -90,7 +90,7 @@ class RefineConfig:
     feedback: bool = True
     feedback_fitness: float = 0.6
     static_prior: bool = True
-    prior_release_chi2: float = 25.0
+    prior_release_chi2: float = 4.0
     prior_clear_ratio: float = 1.5
     prior_information_frames: float = 300.0
     prior_motion_frames: int = 9
@@ -104,7 +104,8 @@ class RefineOutcome:
     refined); template_std (m, inf when not refined); competitor : a competing pose fits about as
     well; competitor_fitness; source : 'track' | 'filter' | ''; seconds : time spent; behind : the kept
     fit's share of measurements inside the model in excess of the noise's bound (:func:`behind_excess`;
-    <= 0 when the noise explains it)."""
+    <= 0 when the noise explains it); held_chi2 : the static prior's Δχ² from the pose it kept to the
+    kept fit when it did not release onto it (0 when it did, NaN without the prior; status.py)."""
 
     T_base_bone: np.ndarray | None
     fitness: float
@@ -114,6 +115,7 @@ class RefineOutcome:
     source: str
     seconds: float
     behind: float = float("nan")
+    held_chi2: float = float("nan")
 
 
 def behind_excess(result: RefineResult) -> float:
@@ -262,6 +264,7 @@ class RefinedTrack:
         grid_std = self._prior_std(best, std)
         T_held = prior.update(T_best, best.H, grid_std)
         self.last_info.update(chi2=prior.chi2, motion_chi2=prior.motion_chi2, released=prior.released, held=prior.held,
+                              held_chi2=0.0 if prior.released else prior.chi2,
                               img_std_mm=1e3 * std, grid_std_mm=1e3 * grid_std)
         return source, T_held, best, std
 
@@ -301,5 +304,6 @@ class RefinedTrack:
         else:
             self.reset()
         kept = T_best if best.fitness >= c.keep_fitness else None
+        held_chi2 = self.last_info.get("held_chi2", float("nan"))
         return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0,
-                             behind_excess(best))
+                             behind_excess(best), held_chi2)

@@ -31,16 +31,23 @@ from the anchor to T_img:
   hand, while one-frame-at-a-time Kalman weights made each step small);
 - **clear frame, contradiction test**: Δχ² = δᵀ (H / inflation) δ, the drop of the image's own
   robust cost from the anchor to T_img (its quadratic model). It is large only along directions the
-  image constrains. Above ``release_chi2`` (25) the image contradicts the prior: the prior is
-  released (anchor ← T_img, Λ ← H / inflation): a bone that moves in view is followed at once. A
+  image constrains. Above ``release_chi2`` (4) the image contradicts the prior: the prior is
+  released (anchor ← T_img, Λ ← H / inflation): a bone that moves in view is followed at once. 4
+  (was 25 until 2026-11-24): under the image's own inflated covariance Δχ² is χ²₆ / 6 (mean 1,
+  P(> 4) ~ 5e-4), and on ok frames at rest it was at most 1.08 on five trials of four crests; at 25
+  a bone starting to move slowly was fused behind for ~10 frames (the held pose 1.0-1.3 mm behind
+  while ok; the outline on the bone 1.5-3.2 mm off), and under a hand-eye error (camera motion
+  looks like small bone motion) the held base-frame pose drifted off the camera frame's (camera-frame
+  ADD 0.38 -> 0.15 mm at 4 on crest_right_04 or_calibration; BENCHMARKS.md §6f). A
   weak frame never releases: with the quadratic test alone, crest_left_03 released at 75 % hidden
   (Δχ² 27 for a fit that had slid 12 mm) and was lost;
 - **clear frame, motion test** (a window over the image's own fits, not against the anchor): Δχ²_W =
   dᵀ (H'_old⁻¹ + H'⁻¹)⁻¹ d, d the increment from the image's fit ``motion_frames`` (9) consecutive
   clear frames ago to this frame's fit (fewer after a weak frame, which empties the window). Above
   ``release_chi2`` the bone is moving: the prior is released onto the image's fit, every clear frame
-  while the window spans the move. Why: a bone moving at 5 cm/s moves ~0.55 mm a frame, each frame's
-  Δχ² against the anchor stays at 5-13, under 25, so the frames were *fused*: with Λ of n frames the
+  while the window spans the move. Why (measured with ``release_chi2`` 25): a bone moving at 5 cm/s
+  moves ~0.55 mm a frame, each frame's Δχ² against the anchor stays at 5-13, under 25, so the
+  frames were *fused*: with Λ of n frames the
   anchor moves δ/(n+1), the refinement starts from the lagging anchor, and once the lag passes the
   narrow refinement's reach it converges short of the bone (crest_left_02 bone_moves seed 2: 2.8-6.6 mm
   behind during the move, held 3.49 mm off after rest). Measured on that trial: Δχ²_W 0.0-0.2 at rest
@@ -86,7 +93,7 @@ class StaticPriorConfig:
     frames: the image's fit is compared with its own fit this many clear frames ago; 0 disables)."""
 
     enabled: bool = True
-    release_chi2: float = 25.0
+    release_chi2: float = 4.0
     clear_ratio: float = 1.5
     max_information_frames: float = 300.0
     motion_frames: int = 9

@@ -104,6 +104,17 @@ then lowered to UNCERTAIN, never raised, when
   of before: 16 on the same trials, 14 of them on crest_right_02). At 0.65 m the fixed share had
   declined right poses on most crests (their tail is 1-2 % there: ok on 0-64 % of the frames after
   1 s); the bound follows the depth's noise instead (ok on 97-100 %).
+- the static-bone prior (app/filter/static_prior.py) kept a pose that this frame's own fit contradicts:
+  its Δχ² = δᵀ (H / ``covariance_inflation``) δ from the kept pose to the image's fit exceeds
+  ``max_held_chi2`` = 4 and the prior did not release onto the fit. Under the image's own inflated
+  covariance Δχ² is χ²₆ / 6: 4 is its 0.05 % tail. A clear frame releases at the same 4
+  (``refine.prior_release_chi2``), so this rule speaks on the frames the prior holds (a hand over
+  the bone, or a configuration with a higher release). Why: with the release at 25 a bone that
+  starts to move slowly (bone_moves: 0.7 mm/s rising to 10 mm/s over 0.2 s) was fused, not
+  released, for ~10 frames, and the held pose lagged it by up to 1.0-1.3 mm while every other rule
+  said ok; the projected outline landed 1.5-3.2 mm off on the bone (33 mm where a ray slid off the
+  ridge). Measured (BENCHMARKS.md §6f, five trials of four crests, release at 25): on ok frames at
+  rest Δχ² was at most 1.08 (medians 0.1-0.24); on the lagging frames with ADD > 0.5 mm 3.0-25.
 
 Caveat: with a peaked likelihood (hundreds of pixels, ESS / N near 1/N) the weighted spread of a
 degenerate particle set is near zero even when the estimate is off; the inlier rules are what
@@ -133,6 +144,7 @@ SETTLE_S = 0.3
 MIN_FITNESS = 0.6
 MAX_BEHIND_EXCESS = 0.002
 MAX_TEMPLATE_STD_M = 0.001
+MAX_HELD_CHI2 = 4.0
 COVARIANCE_INFLATION = 6.0
 
 
@@ -165,6 +177,7 @@ class StatusThresholds:
     min_fitness: float = MIN_FITNESS
     max_behind_excess: float = MAX_BEHIND_EXCESS
     max_template_std: float = MAX_TEMPLATE_STD_M
+    max_held_chi2: float = MAX_HELD_CHI2
     covariance_inflation: float = COVARIANCE_INFLATION
 
 
@@ -248,13 +261,16 @@ class RefinementEvidence:
     template_std : m, largest predicted std of the template's points (inf when not refined);
     competitor : a pose > 5 mm / 5 deg away explains the image about as well;
     behind : share of the measurements lying more than 1 σ inside the refined model in excess of the
-    share the image's noise explains (app/filter/refine_track.py ``behind_excess``; NaN: unknown).
+    share the image's noise explains (app/filter/refine_track.py ``behind_excess``; NaN: unknown);
+    held_chi2 : the static prior's Δχ² from the pose it kept (held or fused) to this frame's own fit,
+    when it did not release onto that fit (app/filter/static_prior.py; 0 when released, NaN without it).
     """
 
     fitness: float
     template_std: float
     competitor: bool
     behind: float = float("nan")
+    held_chi2: float = float("nan")
 
 
 def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
@@ -269,6 +285,9 @@ def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
     if r.behind > t.max_behind_excess:
         reasons.append(f"{100 * r.behind:.1f} % more of the seen bone lies inside the refined model than the noise "
                        "explains (slid onto tissue?)")
+    if r.held_chi2 > t.max_held_chi2:
+        reasons.append(f"the image's own fit contradicts the held pose (Δχ² {r.held_chi2:.1f} > {t.max_held_chi2:g}; "
+                       "the bone starting to move?)")
     return reasons
 
 
