@@ -260,3 +260,34 @@ def test_sink_scores_only_shown_frames_and_writes_pngs(ctx, bone, tmp_path):
     # frame 0: the template (lit lines on black, no red border); frame 1: the red warning border
     assert shown.max() > 0 and shown[0, :, 2].max() == 0
     assert np.all(warning[0, :, 2] > 150) and np.all(warning[0, :, :2] < 100)
+
+
+def test_the_template_error_leaves_out_the_grazing_outline_the_renderer_does_not_draw(ctx, bone, plans, projector):
+    """Turned 50 deg, part of the box's outline faces the projector at grazing incidence (beyond
+    MAX_INCIDENCE_DEG = 75 deg). There a 0.14 mm pose error moves the landing light by millimetres
+    (BENCHMARKS.md §6f); the renderer does not light it (projector_line.frag.glsl), and the template
+    error scores only what is drawn: its points agree with the lit pixels'."""
+    from app.projector.accuracy import MAX_TEMPLATE_POINTS, _subsample, trace_pixels
+    from app.projector.geometry import MAX_INCIDENCE_DEG, facing, surface_normals_at
+
+    V, F = bone
+    T_true = bone_pose((50, 0, 0))
+    T_est = T_true @ se3.from_rotvec_trans(np.zeros(3), np.array([1e-4, 1e-4, 0.0]))
+    drawn = template_error(plans["box"], T_est, T_true, T_BASE_CAMERA, projector, V, F)
+    every = template_error(plans["box"], T_est, T_true, T_BASE_CAMERA, projector, V, F, max_incidence_deg=90.0)
+    assert drawn.n_grazing > 10 and every.n_grazing == 0 and every.n_points == drawn.n_points + drawn.n_grazing
+    assert drawn.max_mm < 0.5 < 1.5 < every.max_mm
+    # the renderer agrees: no lit pixel lands by a grazing outline point
+    T_projector_bone = projector.T_projector_bone(T_BASE_CAMERA, T_true)
+    r = ProjectorRenderer(ctx, projector, V, F, plans["box"])
+    image = r.render(T_projector_bone)
+    r.release()
+    v, u = np.nonzero(image.max(axis=2) > 32)
+    hits = trace_pixels(np.column_stack([u, v]).astype(float), projector, T_projector_bone, V, F)
+    hits = hits[np.all(np.isfinite(hits), axis=1)]
+    points = _subsample(plans["box"].points(), MAX_TEMPLATE_POINTS)
+    origin = se3.inverse(T_projector_bone)[:3, 3]
+    cos_points = facing(surface_normals_at(points, V, F), points, origin)
+    nearest = np.argmin(np.linalg.norm(hits[:, None] - points[None], axis=2), axis=1)
+    assert len(hits) > 200
+    assert np.mean(cos_points[nearest] < np.cos(np.radians(MAX_INCIDENCE_DEG)) - 0.05) < 0.005   # 2.4 % with 90 deg

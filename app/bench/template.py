@@ -8,7 +8,8 @@ pose the tracker believes, so a hand-eye error moves the whole base frame and th
 For each frame with status ok (the projector's gate shows the template only then; its staleness
 limit is not modelled: a replay's estimate has no age), :func:`app.projector.accuracy.template_error`
 traces the plan's outline through the projector (configs/projector.yaml's model; its plan, or one of
-the configured shape derived on this mesh's ridge as a replay does) at the estimate, and lands the
+the configured shape derived on this mesh's ridge as a replay does) at the estimate (the points it
+draws: not hidden, not at grazing incidence, as the renderer), and lands the
 same rays on the bone at the true pose *as the measured camera sees it*
 (:func:`app.sim.truth.bone_seen`, eq. S1; the true camera poses from :func:`app.sim.truth.true_camera_poses`).
 
@@ -34,7 +35,7 @@ def template_scores(reader, T_est: np.ndarray, statuses, n: int, every: int = 1)
     displacement on any ok frame, "ok_frames_outline_over_2mm": count}`` (summaries as
     :func:`app.metrics.summarise`). ``every``: score every k-th ok frame (the ADD takes them all).
     """
-    from app.projector.accuracy import template_error
+    from app.projector.accuracy import plan_normals, template_error
     from app.sim.truth import bone_seen, true_camera_poses
 
     mesh = reader.load_mesh()
@@ -52,8 +53,9 @@ def template_scores(reader, T_est: np.ndarray, statuses, n: int, every: int = 1)
         add_camera[i] = 1e3 * metrics.add(T_est[i], T_seen[i], points)
     ok = np.array([s == "ok" for s in statuses[:n]]) & with_pose
     means, maxes = [], []
+    normals = plan_normals(plan, vertices, faces)
     for i in np.nonzero(ok)[0][::max(int(every), 1)]:
-        e = template_error(plan, T_est[i], T_seen[i], T_measured[i], projector, vertices, faces)
+        e = template_error(plan, T_est[i], T_seen[i], T_measured[i], projector, vertices, faces, normals=normals)
         if e.n_points:
             means.append(e.mean_mm)
             maxes.append(e.max_mm)

@@ -14,6 +14,11 @@ from __future__ import annotations
 import numpy as np
 
 RAY_EPS = 1e-12
+MAX_INCIDENCE_DEG = 75.0
+"""Surface parts seen more obliquely than this from the projector (angle between the surface normal
+and the ray back to the projector) get no line (app/projector/render.py): there a millimetre of light
+smears over several millimetres of bone, and a pose error of 0.1 mm moves the line by millimetres
+(BENCHMARKS.md §6f: outline points at 80-90 deg landed up to 3.6 mm off at 0.09 mm ADD)."""
 
 
 def ray_mesh_first_hit(origins: np.ndarray, directions: np.ndarray, vertices: np.ndarray, faces: np.ndarray,
@@ -130,3 +135,23 @@ def distance_to_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray, chunk
         c = a[None] + t[..., None] * ab[None]
         out[s:s + chunk] = np.sqrt(np.min(np.sum((p - c) ** 2, axis=2), axis=1))
     return out
+
+
+def surface_normals_at(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(N, 3) unit normal of the mesh face nearest each point (bone frame): the normals the
+    projector's ribbons carry (app/projector/render.py ``ribbon_triangles``)."""
+    import trimesh
+
+    _, _, face = closest_points_on_mesh(points, vertices, faces)
+    return np.asarray(trimesh.Trimesh(vertices, faces, process=False).face_normals)[face]
+
+
+def facing(normals: np.ndarray, points: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """(N,) |cos| of the angle between each surface normal and the ray from the point back to
+    ``origin`` (the projector's centre), all in one frame; the crest is an open surface: either side
+    (as projector_line.vert.glsl's ``v_facing``)."""
+    back = np.asarray(origin, float)[None] - np.asarray(points, float)
+    back /= np.maximum(np.linalg.norm(back, axis=1, keepdims=True), 1e-12)
+    n = np.asarray(normals, float)
+    n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return np.abs(np.sum(n * back, axis=1))

@@ -25,7 +25,7 @@ from __future__ import annotations
 import moderngl
 import numpy as np
 
-from app.projector.geometry import closest_points_on_mesh
+from app.projector.geometry import MAX_INCIDENCE_DEG, closest_points_on_mesh
 from app.projector.model import ProjectorModel
 from app.projector.plan import Plan
 from app.render import shaders
@@ -37,9 +37,6 @@ DEPTH_TOLERANCE_M = 0.0015
 """A ribbon fragment up to this far behind the bone surface still counts as on it (the ribbon is
 flat, the bone curved, and depth is interpolated differently on the two): well below the crest's
 thickness, so the far side of the crest stays hidden."""
-MAX_INCIDENCE_DEG = 75.0
-"""Surface parts seen more obliquely than this (angle between the surface normal and the ray back
-to the projector) get no line: there a millimetre of light smears over several millimetres of bone."""
 NEAR_M, FAR_M = 0.05, 3.0
 DISC_SEGMENTS = 8
 DEFAULT_COLOR = (0, 255, 0)

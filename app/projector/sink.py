@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.projector.accuracy import TemplateError, template_error
+from app.projector.accuracy import TemplateError, plan_normals, template_error
 from app.projector.view import ProjectorView
 
 log = logging.getLogger(__name__)
@@ -51,6 +51,7 @@ class ProjectorSink:
         self.plan = view.renderer.plan
         self.projector = view.projector
         self.vertices, self.faces = np.asarray(vertices, dtype=float), np.asarray(faces)
+        self._normals = None   # the surface normals at the scored outline points (once, on first use)
         self.rec = rec
         self.png = PngWriter(png_dir) if png_dir is not None else None
         self.error_every = max(1, int(error_every))
@@ -82,8 +83,10 @@ class ProjectorSink:
         decision = self.view.last_decision
         error = None
         if decision.show and T_base_bone_true is not None and self.frames % self.error_every == 0:
+            if self._normals is None:
+                self._normals = plan_normals(self.plan, self.vertices, self.faces)
             error = template_error(self.plan, T_base_bone, T_base_bone_true, T_base_camera, self.projector,
-                                   self.vertices, self.faces)
+                                   self.vertices, self.faces, normals=self._normals)
             if error.n_points:
                 self.errors.append(error)
         self.frames += 1
