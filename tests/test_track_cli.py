@@ -65,7 +65,10 @@ def _check_tracking_error(out: Path, rec: Path, sim_trial: Path, processed: int)
     from app.trial.tum import read_tum
 
     stamps, T_est = read_tum(out / "estimate.txt")
-    assert len(stamps) == processed >= 3   # a loaded 2-core machine (taskset -c 0 and a busy loop) tracks ~1 frame/s
+    # how many frames a live loop tracks depends on the machine's load (wall time): at least one. A 2-core
+    # machine running two bench workers beside this suite tracked 2 of the 1.5 s trial (the first frame,
+    # with its multi-start, took 1.5 s there); an idle one ~15 per second
+    assert len(stamps) == processed >= 1
     recorded, truth = open_trial(rec), open_trial(sim_trial)
     rec_index = {round(float(t), 6): int(f) for t, f in zip(recorded.stamps, recorded.frame_ids)}
     gt_index = {int(f): k for k, f in enumerate(truth.frame_ids)}
