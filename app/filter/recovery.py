@@ -42,7 +42,12 @@ without recovery; BENCHMARKS.md §6b). A third: a weighed frame after at least `
 frames not weighed (the estimate out of the image or hidden) while not ok and more than FAR_M / FAR_RAD
 from the last confident pose: a bone moved out of view and back (or_fast_reposition) is searched for
 as soon as it is seen again; the slow trigger took 1.5 s more there. The re-initialisation runs on
-the next frame that has a camera pose and valid depth.
+the next frame that has a camera pose and valid depth. A fourth, once: a track never ok since the start, still, weighed
+and not ok for NEVER_OK_SEARCH_S (1 s), before any re-initialisation or declined search, gets one
+wide search, wherever it lies (or_coarse_start crest_left_02 seed 1 converged into a wrong minimum
+11.9 mm off, fit 0.64, within the start's prior and 5 mm of the start, and sat there for the whole
+4 s: found at 1.1 s with this rule. On or_deep_tissue it runs one search that finds nothing better:
+7 of 8 crests, ADD within 0.12 mm of before, never ok; static_far seed 1: identical; BENCHMARKS.md §6f).
 
 **When.** A due attempt waits while the bone is mostly hidden: it runs only on a frame where at
 least ``min_visible_share`` (0.6) of the model's expected silhouette at the last confident pose is
@@ -132,6 +137,7 @@ PERIOD_FRAMES = 31                   # the period is the median of the last 30 s
 TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 of the last 90 not-lost estimates
 MAX_BACKOFF_DOUBLINGS = 3
 FAR_M, FAR_RAD = 0.005, math.radians(5.0)
+NEVER_OK_SEARCH_S = 1.0              # a track never ok for this long (still) gets one wide search
 START_SIGMAS = math.sqrt(16.27)   # chi-square, 3 dof, 99.9 %: a never-ok track this many start sigmas off
 STILL_WINDOW_S = 0.5
 
@@ -299,6 +305,9 @@ class RecoveryPolicy:
         elif (c.after_uncertain_s and (self._ever_ok or beyond)
               and self._not_ok >= self.period.frames(c.after_uncertain_s) and self._far(T_base_bone)):
             self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
+        elif (c.after_uncertain_s and not self._ever_ok and not self.events and not self.declined_searches
+              and self._not_ok >= self.period.frames(NEVER_OK_SEARCH_S)):
+            self._due(f"never ok for {self._not_ok} weighed frames since the start: one wide search")
         elif self._searching and weighed and self._far(T_base_bone):
             self._due(f"still searching ({self.declined_searches} searches found nothing), "
                       f"{self._gap_text(T_base_bone)} from the last ok pose")
