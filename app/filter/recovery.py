@@ -45,8 +45,9 @@ as soon as it is seen again; the slow trigger took 1.5 s more there. The re-init
 the next frame that has a camera pose and valid depth. A fourth, once: a track never ok since the start, still, weighed
 and not ok for NEVER_OK_SEARCH_S (1 s), before any re-initialisation or declined search, gets one
 wide search, wherever it lies (or_coarse_start crest_left_02 seed 1 converged into a wrong minimum
-11.9 mm off, fit 0.64, within the start's prior and 5 mm of the start, and sat there for the whole
-4 s: found at 1.1 s with this rule. On or_deep_tissue it runs one search that finds nothing better:
+11.9 mm off, fit 0.64, within the start's prior and 5 mm of the start; it escaped by chance at
+0.65 s, and with the static prior's release at 4 (tried) sat there for the whole 4 s: found at
+1.1 s with this rule. On or_deep_tissue it runs one search that finds nothing better:
 7 of 8 crests, ADD within 0.12 mm of before, never ok; static_far seed 1: identical; BENCHMARKS.md §6f).
 
 **When.** A due attempt waits while the bone is mostly hidden: it runs only on a frame where at

@@ -90,7 +90,7 @@ class RefineConfig:
     feedback: bool = True
     feedback_fitness: float = 0.6
     static_prior: bool = True
-    prior_release_chi2: float = 4.0
+    prior_release_chi2: float = 25.0
     prior_clear_ratio: float = 1.5
     prior_information_frames: float = 300.0
     prior_motion_frames: int = 9

@@ -31,14 +31,15 @@ from the anchor to T_img:
   hand, while one-frame-at-a-time Kalman weights made each step small);
 - **clear frame, contradiction test**: Δχ² = δᵀ (H / inflation) δ, the drop of the image's own
   robust cost from the anchor to T_img (its quadratic model). It is large only along directions the
-  image constrains. Above ``release_chi2`` (4) the image contradicts the prior: the prior is
-  released (anchor ← T_img, Λ ← H / inflation): a bone that moves in view is followed at once. 4
-  (was 25 until 2026-11-24): under the image's own inflated covariance Δχ² is χ²₆ / 6 (mean 1,
-  P(> 4) ~ 5e-4), and on ok frames at rest it was at most 1.08 on five trials of four crests; at 25
-  a bone starting to move slowly was fused behind for ~10 frames (the held pose 1.0-1.3 mm behind
-  while ok; the outline on the bone 1.5-3.2 mm off), and under a hand-eye error (camera motion
-  looks like small bone motion) the held base-frame pose drifted off the camera frame's (camera-frame
-  ADD 0.38 -> 0.15 mm at 4 on crest_right_04 or_calibration; BENCHMARKS.md §6f). A
+  image constrains. Above ``release_chi2`` (25) the image contradicts the prior: the prior is
+  released (anchor ← T_img, Λ ← H / inflation): a bone that moves in view is followed at once.
+  Tried on 2026-11-24 and not kept: 4 (under the image's own inflated covariance Δχ² is χ²₆ / 6,
+  P(> 4) ~ 5e-4; at rest it stayed <= 1.08). It followed a slowly starting bone (ADD 0.14 -> 0.11
+  mm over bone_moves) and a hand-eye error (camera-frame ADD 0.38 -> 0.15 mm on or_calibration),
+  but after a fast reposition a wrong track then slid with the image's fits, kept a fit >= 0.6 and
+  kept moving, so no trigger fired (or_fast_reposition: 2 of 24 runs never found again, median
+  0.42 -> 1.36 s; BENCHMARKS.md §6f). What 25 leaves, a held pose the image contradicts, the status
+  reports (status.py, ``max_held_chi2``). A
   weak frame never releases: with the quadratic test alone, crest_left_03 released at 75 % hidden
   (Δχ² 27 for a fit that had slid 12 mm) and was lost;
 - **clear frame, motion test** (a window over the image's own fits, not against the anchor): Δχ²_W =
@@ -93,7 +94,7 @@ class StaticPriorConfig:
     frames: the image's fit is compared with its own fit this many clear frames ago; 0 disables)."""
 
     enabled: bool = True
-    release_chi2: float = 4.0
+    release_chi2: float = 25.0
     clear_ratio: float = 1.5
     max_information_frames: float = 300.0
     motion_frames: int = 9

@@ -107,10 +107,9 @@ then lowered to UNCERTAIN, never raised, when
 - the static-bone prior (app/filter/static_prior.py) kept a pose that this frame's own fit contradicts:
   its Δχ² = δᵀ (H / ``covariance_inflation``) δ from the kept pose to the image's fit exceeds
   ``max_held_chi2`` = 4 and the prior did not release onto the fit. Under the image's own inflated
-  covariance Δχ² is χ²₆ / 6: 4 is its 0.05 % tail. A clear frame releases at the same 4
-  (``refine.prior_release_chi2``), so this rule speaks on the frames the prior holds (a hand over
-  the bone, or a configuration with a higher release). Why: with the release at 25 a bone that
-  starts to move slowly (bone_moves: 0.7 mm/s rising to 10 mm/s over 0.2 s) was fused, not
+  covariance Δχ² is χ²₆ / 6: 4 is its 0.05 % tail; the prior itself releases only at 25
+  (``refine.prior_release_chi2``; 4 there was tried and not kept, static_prior.py). Why: a bone
+  that starts to move slowly (bone_moves: 0.7 mm/s rising to 10 mm/s over 0.2 s) is fused, not
   released, for ~10 frames, and the held pose lagged it by up to 1.0-1.3 mm while every other rule
   said ok; the projected outline landed 1.5-3.2 mm off on the bone (33 mm where a ray slid off the
   ridge). Measured (BENCHMARKS.md §6f, five trials of four crests, release at 25): on ok frames at
