@@ -47,10 +47,9 @@ def template_scores(reader, T_est: np.ndarray, statuses, n: int, every: int = 1)
     with_pose = np.asarray(valid[:n]) & np.all(np.isfinite(T_true[:n]), axis=(1, 2))
     T_seen = np.full((n, 4, 4), np.nan)
     T_seen[with_pose] = bone_seen(T_measured[:n][with_pose], T_true[:n][with_pose], gt[with_pose])
-    points = vertices
     add_camera = np.full(n, np.nan)
     for i in np.nonzero(with_pose & np.all(np.isfinite(T_est[:n]), axis=(1, 2)))[0]:
-        add_camera[i] = 1e3 * metrics.add(T_est[i], T_seen[i], points)
+        add_camera[i] = 1e3 * metrics.add(T_est[i], T_seen[i], vertices)
     ok = np.array([s == "ok" for s in statuses[:n]]) & with_pose
     means, maxes = [], []
     normals = plan_normals(plan, vertices, faces)

@@ -26,7 +26,6 @@ import numpy as np
 import yaml
 
 from app.geometry import se3
-from app.geometry.ur import forward_kinematics, interpolate_joints
 
 log = logging.getLogger(__name__)
 
@@ -60,11 +59,8 @@ def true_camera_poses(reader) -> tuple[np.ndarray, str]:
     hand_eye = _true_hand_eye(path / SIMULATION_FILE)
     if hand_eye is None:
         return np.array(T_measured), FROM_TRIAL
-    q, ok = interpolate_joints(reader.joint_stamps, reader.joints, reader.stamps)
-    T = np.full((len(reader.stamps), 4, 4), np.nan)
-    if ok.any():
-        T[ok] = forward_kinematics(reader.meta.dh, q[ok]) @ hand_eye
-    return T, FROM_HAND_EYE
+    # the reader's FK of joints.csv, with the trial's hand-eye swapped for the true one (NaN rows stay NaN)
+    return T_measured @ se3.inverse(np.asarray(reader.meta.T_flange_camera, float)) @ hand_eye, FROM_HAND_EYE
 
 
 def _true_hand_eye(path: Path) -> np.ndarray | None:
