@@ -632,3 +632,81 @@ def test_a_track_never_ok_and_still_gets_one_wide_search():
         if moving.pending:
             break
     assert moving.pending is None or "never ok" not in moving.pending
+
+
+# -- the incumbent: a search keeps a track that explains the image best (wide_search.py, 6) ------------
+
+class _ScoredRefiner:
+    """A refiner stub: 'refines' a pose to itself, with the fitness and sharp share a test gives the
+    pose's x (mm, camera frame); it records the first Tukey width of each call."""
+
+    def __init__(self, scores):
+        from types import SimpleNamespace
+
+        self.scores, self.widths = scores, []
+        self.params = SimpleNamespace(start_width=0.004)
+
+    def refine(self, depth, T_camera_bone, start_width=None):
+        from app.filter.refine import RefineResult
+
+        self.widths.append(start_width)
+        fitness, sharp = self.scores[round(1e3 * T_camera_bone[0, 3])]
+        return RefineResult(np.array(T_camera_bone), np.eye(6), fitness, 100, int(100 * fitness), 100, 1e-3, True,
+                            sharp=sharp, behind=0.0, behind_allowed=0.05, noise=1e-3)
+
+
+def _verified(scores, incumbent_x_mm=0):
+    """_verify over a candidate at x = 9 mm (from the image) and the incumbent at ``incumbent_x_mm``."""
+    from app.filter.wide_search import INCUMBENT, SearchConfig, WideSearch
+
+    refiner = _ScoredRefiner(scores)
+    search = WideSearch(None, None, refiner, np.zeros((3, 3)), SearchConfig())
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    found = [(-1.0, np.array([0.009, 0.0, 0.0]), q, "image"),
+             (math.nan, np.array([1e-3 * incumbent_x_mm, 0.0, 0.0]), q, INCUMBENT)]
+    return search._verify(found, None, np.eye(4), 0), refiner
+
+
+def test_a_search_keeps_the_track_when_no_candidate_explains_the_image_better():
+    """or_fast_reposition crest_right_04 seed 0 at 3.68 s: candidates 9 mm off at a sharp share of
+    0.50, the track in place 0.76: kept (no pose to move to), and the incumbent refined from where
+    it is (no wide first step). A better candidate still wins; on a tie the track is kept; an
+    incumbent the refinement does not confirm never blocks a confirmed candidate."""
+    result, refiner = _verified({9: (0.97, 0.50), 0: (0.97, 0.76)})
+    assert result.kept and result.T_base_bone is None and result.sharp == pytest.approx(0.76)
+    assert result.incumbent == pytest.approx((0.97, 0.76)) and len(result.candidates) == 1
+    assert refiner.widths == [0.008, None, 0.0, None]        # the candidate widened, the incumbent not
+    better, _ = _verified({9: (0.97, 0.80), 0: (0.97, 0.76)})
+    assert not better.kept and better.T_base_bone[0, 3] == pytest.approx(0.009)
+    tie, _ = _verified({9: (0.97, 0.76), 0: (0.97, 0.76)})
+    assert tie.kept
+    unconfirmed, _ = _verified({9: (0.97, 0.55), 0: (0.50, 0.90)})   # fit under min_fitness 0.6
+    assert not unconfirmed.kept and unconfirmed.T_base_bone[0, 3] == pytest.approx(0.009)
+    nothing, _ = _verified({9: (0.97, 0.30), 0: (0.50, 0.90)})
+    assert not nothing.kept and nothing.T_base_bone is None   # declined, as without an incumbent
+
+
+def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
+    """RecoveryPolicy.kept: no event, no hold (an ok frame stays ok), no retry as after a declined
+    search; the slow trigger's count restarts, and the never-ok rule's one search is spent."""
+    from app.filter.recovery import NEVER_OK_SEARCH_S
+
+    unc = TrackingStatus.UNCERTAIN
+    T_near = se3.from_rotvec_trans(np.zeros(3), np.array([0.003, 0.0, 0.0]))
+    policy = _policy(cooldown_s=0.1)
+    frames = 0
+
+    def still(n):
+        nonlocal frames
+        for _ in range(n):
+            policy.update(unc, True, True, 0.64, T_near, frames / 90)
+            frames += 1
+            if policy.pending:
+                return True
+        return False
+
+    assert still(200) and "never ok" in policy.pending
+    policy.kept()
+    assert policy.pending is None and policy.events == [] and policy.report()["kept_searches"] == 1
+    assert not still(int(3 * NEVER_OK_SEARCH_S * 90))       # the never-ok rule searched once; no retry
+    assert policy.update(TrackingStatus.OK, True, True, 0.9, T_near, frames / 90) == TrackingStatus.OK   # no hold

@@ -80,7 +80,11 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
   (the bone out of view) changes nothing and is no attempt (:meth:`RecoveryPolicy.declined`): it
   is retried every SEARCH_RETRY_S on weighed frames away from the last ok pose until a frame
   is ok or a search finds a pose, whether or not the trigger still holds (a wrong track sliding
-  over the tissue restarts the slow trigger's count). Re-spreading around the last ok
+  over the tissue restarts the slow trigger's count). A search whose best verified pose is the
+  tracker's current estimate (refined in place; wide_search.py, 6) keeps the track
+  (:meth:`RecoveryPolicy.kept`): no change, no attempt, the cooldown before the next one (a track
+  0.8 mm off with a quarter of the crest in view was replaced by a pose 9 mm off that explained
+  the image less well: or_fast_reposition crest_right_04 seed 0, BENCHMARKS.md §6g). Re-spreading around the last ok
   pose and the SMC from the trial's point prior both search where the bone was: on
   or_fast_reposition (12 cm / 45 deg) neither found it (BENCHMARKS.md §6);
 - or, with ``search: false``, the *one-point SMC initialiser* (app/filter/smc_init/) around a point
@@ -248,6 +252,7 @@ class RecoveryPolicy:
         self._unseen = 0                       # not-weighed frames in a row while not ok
         self._ever_ok = False                  # the slow trigger needs an ok frame: the start pose is no evidence
         self.declined_searches = 0
+        self.kept_searches = 0                 # searches that kept the track (no better pose found)
         self._searching = False                # a search found nothing: retried until an ok frame or a found pose
         self._outside = 0                      # weighed frames in a row never ok and outside the start's prior
         self.period = FramePeriod()            # the processed frames' period: seconds to frames
@@ -307,6 +312,7 @@ class RecoveryPolicy:
               and self._not_ok >= self.period.frames(c.after_uncertain_s) and self._far(T_base_bone)):
             self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
         elif (c.after_uncertain_s and not self._ever_ok and not self.events and not self.declined_searches
+              and not self.kept_searches
               and self._not_ok >= self.period.frames(NEVER_OK_SEARCH_S)):
             self._due(f"never ok for {self._not_ok} weighed frames since the start: one wide search")
         elif self._searching and weighed and self._far(T_base_bone):
@@ -426,6 +432,20 @@ class RecoveryPolicy:
         self._searching = True
         self._since, self._wait = 0, self.period.frames(SEARCH_RETRY_S)
 
+    def kept(self) -> None:
+        """The due wide search kept the track: the current estimate, refined in place, explained the
+        image at least as well as every pose the search found (app/filter/wide_search.py, 6). Nothing
+        was changed, so it is no re-initialisation (no hold, no confirmation); the track is no longer
+        suspect (no retry), the trigger counts restart, and the next search waits the cooldown, backed
+        off as after an attempt (a track whose fit stays below the bad-frame rule is checked at
+        most every 1.3 s, not every frame)."""
+        self.pending = None
+        self.kept_searches += 1
+        self._attempts += 1
+        self._searching = False
+        self._bad, self._not_ok = 0, 0
+        self._since, self._wait = 0, self._cooldown()
+
     def smc_point(self) -> np.ndarray:
         """The point on the bone (base frame) the one-point initialiser starts from."""
         if self.point_prior is not None:
@@ -481,5 +501,5 @@ class RecoveryPolicy:
     def report(self) -> dict:
         """The re-initialisations for the summaries: count, stamps, kinds and reasons."""
         return {"enabled": self.config.enabled, "reinitialisations": len(self.events),
-                "declined_searches": self.declined_searches,
+                "declined_searches": self.declined_searches, "kept_searches": self.kept_searches,
                 "events": [{"stamp": e.stamp, "kind": e.kind, "reason": e.reason} for e in self.events]}

@@ -38,10 +38,19 @@ drawn from the image and the track instead of a template bank:
    while wrong fits that confirmed 0.63-0.65 within 3 σ had 0.17-0.23; among those the one with the highest
    :func:`app.filter.refine_track.consistent_sharp` wins (refine_track.py's rule for two fits).
    Nothing confirmed (the bone out of view, hidden): the search declines, and the tracker keeps its state.
+6. **The incumbent.** The tracker's current estimate is verified too (refined twice from where it
+   is, as the track refines: no wide first step, no local search first) and takes part in the ranking; where it is
+   confirmed and no candidate's consistent sharp share beats it, the search *keeps* the track
+   (``SearchResult.kept``): replacing a track by a pose that explains the image less well is never
+   what the evidence says. Measured on or_fast_reposition crest_right_04 seed 0 at 3.68 s (the slow
+   trigger on a track 0.84 mm off that could not be ok with a quarter of the crest in view): every
+   verified candidate lay 8.8-9.8 mm / 24-26 deg off at a sharp share of 0.46-0.50, the track
+   refined in place scored 0.76, and the search replaced it: 8 mm off for the next second
+   (BENCHMARKS.md §6g).
 
 The budget is counted in likelihood evaluations (``evaluations``: poses scored by the backend, 60 %
 to the image's candidates, 10 % to the track's, the rest to the local search) plus ``2 * refine_top``
-refinements: work, never seconds (0.52-0.60 s of CPU per search on the CT crests, BENCHMARKS.md §6b).
+refinements (2 more for the incumbent): work, never seconds (0.52-0.60 s of CPU per search on the CT crests, BENCHMARKS.md §6b).
 A found pose is no evidence of being right: the recovery's confirmation rule
 (app/filter/recovery.py, "Honesty") keeps it from being ok until the rules have agreed for
 ``confirm_frames`` weighed frames in a row.
@@ -72,6 +81,7 @@ CEM_SIGMA_M, CEM_SIGMA_RAD = 0.004, math.radians(4.0)
 ANCHOR_SHARE = 0.6
 TRACK_CLUSTERS = 2
 MIN_SHARP = 0.5
+INCUMBENT = "incumbent"   # the source of the tracker's current estimate among the verified (module docstring, 6)
 
 
 @dataclass
@@ -94,7 +104,10 @@ class SearchConfig:
 class SearchResult:
     """T_base_bone : the found pose (None: declined); fitness, sharp : of its refined fit (NaN when
     none converged); evaluations : poses scored; refinements : refiner calls; source : 'image' |
-    'track' of the winner; candidates : (fitness, consistent sharp, T_base_bone) of each verified one."""
+    'track' of the winner; candidates : (fitness, consistent sharp, T_base_bone) of each verified one;
+    kept : the incumbent (the tracker's current estimate) was confirmed and no candidate explained the
+    image better (module docstring, 6): T_base_bone is None and nothing is to change; incumbent :
+    (fitness, consistent sharp) of the incumbent's refined fit, NaN without one."""
 
     T_base_bone: np.ndarray | None
     fitness: float
@@ -103,6 +116,8 @@ class SearchResult:
     refinements: int
     source: str = ""
     candidates: list = field(default_factory=list)
+    kept: bool = False
+    incumbent: tuple = (math.nan, math.nan)
 
 
 class WideSearch:
@@ -123,10 +138,12 @@ class WideSearch:
         self.centroid_bone = self.vertices.mean(axis=0)
 
     def run(self, depth_small: np.ndarray, depth_full: np.ndarray, T_base_camera: np.ndarray,
-            T_base_bone_ok: np.ndarray, track: list[np.ndarray], rng: np.random.Generator) -> SearchResult:
+            T_base_bone_ok: np.ndarray, track: list[np.ndarray], rng: np.random.Generator,
+            incumbent: np.ndarray | None = None) -> SearchResult:
         """One search on this frame: ``depth_small`` at the backend's resolution, ``depth_full`` at the
         refiner's; ``T_base_bone_ok`` the last ok pose (its orientation turned about up for the image's
-        anchors), ``track`` recent estimates (base frame)."""
+        anchors), ``track`` recent estimates (base frame); ``incumbent`` the tracker's current estimate
+        (base frame), kept unless a candidate explains the image better (module docstring, 6)."""
         c = self.config
         level = backend_level(self.backend, self.camera, depth_small, se3.inverse(T_base_camera))
         p, q, source = self._candidates(depth_small, T_base_camera, T_base_bone_ok, track, rng)
@@ -145,6 +162,8 @@ class WideSearch:
         n_verify_track = min(1, len(found["track"]), c.refine_top - 1)
         best = sorted(found["image"], key=lambda f: -f[0])[:c.refine_top - n_verify_track] + \
             sorted(found["track"], key=lambda f: -f[0])[:n_verify_track]
+        if incumbent is not None:
+            best.append((math.nan, *_pose_pq(incumbent), INCUMBENT))
         return self._verify(best, depth_full, T_base_camera, evaluations)
 
     # -- candidates ---------------------------------------------------------------------------
@@ -215,18 +234,25 @@ class WideSearch:
         verified, refinements = [], 0
         for _, p, q, source in found:
             T_camera_bone = T_camera_base @ se3.from_quat_trans(q, p)
-            result = self.refiner.refine(depth_full, T_camera_bone, width)
+            # the incumbent is refined as the track refines (no wide first step: it is where the track is)
+            result = self.refiner.refine(depth_full, T_camera_bone, 0.0 if source == INCUMBENT else width)
             result = self.refiner.refine(depth_full, result.T_camera_bone)
             refinements += 2
             if result.converged and np.isfinite(result.fitness):
                 verified.append((result.fitness, consistent_sharp(result), T_base_camera @ result.T_camera_bone, source))
-        candidates = [(f, s, T) for f, s, T, _ in verified]
+        incumbent = next(((f, s) for f, s, _, src in verified if src == INCUMBENT), (math.nan, math.nan))
+        candidates = [(f, s, T) for f, s, T, src in verified if src != INCUMBENT]
         confirmed = [v for v in verified if v[0] >= self.config.min_fitness and v[1] >= self.config.min_sharp]
         if not confirmed:
             best = max(verified, key=lambda v: v[1], default=(math.nan, math.nan, None, ""))
-            return SearchResult(None, best[0], best[1], evaluations, refinements, "", candidates)
-        fitness, sharp, T_base_bone, source = max(confirmed, key=lambda v: v[1])
-        return SearchResult(T_base_bone, fitness, sharp, evaluations, refinements, source, candidates)
+            return SearchResult(None, best[0], best[1], evaluations, refinements, "", candidates, incumbent=incumbent)
+        # the highest consistent sharp share wins; on a tie the incumbent (nothing says to move it)
+        fitness, sharp, T_base_bone, source = max(confirmed, key=lambda v: (v[1], v[3] == INCUMBENT))
+        if source == INCUMBENT:
+            return SearchResult(None, fitness, sharp, evaluations, refinements, INCUMBENT, candidates,
+                                kept=True, incumbent=incumbent)
+        return SearchResult(T_base_bone, fitness, sharp, evaluations, refinements, source, candidates,
+                            incumbent=incumbent)
 
 
 def image_anchors(depth: np.ndarray, camera, T_base_camera: np.ndarray, count: int,

@@ -54,7 +54,7 @@ class RecoveryRunner:
         self.filter = particle_filter
         self.refined_track = refined_track
         self.run_smc = run_smc
-        self.work = {"searches": 0, "found": 0, "evaluations": 0, "refinements": 0, "cpu_s": 0.0, "wall_s": 0.0}
+        self.work = {"searches": 0, "found": 0, "kept": 0, "evaluations": 0, "refinements": 0, "cpu_s": 0.0, "wall_s": 0.0}
 
     def may_run(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray | None) -> bool:
         """Whether the due attempt runs on this frame (module docstring)."""
@@ -76,7 +76,7 @@ class RecoveryRunner:
         if kind == SEARCH and self.wide_search is None:
             kind = SMC
         if kind == SEARCH:
-            return self._search(depth_small, depth_m, T_base_camera, stamp)
+            return self._search(depth_small, depth_m, T_base_camera, stamp, T_base_bone_now)
         if kind != RESPREAD and not self._smc_point_visible(depth_m, T_base_camera):
             kind = RESPREAD
         if kind == RESPREAD:
@@ -91,14 +91,16 @@ class RecoveryRunner:
         policy.done(stamp, kind)
         return 0.0
 
-    def _search(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray, stamp: float) -> float:
+    def _search(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray, stamp: float,
+                T_base_bone_now: np.ndarray | None) -> float:
         """The wide search for a moved bone (app/filter/wide_search.py): a found pose seeds the cloud
         (FOUND_SIGMA_M / _RAD about it) and the refinement's track (which resets the static prior:
-        the old base-frame pose must not drag it back); nothing found changes nothing."""
+        the old base-frame pose must not drag it back); nothing found changes nothing, and neither
+        does a search that kept the current estimate (the incumbent explained the image best)."""
         policy = self.policy
         wall0, cpu0 = time.perf_counter(), time.process_time()
         result = self.wide_search.run(depth_small, depth_m, T_base_camera, policy.T_base_bone_confident,
-                                      policy.track_poses(), self.filter.rng)
+                                      policy.track_poses(), self.filter.rng, incumbent=T_base_bone_now)
         work = self.work
         work["searches"] += 1
         work["evaluations"] += result.evaluations
@@ -106,6 +108,12 @@ class RecoveryRunner:
         work["cpu_s"] += time.process_time() - cpu0
         seconds = time.perf_counter() - wall0
         work["wall_s"] += seconds
+        if result.kept:
+            work["kept"] += 1
+            log.info("recovery at %.3f s: wide search kept the track (fit %.2f, sharp %.2f; best candidate %.2f)",
+                     stamp, result.fitness, result.sharp, max((c[1] for c in result.candidates), default=float("nan")))
+            policy.kept()
+            return seconds
         if result.T_base_bone is None:
             log.info("recovery at %.3f s: wide search found nothing confirmed (best fit %.2f)", stamp, result.fitness)
             policy.declined()
