@@ -277,14 +277,15 @@ def test_image_anchors_are_peaks_that_stand_out_highest_first():
 
 def test_a_moving_estimate_is_not_reinitialised_for_being_uncertain():
     """The slow trigger (not ok for after_uncertain_s) counts only while the estimate is still:
-    a bone being repositioned is uncertain for seconds."""
+    a bone being repositioned is uncertain for seconds (under twice that, the sliding trigger's
+    time, nothing fires while it moves)."""
     unc = TrackingStatus.UNCERTAIN
-    policy = _policy(after_uncertain_s=_s(20))
+    policy = _policy(after_uncertain_s=_s(60))
     policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), -1 / 90)   # ok once before (the slow trigger needs it)
     for k in range(100):                                    # 5 cm/s, 90 frames/s, refined at a good fit
         policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.05 * k / 90, 0, 0])), k / 90)
     assert policy.pending is None
-    for k in range(100, 190):                               # at rest (after the 0.5 s window), still not ok
+    for k in range(100, 260):                               # at rest (after the 0.5 s window), still not ok
         policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.05 * 99 / 90, 0, 0])), k / 90)
     assert policy.pending is not None and "not ok" in policy.pending
 
@@ -710,3 +711,35 @@ def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
     assert policy.pending is None and policy.events == [] and policy.report()["kept_searches"] == 1
     assert not still(int(3 * NEVER_OK_SEARCH_S * 90))       # the never-ok rule searched once; no retry
     assert policy.update(TrackingStatus.OK, True, True, 0.9, T_near, frames / 90) == TrackingStatus.OK   # no hold
+
+
+def test_a_track_sliding_while_never_ok_is_searched_for_after_twice_the_slow_trigger():
+    """or_fast_reposition crest_left_03 seed 2: a wrong track slid over the tissue at a good fit for
+    5 s; every move restarted the slow trigger. After SLIDING_FACTOR x after_uncertain_s of weighed
+    frames not ok, far from the last ok pose, a search is due, moving or not; a bone moved for
+    under that long is not searched for while it moves (test above), and near the last ok pose
+    (under a hand) nothing fires."""
+    from app.filter.recovery import SLIDING_FACTOR
+
+    unc = TrackingStatus.UNCERTAIN
+    hz, slow_s = 90, 1.0
+
+    def sliding(offset_m, seconds=4.0):
+        policy = _policy(after_uncertain_s=slow_s)
+        policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), -1 / hz)
+        for k in range(int(seconds * hz)):                  # 5 cm/s back and forth over 2 cm: always moving
+            x = offset_m + 0.01 * math.sin(2 * math.pi * 1.25 * k / hz)
+            policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([x, 0, 0])), k / hz)
+            if policy.pending:
+                return (k + 1) / hz, policy.pending
+        return None, None
+
+    fired, reason = sliding(0.08)
+    assert fired == pytest.approx(SLIDING_FACTOR * slow_s, abs=1.5 / hz) and "moving or not" in reason
+    assert sliding(0.0, seconds=0.3)[0] is None             # under the sliding time: nothing
+    policy = _policy(after_uncertain_s=slow_s)               # near the last ok pose (a hand over a held track)
+    policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), -1 / hz)
+    for k in range(int(4 * hz)):
+        x = 0.004 * math.sin(2 * math.pi * 1.25 * k / hz)   # within FAR_M, moving
+        policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([x, 0, 0])), k / hz)
+    assert policy.pending is None

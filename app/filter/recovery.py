@@ -49,6 +49,14 @@ wide search, wherever it lies (or_coarse_start crest_left_02 seed 1 converged in
 0.65 s, and with the static prior's release at 4 (tried) sat there for the whole 4 s: found at
 1.1 s with this rule. On or_deep_tissue it runs one search that finds nothing better:
 7 of 8 crests, ADD within 0.12 mm of before, never ok; static_far seed 1: identical; BENCHMARKS.md §6f).
+A fifth: SLIDING_FACTOR (2) times ``after_uncertain_s`` of weighed frames in a row not ok, more than
+FAR_M / FAR_RAD from the last confident pose, moving or not (with the slow trigger's own condition:
+an ok frame since the start, or outside the start's prior). A wrong track that slides over the
+tissue at a good fit restarts the slow trigger's count with every move, and nothing else fired:
+or_fast_reposition crest_left_03 seed 2 slid from 76 to 175 mm off over 5 s at a fit of 0.77-0.95,
+never searched, never found again (BENCHMARKS.md §6g). A bone is repositioned in about a second
+(or_fast_reposition 0.9 s, bone_moves 0.8 s); a search while it still moves is no harm: it keeps
+the track unless it finds a pose that explains the image better (wide_search.py, 6).
 
 **When.** A due attempt waits while the bone is mostly hidden: it runs only on a frame where at
 least ``min_visible_share`` (0.6) of the model's expected silhouette at the last confident pose is
@@ -143,6 +151,7 @@ TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 
 MAX_BACKOFF_DOUBLINGS = 3
 FAR_M, FAR_RAD = 0.005, math.radians(5.0)
 NEVER_OK_SEARCH_S = 1.0              # a track never ok for this long (still) gets one wide search
+SLIDING_FACTOR = 2.0                 # x after_uncertain_s: not ok this long, far, moving or not: a search
 START_SIGMAS = math.sqrt(16.27)   # chi-square, 3 dof, 99.9 %: a never-ok track this many start sigmas off
 STILL_WINDOW_S = 0.5
 
@@ -241,7 +250,8 @@ class RecoveryPolicy:
         self.events: list[Reinitialisation] = []
         self.pending: str | None = None        # the reason of a due re-initialisation
         self._bad = 0
-        self._not_ok = 0                       # weighed frames not ok in a row
+        self._not_ok = 0                       # weighed frames not ok in a row (while still)
+        self._not_ok_moving = 0                # weighed frames not ok in a row, moving or not
         self._attempts = 0                     # since the last ok frame
         self._since = 10**9                    # frames since the last re-initialisation
         self._wait = 0                         # frames the next one waits after it (_due)
@@ -285,7 +295,7 @@ class RecoveryPolicy:
         if status == TrackingStatus.OK:
             self._ever_ok = True
             self.T_base_bone_confident = np.array(T_base_bone, float)
-            self._attempts, self._bad, self._not_ok, self._unseen = 0, 0, 0, 0
+            self._attempts, self._bad, self._not_ok, self._unseen, self._not_ok_moving = 0, 0, 0, 0, 0
             self._searching = False
             return status
         back = self._back_in_view(weighed)
@@ -294,6 +304,7 @@ class RecoveryPolicy:
         if weighed:                            # until the first re-initialisation (module docstring, "Trigger")
             self._outside = self._outside + 1 if beyond and not self.events else 0
         self._not_ok = 0 if moving or rules_ok else (self._not_ok + 1 if weighed else self._not_ok)
+        self._not_ok_moving = 0 if rules_ok else self._not_ok_moving + int(weighed)
         reason = self._bad_reason(status, weighed, refined, fitness, T_base_bone)
         if reason is not None:
             self._bad += 1
@@ -311,6 +322,10 @@ class RecoveryPolicy:
         elif (c.after_uncertain_s and (self._ever_ok or beyond)
               and self._not_ok >= self.period.frames(c.after_uncertain_s) and self._far(T_base_bone)):
             self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
+        elif (c.after_uncertain_s and (self._ever_ok or beyond) and self._far(T_base_bone)
+              and self._not_ok_moving >= self.period.frames(SLIDING_FACTOR * c.after_uncertain_s)):
+            self._due(f"not ok for {self._not_ok_moving} weighed frames, moving or not, "
+                      f"{self._gap_text(T_base_bone)} from the last ok pose")
         elif (c.after_uncertain_s and not self._ever_ok and not self.events and not self.declined_searches
               and not self.kept_searches
               and self._not_ok >= self.period.frames(NEVER_OK_SEARCH_S)):
@@ -430,6 +445,7 @@ class RecoveryPolicy:
         self.pending = None
         self.declined_searches += 1
         self._searching = True
+        self._not_ok_moving = 0
         self._since, self._wait = 0, self.period.frames(SEARCH_RETRY_S)
 
     def kept(self) -> None:
@@ -443,7 +459,7 @@ class RecoveryPolicy:
         self.kept_searches += 1
         self._attempts += 1
         self._searching = False
-        self._bad, self._not_ok = 0, 0
+        self._bad, self._not_ok, self._not_ok_moving = 0, 0, 0
         self._since, self._wait = 0, self._cooldown()
 
     def smc_point(self) -> np.ndarray:
@@ -458,7 +474,7 @@ class RecoveryPolicy:
         self.events.append(Reinitialisation(float(stamp), kind, self.pending or ""))
         self.pending = None
         self._attempts += 1
-        self._since, self._bad, self._not_ok = 0, 0, 0
+        self._since, self._bad, self._not_ok, self._not_ok_moving = 0, 0, 0, 0
         self._wait = self._cooldown()
         self._recent.clear()
         self._hold = self.config.hold_frames
