@@ -688,8 +688,9 @@ def test_a_search_keeps_the_track_when_no_candidate_explains_the_image_better():
 
 
 def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
-    """RecoveryPolicy.kept: no event, no hold (an ok frame stays ok), no retry as after a declined
-    search; the slow trigger's count restarts, and the never-ok rule's one search is spent."""
+    """RecoveryPolicy.kept: no event, no hold (an ok frame stays ok); the slow trigger's count
+    restarts, and the never-ok rule's one search is spent. Far from the last ok pose the search is
+    retried, after the backed-off cooldown (a wrong track can explain an image without the bone)."""
     from app.filter.recovery import NEVER_OK_SEARCH_S
 
     unc = TrackingStatus.UNCERTAIN
@@ -711,6 +712,19 @@ def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
     assert policy.pending is None and policy.events == [] and policy.report()["kept_searches"] == 1
     assert not still(int(3 * NEVER_OK_SEARCH_S * 90))       # the never-ok rule searched once; no retry
     assert policy.update(TrackingStatus.OK, True, True, 0.9, T_near, frames / 90) == TrackingStatus.OK   # no hold
+    T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.05, 0.0, 0.0]))
+    while not policy.pending:                                 # the bone moved 5 cm: the slow trigger
+        policy.update(unc, True, True, 0.9, T_far, frames / 90)
+        frames += 1
+    policy.kept()
+    for _ in range(3):                                       # far: the retry waits the backed-off cooldown
+        waited = 0
+        while not policy.pending and waited < 500:
+            policy.update(unc, True, True, 0.9, T_far, frames / 90)
+            frames, waited = frames + 1, waited + 1
+        assert "still searching" in policy.pending and waited == policy._cooldown()
+        policy.kept()
+    assert policy._cooldown() == 8 * math.ceil(0.1 * 90 - 0.01)   # the backoff's cap, x8
 
 
 def test_a_track_sliding_while_never_ok_is_searched_for_after_twice_the_slow_trigger():
