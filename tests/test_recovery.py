@@ -757,3 +757,19 @@ def test_a_track_sliding_while_never_ok_is_searched_for_after_twice_the_slow_tri
         x = 0.004 * math.sin(2 * math.pi * 1.25 * k / hz)   # within FAR_M, moving
         policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([x, 0, 0])), k / hz)
     assert policy.pending is None
+
+
+def test_the_replay_summary_names_the_reinitialisations_and_the_searches():
+    """Issue 12, item 4: the re-initialisations are reported in the summary (the printed table too)."""
+    from app.pipeline.report import summary_rows
+
+    policy = _policy()
+    policy.pending = "lost for 10 frames"
+    policy.done(101.25, "search")
+    policy.kept()
+    recovery = {**policy.report(), "search": {"searches": 3, "found": 1, "kept": 1}}
+    summary = {"frames": 10, "processing_rate_hz": 30.0, "particles": 200, "resolution": [160, 120],
+               "sampling": "joint", "status_fraction": {"ok": 0.5, "uncertain": 0.5, "lost": 0.0}, "recovery": recovery}
+    text = dict(summary_rows(summary))["recovery"]
+    assert text.startswith("1 re-initialisation (search at 101.25 s)")
+    assert "3 wide searches: 1 found a pose, 1 kept the track, 0 found nothing" in text

@@ -23,6 +23,9 @@ def summary_rows(summary: dict) -> list[tuple[str, str]]:
             ("lost (ADD > 10 mm)", f"{100 * summary['lost_fraction']:.1f} %"),
             ("dangerous (ok, ADD > 5 mm)", f"{summary['dangerous_frames']} frames"),
         ]
+    recovery = summary.get("recovery")
+    if recovery and recovery.get("enabled"):
+        rows.append(("recovery", recovery_text(recovery)))
     s = summary["status_fraction"]
     rows.append(("status ok / uncertain / lost", f"{100 * s['ok']:.0f} / {100 * s['uncertain']:.0f} / {100 * s['lost']:.0f} %"))
     p = summary.get("projector")
@@ -35,6 +38,21 @@ def summary_rows(summary: dict) -> list[tuple[str, str]]:
                       f"{p['template_error_p95_mm']:.2f} p95, {p['template_error_max_mm']:.2f} max")
         rows.append(("projector", shown))
     return rows
+
+
+def recovery_text(recovery: dict) -> str:
+    """The recovery's re-initialisations and wide searches in a line (app/filter/recovery.py report)."""
+    events = recovery.get("events", [])
+    count = recovery.get("reinitialisations", len(events))
+    text = f"{count} re-initialisation{'' if count == 1 else 's'}"
+    if events:
+        stamps = ", ".join(f"{e['kind']} at {e['stamp']:.2f} s" for e in events[:4])
+        text += f" ({stamps}{', ...' if len(events) > 4 else ''})"
+    search = recovery.get("search") or {}
+    if search.get("searches"):
+        text += (f"; {search['searches']} wide searches: {search.get('found', 0)} found a pose, "
+                 f"{search.get('kept', 0)} kept the track, {recovery.get('declined_searches', 0)} found nothing")
+    return text
 
 
 def print_summary(summary: dict) -> None:
