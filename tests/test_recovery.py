@@ -688,7 +688,8 @@ def test_a_search_keeps_the_track_when_no_candidate_explains_the_image_better():
 
 
 def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
-    """RecoveryPolicy.kept: no event, no hold (an ok frame stays ok); the slow trigger's count
+    """RecoveryPolicy.kept: no event, no hold (an ok frame near the last ok pose stays ok; a kept pose
+    far from it needs confirm_frames, as a found one); the slow trigger's count
     restarts, and the never-ok rule's one search is spent. Far from the last ok pose the search is
     retried, after the backed-off cooldown (a wrong track can explain an image without the bone)."""
     from app.filter.recovery import NEVER_OK_SEARCH_S
@@ -725,6 +726,9 @@ def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
         assert "still searching" in policy.pending and waited == policy._cooldown()
         policy.kept()
     assert policy._cooldown() == 8 * math.ceil(0.1 * 90 - 0.01)   # the backoff's cap, x8
+    confirm = policy.config.confirm_frames
+    statuses = [policy.update(TrackingStatus.OK, True, True, 0.9, T_far, (frames + k) / 90) for k in range(confirm)]
+    assert statuses[:-1] == [unc] * (confirm - 1) and statuses[-1] == TrackingStatus.OK
 
 
 def test_a_track_sliding_while_never_ok_is_searched_for_after_twice_the_slow_trigger():

@@ -451,7 +451,9 @@ class RecoveryPolicy:
     def kept(self) -> None:
         """The due wide search kept the track: the current estimate, refined in place, explained the
         image at least as well as every pose the search found (app/filter/wide_search.py, 6). Nothing
-        was changed, so it is no re-initialisation (no hold, no confirmation). The track stays suspect:
+        was changed, so it is no re-initialisation (no hold). The kept pose is treated as a found one
+        (module docstring, "Honesty"): away from the last ok pose it is ok only after
+        ``confirm_frames`` weighed frames in a row that the rules find ok. The track stays suspect:
         a wrong track can explain an image that does not show the bone yet (or_fast_reposition
         crest_left_02 seed 0 at 3.7 s: 77 mm off at a sharp share of 0.60, the bone out of view; kept
         and not searched again, it was found 1.4 s after the bone came into view), so the search is
@@ -463,6 +465,7 @@ class RecoveryPolicy:
         self.kept_searches += 1
         self._attempts += 1
         self._searching = True
+        self._unconfirmed, self._ok_run = True, 0   # a kept pose away from the last ok one needs evidence, as a found one
         self._bad, self._not_ok, self._not_ok_moving = 0, 0, 0
         self._since, self._wait = 0, self._cooldown()
 
