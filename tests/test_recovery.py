@@ -712,6 +712,11 @@ def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
     policy.kept()
     assert policy.pending is None and policy.events == [] and policy.report()["kept_searches"] == 1
     assert not still(int(3 * NEVER_OK_SEARCH_S * 90))       # the never-ok rule searched once; no retry
+    T_8mm = se3.from_rotvec_trans(np.zeros(3), np.array([0.008, 0.0, 0.0]))   # > 5 mm from the start, inside its prior
+    for _ in range(int(3 * NEVER_OK_SEARCH_S * 90)):         # never ok: no retry after a kept search either
+        policy.update(unc, True, True, 0.64, T_8mm, frames / 90)
+        frames += 1
+    assert policy.pending is None
     assert policy.update(TrackingStatus.OK, True, True, 0.9, T_near, frames / 90) == TrackingStatus.OK   # no hold
     T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.05, 0.0, 0.0]))
     while not policy.pending:                                 # the bone moved 5 cm: the slow trigger
