@@ -734,6 +734,7 @@ def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
     confirm = policy.config.confirm_frames
     statuses = [policy.update(TrackingStatus.OK, True, True, 0.9, T_far, (frames + k) / 90) for k in range(confirm)]
     assert statuses[:-1] == [unc] * (confirm - 1) and statuses[-1] == TrackingStatus.OK
+    assert policy.pending is None                            # no retry while the rules find the frames ok
 
 
 def test_a_track_sliding_while_never_ok_is_searched_for_after_twice_the_slow_trigger():

@@ -330,7 +330,7 @@ class RecoveryPolicy:
               and not self.kept_searches
               and self._not_ok >= self.period.frames(NEVER_OK_SEARCH_S)):
             self._due(f"never ok for {self._not_ok} weighed frames since the start: one wide search")
-        elif self._searching and weighed and self._far(T_base_bone):
+        elif self._searching and weighed and not rules_ok and self._far(T_base_bone):
             self._due(f"still searching ({self.declined_searches} searches found nothing), "
                       f"{self._gap_text(T_base_bone)} from the last ok pose")
         return status
@@ -453,7 +453,10 @@ class RecoveryPolicy:
         image at least as well as every pose the search found (app/filter/wide_search.py, 6). Nothing
         was changed, so it is no re-initialisation (no hold). The kept pose is treated as a found one
         (module docstring, "Honesty"): away from the last ok pose it is ok only after
-        ``confirm_frames`` weighed frames in a row that the rules find ok. The track stays suspect:
+        ``confirm_frames`` weighed frames in a row that the rules find ok (a count under way goes on,
+        and the retry below waits while the rules find the frames ok: retried searches that each
+        restarted the count kept right tracks from ever being ok, or_fast_reposition crest_right_05
+        ok 42 -> 18 %). The track stays suspect:
         a wrong track can explain an image that does not show the bone yet (or_fast_reposition
         crest_left_02 seed 0 at 3.7 s: 77 mm off at a sharp share of 0.60, the bone out of view; kept
         and not searched again, it was found 1.4 s after the bone came into view), so the search is
@@ -467,7 +470,7 @@ class RecoveryPolicy:
         self.kept_searches += 1
         self._attempts += 1
         self._searching = self._ever_ok      # a never-ok track has no last ok pose to be far from: its one search is spent
-        self._unconfirmed, self._ok_run = True, 0   # a kept pose away from the last ok one needs evidence, as a found one
+        self._unconfirmed = True   # a kept pose away from the last ok one needs evidence, as a found one (a count under way goes on)
         self._bad, self._not_ok, self._not_ok_moving = 0, 0, 0
         self._since, self._wait = 0, self._cooldown()
 
