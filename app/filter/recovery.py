@@ -331,7 +331,8 @@ class RecoveryPolicy:
               and self._not_ok >= self.period.frames(NEVER_OK_SEARCH_S)):
             self._due(f"never ok for {self._not_ok} weighed frames since the start: one wide search")
         elif self._searching and weighed and not rules_ok and self._far(T_base_bone):
-            self._due(f"still searching ({self.declined_searches} searches found nothing), "
+            self._due(f"still searching ({self.declined_searches} searches found nothing, "
+                      f"{self.kept_searches} kept the track), "
                       f"{self._gap_text(T_base_bone)} from the last ok pose")
         return status
 
@@ -454,9 +455,10 @@ class RecoveryPolicy:
         was changed, so it is no re-initialisation (no hold). The kept pose is treated as a found one
         (module docstring, "Honesty"): away from the last ok pose it is ok only after
         ``confirm_frames`` weighed frames in a row that the rules find ok (a count under way goes on,
-        and the retry below waits while the rules find the frames ok: retried searches that each
-        restarted the count kept right tracks from ever being ok, or_fast_reposition crest_right_05
-        ok 42 -> 18 %). The track stays suspect:
+        and the retry below waits while the rules find the frames ok: a search about once a second
+        must not restart a count of 90 frames). Before, a search that declined left such a track ok
+        at once; after a fast reposition the right crests are ok on 16-27 % of the frames instead of
+        17-42 % (BENCHMARKS.md §6g). The track stays suspect:
         a wrong track can explain an image that does not show the bone yet (or_fast_reposition
         crest_left_02 seed 0 at 3.7 s: 77 mm off at a sharp share of 0.60, the bone out of view; kept
         and not searched again, it was found 1.4 s after the bone came into view), so the search is
