@@ -783,3 +783,43 @@ def test_the_replay_summary_names_the_reinitialisations_and_the_searches():
     text = dict(summary_rows(summary))["recovery"]
     assert text.startswith("1 re-initialisation (search at 101.25 s)")
     assert "3 wide searches: 1 found a pose, 1 kept the track, 0 found nothing" in text
+
+
+def test_the_runner_reports_a_reinitialisation_only_when_the_search_changed_the_track():
+    """RecoveryRunner.run: a found pose seeds the cloud and the refined track (reinitialised); a search
+    that kept the track or found nothing changes neither (not reinitialised, no event), and the
+    work counts say which; the current estimate goes to the search as the incumbent."""
+    from types import SimpleNamespace
+
+    from app.filter.wide_search import SearchResult
+    from app.pipeline.recovery_runner import RecoveryRunner
+
+    T_now = se3.from_rotvec_trans(np.zeros(3), np.array([0.05, 0.0, 0.0]))
+    T_found = se3.from_rotvec_trans(np.zeros(3), np.array([0.12, 0.0, 0.0]))
+    seen = {"states": 0, "seeds": [], "incumbents": []}
+
+    class Search:
+        def __init__(self, result):
+            self.result = result
+
+        def run(self, depth_small, depth_full, T_base_camera, T_ok, track, rng, incumbent=None):
+            seen["incumbents"].append(incumbent)
+            return self.result
+
+    filt = SimpleNamespace(rng=np.random.default_rng(0), set_state=lambda state: seen.__setitem__("states", seen["states"] + 1))
+    track = SimpleNamespace(seed=lambda T: seen["seeds"].append(T))
+    config = SimpleNamespace(particles=20)
+    results = {"kept": SearchResult(None, 0.9, 0.76, 10, 8, "incumbent", kept=True),
+               "declined": SearchResult(None, 0.4, 0.2, 10, 8),
+               "found": SearchResult(T_found, 0.9, 0.8, 10, 6, "image")}
+    for name, result in results.items():
+        policy = _policy()
+        policy.pending = "a test"
+        runner = RecoveryRunner(config, policy, Search(result), filt, track, run_smc=None)
+        states = seen["states"]
+        _, reinitialised = runner.run(None, None, np.eye(4), 1.0, T_now)
+        assert seen["incumbents"][-1] is T_now
+        assert reinitialised == (name == "found") == (len(policy.events) == 1) == (seen["states"] > states)
+        assert runner.work["kept"] == (name == "kept") and runner.work["found"] == (name == "found")
+        assert policy.report()["declined_searches"] == (name == "declined") and policy.pending is None
+    assert len(seen["seeds"]) == 1 and seen["seeds"][0] is T_found

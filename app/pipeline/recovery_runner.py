@@ -66,8 +66,9 @@ class RecoveryRunner:
         return self.policy.may_run(visible_share(self.refined_track.refiner, depth_m, T_camera_bone))
 
     def run(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray, stamp: float,
-            T_base_bone_now: np.ndarray | None) -> float:
-        """The due attempt on this frame; returns the seconds a wide search took (0 otherwise).
+            T_base_bone_now: np.ndarray | None) -> tuple[float, bool]:
+        """The due attempt on this frame; returns (the seconds a wide search took, 0 otherwise; whether
+        the track was re-initialised: not by a search that found nothing or kept the track).
         ``T_base_bone_now``: the last frame's estimate (the confident pose when there was none yet)."""
         policy = self.policy
         if policy.T_base_bone_confident is None:
@@ -89,10 +90,10 @@ class RecoveryRunner:
                 self.refined_track.reset()
         log.info("recovery at %.3f s: %s (%s)", stamp, kind, policy.pending)
         policy.done(stamp, kind)
-        return 0.0
+        return 0.0, True
 
     def _search(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray, stamp: float,
-                T_base_bone_now: np.ndarray | None) -> float:
+                T_base_bone_now: np.ndarray | None) -> tuple[float, bool]:
         """The wide search for a moved bone (app/filter/wide_search.py): a found pose seeds the cloud
         (FOUND_SIGMA_M / _RAD about it) and the refinement's track (which resets the static prior:
         the old base-frame pose must not drag it back); nothing found changes nothing, and neither
@@ -113,11 +114,11 @@ class RecoveryRunner:
             log.info("recovery at %.3f s: wide search kept the track (fit %.2f, sharp %.2f; best candidate %.2f)",
                      stamp, result.fitness, result.sharp, max((c[1] for c in result.candidates), default=float("nan")))
             policy.kept()
-            return seconds
+            return seconds, False
         if result.T_base_bone is None:
             log.info("recovery at %.3f s: wide search found nothing confirmed (best fit %.2f)", stamp, result.fitness)
             policy.declined()
-            return seconds
+            return seconds, False
         work["found"] += 1
         self.filter.set_state(policy.state_around(result.T_base_bone, self.config.particles, self.filter.rng,
                                                   FOUND_SIGMA_M, FOUND_SIGMA_RAD))
@@ -125,7 +126,7 @@ class RecoveryRunner:
         log.info("recovery at %.3f s: wide search found a pose (fit %.2f, sharp %.2f, from the %s) (%s)", stamp,
                  result.fitness, result.sharp, result.source, policy.pending)
         policy.done(stamp, SEARCH)
-        return seconds
+        return seconds, True
 
     def _smc_from(self, point_base: np.ndarray, depth_small: np.ndarray, T_base_camera: np.ndarray) -> None:
         """The one-point initialiser with the recovery's budget (likelihood evaluations), one run."""

@@ -157,10 +157,8 @@ class DepthTracker:
         runner = self.recovery_runner
         reinitialised = False
         if runner is not None and runner.may_run(depth_small, depth_m, T_base_camera):
-            attempts = len(runner.policy.events)                   # a declined or kept search changes nothing
-            self._timings["recovery_search"] += runner.run(depth_small, depth_m, T_base_camera, stamp,
-                                                           self._T_base_bone_last)
-            reinitialised = len(runner.policy.events) > attempts
+            seconds, reinitialised = runner.run(depth_small, depth_m, T_base_camera, stamp, self._T_base_bone_last)
+            self._timings["recovery_search"] += seconds
         result = self.filter.step(depth_small, stamp, T_base_camera)
         if self.refined_track is not None:
             result = self._refine(result, depth_m, T_base_camera)
