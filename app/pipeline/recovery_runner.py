@@ -9,11 +9,11 @@ module does the policy's attempts on the tracker's parts (app/pipeline/tracker.p
   and valid depth, and the bone's expected silhouette at the last confident pose is not mostly
   hidden (:func:`app.filter.visibility.visible_share`, the policy's ``may_run``);
 - **the attempt** (:meth:`RecoveryRunner.run`): the wide search (a found pose seeds the particles,
-  FOUND_SIGMA_M / FOUND_SIGMA_RAD about it, and the refinement's track; nothing found changes
-  nothing), a re-spread around the last confident pose, or the one-point SMC initialiser at the
+  FOUND_SIGMA_M / FOUND_SIGMA_RAD about it, and the refinement's track; nothing found, or the
+  current estimate kept as the best explanation, changes nothing), a re-spread around the last confident pose, or the one-point SMC initialiser at the
   policy's point (a re-spread instead while that point is behind a hand,
   :func:`app.filter.visibility.point_visible`);
-- **the work** the searches cost (searches, found, likelihood evaluations, refinements, CPU and
+- **the work** the searches cost (searches, found, kept, likelihood evaluations, refinements, CPU and
   wall seconds) for the summaries (:meth:`RecoveryRunner.report`).
 """
 from __future__ import annotations
