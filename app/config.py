@@ -181,6 +181,7 @@ KEYS: dict[str, _Key] = {
     "refine.prior_clear_ratio": _f("refine.prior_clear_ratio", 1.0, 1e6),
     "refine.prior_information_frames": _f("refine.prior_information_frames", 1.0, 1e6),
     "refine.prior_motion_frames": _i("refine.prior_motion_frames", 0, 100_000),
+    "refine.prior_forget_ratio": _f("refine.prior_forget_ratio", 0.0, 1e6),
     "refine.seed_starts": _i("refine.seed_starts", 0, 10_000),
     "refine.seed_spread": _f("refine.seed_spread", 0.0, 10.0),
     "recovery.enabled": _Key(("recovery", "enabled"), "bool"),
@@ -316,6 +317,10 @@ def _check_consistency(c: TrackerConfig, source) -> None:
         if uncertain > lost:
             raise ConfigError(f"status.uncertain_{name}", f"{uncertain:g} exceeds status.lost_{name} "
                               f"({lost:g}): the uncertain threshold must not exceed the lost one", source)
+    forget = c.refine.prior_forget_ratio
+    if 0.0 < forget <= 1.0:
+        raise ConfigError("refine.prior_forget_ratio", f"{forget:g} would discount the prior on a view no better "
+                          "than the one that built it; use a ratio above 1 (e.g. 2.0) or 0 to disable", source)
     if st.lost_inlier_fraction > st.uncertain_inlier_fraction:
         raise ConfigError("status.lost_inlier_fraction", f"{st.lost_inlier_fraction:g} exceeds "
                           f"status.uncertain_inlier_fraction ({st.uncertain_inlier_fraction:g})", source)

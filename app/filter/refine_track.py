@@ -74,8 +74,8 @@ class RefineConfig:
     """``refine.*`` of the configuration (module docstring). enabled; stride (1 full / 2 half sensor
     resolution); iterations; samples (model points); keep_fitness; reseed_fitness;
     competitor_distance (m) / competitor_angle (rad); competitor_margin; feedback; feedback_fitness;
-    static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames, prior_motion_frames
-    (app/filter/static_prior.py); seed_starts, seed_spread (the seeded first frame's multi-start,
+    static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames, prior_motion_frames,
+    prior_forget_ratio (app/filter/static_prior.py); seed_starts, seed_spread (the seeded first frame's multi-start,
     :meth:`RefinedTrack._start_fits`)."""
 
     enabled: bool = True
@@ -94,6 +94,7 @@ class RefineConfig:
     prior_clear_ratio: float = 1.5
     prior_information_frames: float = 300.0
     prior_motion_frames: int = 9
+    prior_forget_ratio: float = 2.0
     seed_starts: int = 16
     seed_spread: float = 0.5
 
@@ -155,7 +156,8 @@ class RefinedTrack:
         self.plan_points = np.asarray(plan_points, float).reshape(-1, 3) - refiner.center
         self.inflation = inflation
         prior_config = StaticPriorConfig(config.static_prior, config.prior_release_chi2, config.prior_clear_ratio,
-                                         config.prior_information_frames, config.prior_motion_frames)
+                                         config.prior_information_frames, config.prior_motion_frames,
+                                         config.prior_forget_ratio)
         self.prior = StaticPrior(prior_config, refiner.center, inflation) if config.static_prior else None
         self.reset()
 
@@ -192,6 +194,22 @@ class RefinedTrack:
         if result.stride <= 0 or not np.isfinite(std):
             return std
         return std * self.refiner.params.stride / result.stride
+
+    def _prior_H(self, result: RefineResult) -> np.ndarray:
+        """The fit's information on the configured grid, for the static prior: H_grid = H · (stride /
+        stride_grid)², the counterpart of :meth:`_prior_std` (σ ∝ N^-1/2, H ∝ N). A stride-1 fit has four
+        times the pixels of the same view at stride 2, but neighbouring full-resolution pixels of a
+        stereo depth image are correlated, so they do not carry four times the information: the
+        inflation that makes the predicted template error cover the measured one is 8.1 / 12.7 / 15.4
+        (68 / 90 / 95 %) on static_far's stride-1 frames against 2.1 / 2.9 / 3.2 at stride 2 on the clear
+        near view (BENCHMARKS.md §6, "Calibrating the predicted template error"): four times, as this
+        scaling says. Unscaled, the stride-1 frames of a small silhouette after a fast reposition
+        weighed four times their worth in the prior, and the prior then held their biased pose
+        against the clearer stride-2 views that followed (BENCHMARKS.md §6h)."""
+        H = np.asarray(result.H, float)
+        if result.stride <= 0:
+            return H
+        return H * (result.stride / self.refiner.params.stride) ** 2
 
     def _seed_fits(self, depth, T_camera_base) -> list:
         """The seeded first frame (:meth:`seed`): from the start pose, at each width of ``SEED_WIDTHS``, a
@@ -255,14 +273,14 @@ class RefinedTrack:
         estimate replaces a held pose only when the image alone pins it (it releases the prior); else
         the track's own fit is fused with the prior. Returns (source, T_base_bone, result, std)."""
         prior = self.prior
-        if prior.active and source == "filter" and not prior.would_release(T_best, best.H, self._prior_std(best, std)):
+        if prior.active and source == "filter" and not prior.would_release(T_best, self._prior_H(best), self._prior_std(best, std)):
             track = [f for f in fits if f[0] == "track" and f[2].fitness >= self.config.keep_fitness]
             if not track:
                 return source, T_best, best, std
             source, T_best, best = track[0]
             std = template_std(best.H, self.plan_points, self.inflation)
         grid_std = self._prior_std(best, std)
-        T_held = prior.update(T_best, best.H, grid_std)
+        T_held = prior.update(T_best, self._prior_H(best), grid_std)
         self.last_info.update(chi2=prior.chi2, motion_chi2=prior.motion_chi2, released=prior.released, held=prior.held,
                               held_chi2=0.0 if prior.released else prior.chi2,
                               img_std_mm=1e3 * std, grid_std_mm=1e3 * grid_std)

@@ -91,13 +91,16 @@ class StaticPriorConfig:
     above which the prior is released); clear_ratio (a frame is *clear* when its predicted template
     error is at most this times the smallest since the last release); max_information_frames (Λ's
     cap in units of the largest frame information); motion_frames (the motion test's window in clear
-    frames: the image's fit is compared with its own fit this many clear frames ago; 0 disables)."""
+    frames: the image's fit is compared with its own fit this many clear frames ago; 0 disables);
+    forget_ratio (a clear frame whose template error is this many times smaller than the view that
+    built Λ discounts Λ by the square of the ratio; 0 disables)."""
 
     enabled: bool = True
     release_chi2: float = 25.0
     clear_ratio: float = 1.5
     max_information_frames: float = 300.0
     motion_frames: int = 9
+    forget_ratio: float = 2.0
 
 
 def increment(delta: np.ndarray, center: np.ndarray) -> np.ndarray:
@@ -131,6 +134,8 @@ class StaticPrior:
         self.information = np.zeros((6, 6))
         self._cap = 0.0
         self._best_std = float("inf")
+        self._basis_std = float("inf")
+        self.forgotten = False
         self.released = False
         self.held = False
         self.chi2 = float("nan")
@@ -145,6 +150,7 @@ class StaticPrior:
         """(Re)start at a pose with the frame's information H and template error (a release, a reseed)."""
         self.T_base_bone = np.array(T_base_bone, float)
         self._best_std = float(image_std)
+        self._basis_std = float(image_std)
         H1 = np.asarray(H, float) / self.inflation
         self.information = H1
         self._cap = float(np.trace(H1))
@@ -181,6 +187,16 @@ class StaticPrior:
         last release (not under a hand): it may release or move the prior."""
         return image_std <= self.config.clear_ratio * self._best_std
 
+    def _forget(self, image_std: float) -> None:
+        """Discount Λ when the view has improved (module docstring, "clear frame, the view improves"):
+        with σ_b the template error of the view that built Λ, a clear frame with σ <= σ_b / forget_ratio
+        scales Λ by (σ / σ_b)² and makes σ the new σ_b."""
+        ratio = self.config.forget_ratio
+        self.forgotten = bool(ratio > 0.0 and np.isfinite(self._basis_std) and image_std * ratio <= self._basis_std)
+        if self.forgotten:
+            self.information = self.information * (image_std / self._basis_std) ** 2
+            self._basis_std = image_std
+
     def update(self, T_base_bone_image: np.ndarray, H: np.ndarray, image_std: float = 0.0) -> np.ndarray:
         """Fuse one frame's refined pose and information; returns the new anchor (module docstring).
         ``image_std`` (m): the predicted template error from the image alone (refine.template_std of
@@ -205,6 +221,7 @@ class StaticPrior:
         if self.held:
             return self.T_base_bone
         self._best_std = min(self._best_std, float(image_std))
+        self._forget(float(image_std))
         total = self.information + H1
         step = np.linalg.solve(total + 1e-12 * np.eye(6), H1 @ delta)
         self.T_base_bone = self.T_base_bone @ se3.inverse(increment(step, self.center))
