@@ -244,6 +244,72 @@ def test_a_stride_1_view_does_not_make_the_same_view_at_stride_2_weak(far_frame)
     assert track.last_info["grid_std_mm"] < 1.5 * 1e3 * 2 * first.template_std
 
 
+def _poor_then_clear(forget_ratio: float, poor_frames: int = 200) -> tuple[StaticPrior, np.ndarray, np.ndarray]:
+    """``poor_frames`` frames of a view 4x poorer (H / 16, σ 4x) all fitting a pose 0.2 mm off along y
+    (a view's bias: it does not average out), then one clear frame (H, σ) fitting the truth. Returns
+    the prior, the truth and the biased pose."""
+    prior = StaticPrior(StaticPriorConfig(forget_ratio=forget_ratio), CENTER, inflation=6.0)
+    truth = np.eye(4)
+    biased = _moved(truth, np.array([0, 0, 0, 0, 0.0002, 0]))
+    for _ in range(poor_frames):
+        prior.update(biased, _info() / 16.0, image_std=4 * CLEAR_STD)
+    prior.update(truth, _info(), image_std=CLEAR_STD)
+    return prior, truth, biased
+
+
+def test_a_clearer_view_discounts_the_information_built_on_a_poorer_one():
+    """Closed form (static_prior.py, "clear frame, the view improves"): Λ = 200 H/16 (/ inflation) is
+    discounted by (σ/σ_b)² = 1/16 to 200/256 H, so the clear frame's fit moves the anchor
+    1 / (1 + 200/256) of the way to it; without the discount 1 / (1 + 200/16) = 0.074 of the way. The
+    Δχ² (0.2 mm, 1e9 / 6: 6.7) stays under 25: it is fused, not released."""
+    for ratio, share in ((2.0, 1.0 / (1.0 + 200.0 / 256.0)), (0.0, 1.0 / (1.0 + 200.0 / 16.0))):
+        prior, truth, biased = _poor_then_clear(ratio)
+        assert not prior.released and prior.forgotten == (ratio > 0)
+        moved = log_increment(biased, prior.T_base_bone, CENTER)
+        np.testing.assert_allclose(moved, [0, 0, 0, 0, -0.0002 * share, 0], atol=1e-10)
+
+
+def test_the_discount_needs_the_view_to_improve_by_the_ratio():
+    """A clear view fluctuating within the clear test (σ 0.8-1.2x the first) never discounts Λ: the
+    information is the plain sum (a static bone under a steady view averages every frame); a view
+    improving step by step discounts at each halving of σ_b only (4σ -> 2σ -> σ)."""
+    prior = StaticPrior(StaticPriorConfig(forget_ratio=2.0), CENTER, inflation=6.0)
+    rng = np.random.default_rng(5)
+    for _ in range(100):
+        prior.update(np.eye(4), _info(), image_std=CLEAR_STD * rng.uniform(0.8, 1.2))
+        assert not prior.forgotten
+    np.testing.assert_allclose(prior.information, 100 * _info() / 6.0, rtol=1e-12)
+    prior = StaticPrior(StaticPriorConfig(forget_ratio=2.0), CENTER, inflation=6.0)
+    stds = np.linspace(4.0, 1.0, 31) * CLEAR_STD
+    fired = []
+    for std in stds:
+        prior.update(np.eye(4), _info() * (CLEAR_STD / std) ** 2, image_std=std)
+        fired.append(prior.forgotten)
+    first_half = int(np.argmax(stds <= 2.0 * CLEAR_STD * (1 + 1e-9)))   # the first σ <= 4σ / 2
+    assert sum(fired) == 2 and fired.index(True) == first_half, fired
+    assert fired[-1]   # σ = CLEAR_STD: half the basis 2σ set by the first discount
+
+
+def test_a_stride_1_fit_enters_the_prior_with_a_quarter_of_its_information(far_frame):
+    """refine_track._prior_H: the prior counts a stride-1 fit's H on the configured stride-2 grid,
+    H · (1/2)² (correlated full-resolution pixels; the calibration of BENCHMARKS.md §6: inflation
+    12.7 at stride 1 against 2.9 at stride 2 for 90 % coverage); a stride-2 fit as it is."""
+    from app.filter.refine import Refiner, RefineParams
+    from app.filter.refine_track import RefineConfig, RefinedTrack
+    from app.sim.simulator import D415_640x480
+
+    vertices, faces, T_camera_bone, measured = far_frame
+    fine = Refiner(vertices, faces, D415_640x480, RefineParams())
+    result = fine.refine(measured, T_camera_bone)
+    assert result.stride == 1
+    track = RefinedTrack(fine, RefineConfig(), vertices, inflation=6.0)
+    np.testing.assert_allclose(track._prior_H(result), result.H / 4.0, rtol=1e-12)
+    coarse = Refiner(vertices, faces, D415_640x480, RefineParams(fine_below=0))
+    result2 = coarse.refine(measured, T_camera_bone)
+    assert result2.stride == 2
+    np.testing.assert_allclose(RefinedTrack(coarse, RefineConfig(), vertices, 6.0)._prior_H(result2), result2.H)
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not (PELVIS / "crest_left_02.ply").is_file(), reason=f"no CT crest meshes at {PELVIS}")
 def test_ct_crest_moved_at_5_cm_s_is_back_within_1_mm_after_rest(tmp_path):

@@ -60,7 +60,20 @@ from the anchor to T_img:
   In the directions the image constrains H' dominates and the pose follows the image; in the
   directions it does not (the crest's long axis and roll under the hand) Λ from the earlier,
   clearer frames holds the pose. Λ is capped (``max_information_frames`` x the largest H' seen
-  since the last release) so that the anchor keeps refining on a clear view.
+  since the last release) so that the anchor keeps refining on a clear view;
+- **clear frame, the view improves** (``forget_ratio``, 2): with σ_b the template error of the view
+  Λ was built on (the release's, or the last discount's), a clear frame with σ <= σ_b / forget_ratio
+  discounts Λ ← Λ (σ / σ_b)² and sets σ_b ← σ before it is fused. Why: a view's fits carry a bias of
+  the order of the view's own σ that more frames of the same view do not average out, and Λ counted
+  them as if they did. Measured after a fast reposition (or_fast_reposition crest_right_03 seed 0,
+  /work/probe/priorprobe.py): 2 s with a quarter of the crest in view (σ 3.5-5 mm) built Λ on a pose
+  2.0 mm off; as the camera's view improved (σ 3.0 -> 0.7 mm over 1.5 s) the image's fits lay
+  0.7-0.9 mm off, but Λ (150-660 frames' worth of the new view) moved the anchor 1.9 -> 0.6 mm only
+  over those 1.5 s. A view that only fluctuates (σ within the clear test's 1.5x) never discounts:
+  the static scenes average every clear frame as before (BENCHMARKS.md §6h).
+
+The caller passes H on one grid (refine_track._prior_H: a stride-1 fit's H x 1/4), as it passes σ:
+neighbouring full-resolution pixels are correlated and do not carry four times the information.
 
 Motion test measured (BENCHMARKS.md §6c, end): bone_moves 8 crests x 3 seeds, after rest + 0.3 s max ADD
 0.43 mm (was 3.49 on crest_left_02 seed 2), ADD p95 <= 0.67 mm (was up to 5.5).
