@@ -198,12 +198,14 @@ class RefinedTrack:
     def _prior_H(self, result: RefineResult) -> np.ndarray:
         """The fit's information on the configured grid, for the static prior: H_grid = H · (stride /
         stride_grid)², the counterpart of :meth:`_prior_std` (σ ∝ N^-1/2, H ∝ N). A stride-1 fit has four
-        times the pixels of the same view at stride 2, but neighbouring full-resolution pixels of a
-        stereo depth image are correlated, so they do not carry four times the information: the
+        times the pixels of the same view at stride 2, but its errors are not four times smaller: the
         inflation that makes the predicted template error cover the measured one is 8.1 / 12.7 / 15.4
         (68 / 90 / 95 %) on static_far's stride-1 frames against 2.1 / 2.9 / 3.2 at stride 2 on the clear
         near view (BENCHMARKS.md §6, "Calibrating the predicted template error"): four times, as this
-        scaling says. Unscaled, the stride-1 frames of a small silhouette after a fast reposition
+        scaling says. The residuals of neighbouring full-resolution pixels are correlated (the
+        simulator's noise is independent per pixel, so there it is the objective's own error: the
+        invalid band along the silhouette, the depth unit's steps; a real stereo sensor adds its
+        matching window). Unscaled, the stride-1 frames of a small silhouette after a fast reposition
         weighed four times their worth in the prior, and the prior then held their biased pose
         against the clearer stride-2 views that followed (BENCHMARKS.md §6h)."""
         H = np.asarray(result.H, float)

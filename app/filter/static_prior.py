@@ -73,7 +73,8 @@ from the anchor to T_img:
   the static scenes average every clear frame as before (BENCHMARKS.md §6h).
 
 The caller passes H on one grid (refine_track._prior_H: a stride-1 fit's H x 1/4), as it passes σ:
-neighbouring full-resolution pixels are correlated and do not carry four times the information.
+a stride-1 fit's errors are not four times smaller than the same view's at stride 2 (the
+calibration of BENCHMARKS.md §6: 12.7 against 2.9 for 90 % coverage).
 
 Motion test measured (BENCHMARKS.md §6c, end): bone_moves 8 crests x 3 seeds, after rest + 0.3 s max ADD
 0.43 mm (was 3.49 on crest_left_02 seed 2), ADD p95 <= 0.67 mm (was up to 5.5).
