@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from app.errors import ConfigError, GLError
+from app.errors import ConfigError, GLError, MeshError
 from app.geometry import se3
 from app.projector.accuracy import lit_pixel_errors, template_error, template_error_mm
 from app.projector.model import ProjectorModel, default_projector
@@ -291,3 +291,25 @@ def test_the_template_error_leaves_out_the_grazing_outline_the_renderer_does_not
     nearest = np.argmin(np.linalg.norm(hits[:, None] - points[None], axis=2), axis=1)
     assert len(hits) > 200
     assert np.mean(cos_points[nearest] < np.cos(np.radians(MAX_INCIDENCE_DEG)) - 0.05) < 0.005   # 2.4 % with 90 deg
+
+
+def test_a_plan_that_does_not_fit_is_derived_with_one_warning_unless_quiet(bone, caplog):
+    """build_plan(derive=True) on a mesh the configured plan is not on: a plan of the configured shape
+    derived on this mesh's ridge, with one warning line; ``quiet`` (the bench) the same plan, no line."""
+    import logging
+
+    from app.projector.config import build_plan, parse_projector_config
+
+    V, F = bone
+    cfg = parse_projector_config({"plan": {"shape": "box", "center_x_mm": 500.0}})   # 0.5 m off the crest
+    with pytest.raises(MeshError):
+        build_plan(cfg, V, F)
+    with caplog.at_level(logging.WARNING, logger="app.projector.config"):
+        loud = build_plan(cfg, V, F, derive=True)
+        assert sum("does not fit this mesh" in r.getMessage() for r in caplog.records) == 1
+        caplog.clear()
+        quiet = build_plan(cfg, V, F, derive=True, quiet=True)
+        assert not caplog.records
+    assert loud.name == quiet.name and "derived" in loud.name
+    for a, b in zip(loud.polylines, quiet.polylines, strict=True):
+        np.testing.assert_allclose(a, b)

@@ -18,8 +18,6 @@ the camera frame (equal to the base-frame ADD when the calibration is exact).
 """
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 
 from app import metrics
@@ -66,15 +64,9 @@ def template_scores(reader, T_est: np.ndarray, statuses, n: int, every: int = 1)
 
 
 def _projector_and_plan(vertices: np.ndarray, faces: np.ndarray):
-    """configs/projector.yaml's projector and plan, derived on this mesh when it does not fit (quietly)."""
+    """configs/projector.yaml's projector and plan, derived on this mesh when it does not fit (no
+    warning: the bench's table names the plan, ``derived ...`` when it was)."""
     from app.projector.config import DEFAULT_CONFIG, build_plan, load_projector_config
 
     cfg = load_projector_config(DEFAULT_CONFIG)
-    config_log = logging.getLogger("app.projector.config")
-    level = config_log.level
-    config_log.setLevel(logging.ERROR)   # the "plan does not fit, derived" line, once per run, is noise here
-    try:
-        plan = build_plan(cfg, vertices, faces, derive=True)
-    finally:
-        config_log.setLevel(level)
-    return cfg.projector, plan
+    return cfg.projector, build_plan(cfg, vertices, faces, derive=True, quiet=True)

@@ -96,12 +96,14 @@ def load_projector_config(path: "str | Path" = DEFAULT_CONFIG) -> ProjectorConfi
     return parse_projector_config(yaml.safe_load(path.read_text()) or {}, str(path), path.resolve().parent)
 
 
-def build_plan(cfg: ProjectorConfig, vertices: np.ndarray, faces: np.ndarray, derive: bool = False) -> Plan:
+def build_plan(cfg: ProjectorConfig, vertices: np.ndarray, faces: np.ndarray, derive: bool = False,
+               quiet: bool = False) -> Plan:
     """The configured plan, checked against the bone mesh (MeshError when it is not on it).
 
     ``derive`` (replay of a recorded trial): when the configured plan does not fit this mesh, one
     warning line and a plan of the configured shape and size placed on this mesh's ridge instead
-    (:func:`app.projector.plan.derive_crest_plan`; its ``name`` says so).
+    (:func:`app.projector.plan.derive_crest_plan`; its ``name`` says so). ``quiet``: no warning line
+    (a benchmark scoring many meshes, whose table names the plan).
     """
     try:
         return _configured_plan(cfg, vertices, faces)
@@ -112,7 +114,8 @@ def build_plan(cfg: ProjectorConfig, vertices: np.ndarray, faces: np.ndarray, de
         sizes = {k: float(cfg.plan.get(k, d)) for k, d in (("length_mm", 20.0), ("width_mm", 10.0), ("angle_deg", 0.0))}
         plan = derive_crest_plan(shape if shape in SHAPES else "box", vertices, faces, sizes["length_mm"] / 1000.0,
                                  sizes["width_mm"] / 1000.0, sizes["angle_deg"])
-        log.warning("projector: the configured plan does not fit this mesh (%s); using a %s", exc, plan.name)
+        if not quiet:
+            log.warning("projector: the configured plan does not fit this mesh (%s); using a %s", exc, plan.name)
         return plan
 
 
