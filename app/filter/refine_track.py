@@ -283,7 +283,7 @@ class RefinedTrack:
             std = template_std(best.H, self.plan_points, self.inflation)
         grid_std = self._prior_std(best, std)
         T_held = prior.update(T_best, self._prior_H(best), grid_std)
-        self.last_info.update(chi2=prior.chi2, motion_chi2=prior.motion_chi2, released=prior.released, held=prior.held,
+        self.last_info.update(chi2=prior.chi2, motion_chi2=prior.motion_chi2, released=prior.released, held=prior.held, discounted=prior.forgotten,
                               held_chi2=0.0 if prior.released else prior.chi2,
                               img_std_mm=1e3 * std, grid_std_mm=1e3 * grid_std)
         return source, T_held, best, std

@@ -66,7 +66,7 @@ from the anchor to T_img:
   discounts Λ ← Λ (σ / σ_b)² and sets σ_b ← σ before it is fused. Why: a view's fits carry a bias of
   the order of the view's own σ that more frames of the same view do not average out, and Λ counted
   them as if they did. Measured after a fast reposition (or_fast_reposition crest_right_03 seed 0,
-  /work/probe/priorprobe.py): 2 s with a quarter of the crest in view (σ 3.5-5 mm) built Λ on a pose
+  scripts/prior_probe.py): 2 s with a quarter of the crest in view (σ 3.5-5 mm) built Λ on a pose
   2.0 mm off; as the camera's view improved (σ 3.0 -> 0.7 mm over 1.5 s) the image's fits lay
   0.7-0.9 mm off, but Λ (150-660 frames' worth of the new view) moved the anchor 1.9 -> 0.6 mm only
   over those 1.5 s. A view that only fluctuates (σ within the clear test's 1.5x) never discounts:
@@ -215,6 +215,7 @@ class StaticPrior:
         """Fuse one frame's refined pose and information; returns the new anchor (module docstring).
         ``image_std`` (m): the predicted template error from the image alone (refine.template_std of
         H); only a clear frame (module docstring) may release or move the prior."""
+        self.forgotten = False
         if not self.active:
             self.released, self.held, self.chi2 = True, False, float("nan")
             return self.start(T_base_bone_image, H, image_std)
