@@ -68,7 +68,7 @@ from the anchor to T_img:
   them as if they did. Measured after a fast reposition (or_fast_reposition crest_right_03 seed 0,
   scripts/prior_probe.py): 2 s with a quarter of the crest in view (σ 3.5-5 mm) built Λ on a pose
   2.0 mm off; as the camera's view improved (σ 3.0 -> 0.7 mm over 1.5 s) the image's fits lay
-  0.7-0.9 mm off, but Λ (150-660 frames' worth of the new view) moved the anchor 1.9 -> 0.6 mm only
+  0.7-0.9 mm off, but Λ (140-660 frames' worth of the new view) moved the anchor 1.9 -> 0.6 mm only
   over those 1.5 s. A view that only fluctuates (σ within the clear test's 1.5x) never discounts:
   the static scenes average every clear frame as before (BENCHMARKS.md §6h).
 
@@ -77,7 +77,9 @@ a stride-1 fit's errors are not four times smaller than the same view's at strid
 calibration of BENCHMARKS.md §6: 12.7 against 2.9 for 90 % coverage).
 
 Motion test measured (BENCHMARKS.md §6c, end): bone_moves 8 crests x 3 seeds, after rest + 0.3 s max ADD
-0.43 mm (was 3.49 on crest_left_02 seed 2), ADD p95 <= 0.67 mm (was up to 5.5).
+0.43 mm (was 3.49 on crest_left_02 seed 2), ADD p95 <= 0.67 mm (was up to 5.5). Since the grid
+information (§6h) 0.53 mm (crest_right_03 seed 1): a stride-1 frame's Δχ² is a quarter of what it was,
+so the motion test stops releasing a few frames sooner as the bone comes to rest.
 
 Measured (BENCHMARKS.md §6c, commit f82eac8, the lead's 7 s static_occluded trials, 8 CT crests):
 seed 0 lost 0-62 % -> 0 % on every crest, ADD median per run 0.14-0.38 mm, 0 frames ok while > 5 mm
