@@ -12,9 +12,14 @@ PELVIS_DIR = REPO.parent / "shared" / "data" / "pelvis"
 
 @pytest.fixture(scope="session")
 def gl_ctx():
-    from app.render.context import create_context
+    """The main thread's :func:`~app.render.context.shared_context`, the one the product code renders on.
 
-    ctx = create_context()
+    Not a second context: creating one makes it current, and moderngl does not switch back, so the
+    product's renderers and the tests' would each run on whichever context was made current last.
+    """
+    from app.render.context import shared_context
+
+    ctx = shared_context()
     yield ctx
     ctx.release()
 

@@ -21,7 +21,7 @@ def _poses():
     return projector, T_base_camera, T_base_camera @ T_camera_bone
 
 
-def test_projector_output_blanks_the_template_unless_ok_and_fresh(tmp_path, gl_ctx):
+def test_projector_output_blanks_the_template_unless_ok_and_fresh(tmp_path, ctx):
     mesh = load_mesh(REPO / "meshes" / "iliac_crest.ply")
     _, T_base_camera, T_base_bone = _poses()
     out = registry.create("output", "projector", {"png_dir": str(tmp_path), "rerun": "off"}, "outputs")

@@ -25,7 +25,13 @@ _local = threading.local()
 
 
 def create_context() -> moderngl.Context:
-    """Create a new standalone EGL context (GL >= 4.3); raise :class:`GLError` naming what was found."""
+    """Create a new standalone EGL context (GL >= 4.3); raise :class:`GLError` naming what was found.
+
+    The new context becomes this thread's current one: moderngl does not switch contexts by itself, so
+    every GL call made afterwards through another context object (say the :func:`shared_context`)
+    runs on this one instead, and that context's objects do not exist here (GL_INVALID_OPERATION).
+    Code that renders should take :func:`shared_context`, which makes its context current again.
+    """
     try:
         ctx = moderngl.create_context(standalone=True, backend="egl", require=REQUIRED_GL)
     except Exception as exc:  # moderngl raises plain Exception subclasses for EGL failures
@@ -43,12 +49,28 @@ def create_context() -> moderngl.Context:
 
 
 def shared_context() -> moderngl.Context:
-    """This thread's context, created on first use and reused afterwards."""
+    """This thread's context, created on first use and reused afterwards; current in this thread on return.
+
+    A context created in this thread since (:func:`create_context`, :func:`describe_default_context`)
+    took the thread's current binding; without making this one current again, renderers built on it
+    would issue their calls to that other context, with object names it does not have.
+    """
     ctx = getattr(_local, "ctx", None)
     if ctx is None:
         ctx = create_context()
         _local.ctx = ctx
+    else:
+        make_current(ctx)
     return ctx
+
+
+def make_current(ctx: moderngl.Context) -> None:
+    """Make ``ctx`` this thread's current context (eglMakeCurrent; under a microsecond when it already is).
+
+    moderngl's ``with ctx:`` does this and restores the previous context on exit; here the switch is
+    meant to last, so the exit is not called.
+    """
+    ctx.__enter__()
 
 
 def is_software(ctx: moderngl.Context) -> bool:
@@ -72,6 +94,9 @@ def describe_default_context() -> str:
         return describe(ctx)
     finally:
         ctx.release()
+        shared = getattr(_local, "ctx", None)
+        if shared is not None:   # the throwaway took the thread's current binding: give it back
+            make_current(shared)
 
 
 def unbind_framebuffer(ctx: moderngl.Context) -> None:
