@@ -55,24 +55,9 @@ def far_frame(gl_ctx):
     at stride 1 by default), with the simulator's sensor noise (app/sim/sensor.py: σ = 0.0015 z² +
     0.0003 m, 1.26 mm there): (vertices, faces, T_camera_bone, measured depth). Shared by
     tests/test_refine.py and tests/test_static_prior.py."""
-    import trimesh
-
-    from app.geometry import se3
-    from app.render.scene import SceneRenderer
-    from app.sim import world
     from app.sim.sensor import SensorModel
-    from app.sim.simulator import D415_640x480, DEFAULT_MESH
+    from tests.scenes import crest_in_tissue
 
-    mesh = trimesh.load(DEFAULT_MESH)
-    vertices = np.asarray(mesh.vertices) - np.asarray(mesh.vertices).mean(axis=0)
-    faces = np.asarray(mesh.faces)
-    tissue = world.soft_tissue_mesh(trimesh.Trimesh(vertices, faces), np.random.default_rng(0))
-    scene = SceneRenderer(gl_ctx, D415_640x480)
-    scene.add_mesh("bone", vertices, faces, label=1)
-    scene.add_mesh("tissue", np.asarray(tissue.vertices), np.asarray(tissue.faces), label=2)
-    T_camera_bone = se3.from_rotvec_trans(np.array([np.pi, 0.1, 0.1]), np.array([0.0, 0.0, 0.8]))
-    depth, _ = scene.render({"bone": T_camera_bone, "tissue": T_camera_bone})
-    scene.release()
-    z = depth.astype(float)
+    vertices, faces, T_camera_bone, z, _ = crest_in_tissue(gl_ctx, 0.8)
     noise = SensorModel().sigma(z) * np.random.default_rng(3).standard_normal(z.shape)
     return vertices, faces, T_camera_bone, np.where(z > 0, z + noise, 0.0)

@@ -11,26 +11,15 @@ from app.filter.refine import Refiner, RefineParams, exp_se3, template_std
 from app.geometry import se3
 from app.geometry.camera import PinholeCamera
 from app.sim import world
-from app.sim.simulator import D415_640x480, DEFAULT_MESH
+from app.sim.simulator import D415_640x480
+from tests.scenes import crest_in_tissue
 
 
 @pytest.fixture(scope="module")
 def crest_frame(gl_ctx):
     """The synthetic crest in its soft tissue (10 mm protrusion) at 0.42 m, crest towards the lens,
     rendered at 640x480 with the D415-like noise σ(z) = 0.0011 z² + 0.0005 m."""
-    from app.render.scene import SceneRenderer
-
-    mesh = trimesh.load(DEFAULT_MESH)
-    vertices = np.asarray(mesh.vertices) - np.asarray(mesh.vertices).mean(axis=0)
-    faces = np.asarray(mesh.faces)
-    tissue = world.soft_tissue_mesh(trimesh.Trimesh(vertices, faces), np.random.default_rng(0))
-    scene = SceneRenderer(gl_ctx, D415_640x480)
-    scene.add_mesh("bone", vertices, faces, label=1)
-    scene.add_mesh("tissue", np.asarray(tissue.vertices), np.asarray(tissue.faces), label=2)
-    T_camera_bone = se3.from_rotvec_trans(np.array([np.pi, 0.1, 0.1]), np.array([0.0, 0.0, 0.42]))
-    depth, labels = scene.render({"bone": T_camera_bone, "tissue": T_camera_bone})
-    scene.release()
-    z = depth.astype(float)
+    vertices, faces, T_camera_bone, z, labels = crest_in_tissue(gl_ctx, 0.42)
     rng = np.random.default_rng(1)
     measured = np.where(z > 0, z + (0.0011 * z ** 2 + 0.0005) * rng.standard_normal(z.shape), 0.0)
     return vertices, faces, T_camera_bone, measured, labels
