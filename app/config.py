@@ -184,6 +184,7 @@ KEYS: dict[str, _Key] = {
     "refine.prior_forget_ratio": _f("refine.prior_forget_ratio", 0.0, 1e6),
     "refine.seed_starts": _i("refine.seed_starts", 0, 10_000),
     "refine.seed_spread": _f("refine.seed_spread", 0.0, 10.0),
+    "refine.outline_ring": _Key(("refine", "outline_ring"), "bool"),
     "recovery.enabled": _Key(("recovery", "enabled"), "bool"),
     "recovery.after_lost_s": _f("recovery.after_lost_s", 0.0, 3600.0, lo_open=True),
     "recovery.after_uncertain_s": _f("recovery.after_uncertain_s", 0.0, 3600.0),

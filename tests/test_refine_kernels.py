@@ -110,3 +110,31 @@ def test_refine_numba_equals_numpy_on_random_poses(refiners, distance, rng):
                (a.fitness, a.expected, a.confirmed, a.used, a.sharp, a.behind)
         assert se3.translation_distance(b.T_camera_bone, T) < 0.001      # and it converged
     assert refiners["numba"].choose_stride(T)[0] == (1 if distance > 0.6 else 2)
+
+
+def test_fill_holes_with_and_without_the_outline_ring(rng):
+    """refine.fill_holes (closed form): a covered disc with one-cell holes and a one-cell-wide gap
+    across it. Without the ring the holes and the gap take the minimum of their 3x3 neighbourhood and no
+    cell outside the disc is covered; with it (the default) the covered cells are the disc grown by the
+    3x3 square. The numba kernel equals it on random sparse buffers, both ways."""
+    from scipy import ndimage
+
+    from app.filter.refine import fill_holes
+
+    r, c = np.mgrid[0:41, 0:41]
+    disc = (r - 20) ** 2 + (c - 20) ** 2 <= 15 ** 2
+    zbuf = np.where(disc, 0.4 + 0.001 * r + 0.0001 * c, np.inf)
+    holes = [(10, 12), (20, 20), (27, 25)]
+    for hr, hc in holes:
+        zbuf[hr, hc] = np.inf
+    zbuf[:, 30] = np.inf                        # a one-cell-wide gap across the disc
+    out = fill_holes(zbuf, ring=False)
+    np.testing.assert_array_equal(np.isfinite(out), disc)
+    for hr, hc in holes:
+        assert out[hr, hc] == zbuf[hr - 1:hr + 2, hc - 1:hc + 2].min()
+    grown = fill_holes(zbuf, ring=True)
+    np.testing.assert_array_equal(np.isfinite(grown), ndimage.binary_dilation(np.isfinite(zbuf), np.ones((3, 3))))
+    for ring in (False, True):
+        for _ in range(20):
+            sparse = np.where(rng.random((30, 40)) < 0.6, rng.uniform(0.3, 0.5, (30, 40)), np.inf)
+            np.testing.assert_array_equal(kernels._fill_holes(sparse, ring), fill_holes(sparse, ring))

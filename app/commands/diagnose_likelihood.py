@@ -92,7 +92,7 @@ def _scorers(config, reader):
                                   camera_small, config.particles, config.likelihood, near=config.near, far=config.far)
     lk, c = config.likelihood, config.refine
     params = RefineParams(stride=c.stride, iterations=c.iterations, samples=c.samples, k=lk.k,
-                          sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin)
+                          sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin, outline_ring=c.outline_ring)
     return backend, Refiner(np.asarray(mesh.vertices), np.asarray(mesh.faces), reader.meta.camera, params), camera_small
 
 

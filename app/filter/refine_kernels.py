@@ -6,7 +6,8 @@ without temporaries (tests/test_refine_kernels.py compares both on random poses)
 
 - :func:`zbuffer`: the model's z-buffer on the crop grid (refine.py step 1): the camera-facing
   samples (n·p < 0, z > 0) projected with u = fx x / z + cx, rounded to the grid of step ``stride``,
-  the nearest depth per cell, then the one-cell holes filled by the 3x3 minimum of the buffer;
+  the nearest depth per cell, then the empty cells filled by the 3x3 minimum of the buffer (every
+  one next to a covered cell, or only those between covered cells: ``ring``);
 - :func:`measurements`: the silhouette's usable pixels back-projected, y = z K⁻¹ (u, v, 1) (step 2);
 - :func:`nearest`: the exact nearest model sample of each point (step 3) on a uniform grid of
   cells (:class:`SampleGrid`): shells of cells at Chebyshev distance r = 0, 1, ... around the
@@ -73,7 +74,7 @@ def build_grid(points: np.ndarray, normals: np.ndarray, cell: float, max_cells: 
 
 
 @_njit()
-def zbuffer(points, normals, R, t, fx, fy, cx, cy, stride, w_grid, h_grid):
+def zbuffer(points, normals, R, t, fx, fy, cx, cy, stride, w_grid, h_grid, ring=True):
     """(zbuf (h, w) with inf where empty, c0, r0) on the crop grid; zbuf.size == 0 when nothing projects."""
     n = points.shape[0]
     cols = np.empty(n, np.int64)
@@ -103,18 +104,30 @@ def zbuffer(points, normals, R, t, fx, fy, cx, cy, stride, w_grid, h_grid):
     for i in range(m):
         if zs[i] < zbuf[rows[i] - r0, cols[i] - c0]:
             zbuf[rows[i] - r0, cols[i] - c0] = zs[i]
-    return _fill_holes(zbuf), c0, r0
+    return _fill_holes(zbuf, ring), c0, r0
 
 
 @_njit()
-def _fill_holes(zbuf):
-    """Empty cells take the minimum of their 3x3 neighbourhood (scipy minimum_filter, cval inf)."""
+def _fill_holes(zbuf, ring):
+    """Empty cells take the minimum of their 3x3 neighbourhood: with ``ring``, every empty cell next to
+    a covered one (the outline grown by a cell all round, scipy's minimum_filter); without, only the
+    cells between two covered ones (left and right, above and below, or across either diagonal), the
+    outline not grown (refine.py :func:`fill_holes`, the numpy reference)."""
     h, w = zbuf.shape
     out = zbuf.copy()
     for r in range(h):
         for c in range(w):
             if zbuf[r, c] != np.inf:
                 continue
+            if not ring:
+                if r == 0 or c == 0 or r == h - 1 or c == w - 1:
+                    continue
+                between = ((zbuf[r, c - 1] != np.inf and zbuf[r, c + 1] != np.inf)
+                           or (zbuf[r - 1, c] != np.inf and zbuf[r + 1, c] != np.inf)
+                           or (zbuf[r - 1, c - 1] != np.inf and zbuf[r + 1, c + 1] != np.inf)
+                           or (zbuf[r - 1, c + 1] != np.inf and zbuf[r + 1, c - 1] != np.inf))
+                if not between:
+                    continue
             best = np.inf
             for rr in range(max(r - 1, 0), min(r + 2, h)):
                 for cc in range(max(c - 1, 0), min(c + 2, w)):

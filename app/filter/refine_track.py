@@ -76,7 +76,8 @@ class RefineConfig:
     competitor_distance (m) / competitor_angle (rad); competitor_margin; feedback; feedback_fitness;
     static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames, prior_motion_frames,
     prior_forget_ratio (app/filter/static_prior.py); seed_starts, seed_spread (the seeded first frame's multi-start,
-    :meth:`RefinedTrack._start_fits`)."""
+    :meth:`RefinedTrack._start_fits`); outline_ring (the model's z-buffer grown by a pixel:
+    app/filter/refine.py :func:`~app.filter.refine.fill_holes`)."""
 
     enabled: bool = True
     stride: int = 2
@@ -97,6 +98,7 @@ class RefineConfig:
     prior_forget_ratio: float = 2.0
     seed_starts: int = 16
     seed_spread: float = 0.5
+    outline_ring: bool = True
 
 
 @dataclass

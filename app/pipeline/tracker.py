@@ -288,7 +288,7 @@ def _refined_track(config: TrackerConfig, mesh: trimesh.Trimesh, camera: Pinhole
         return None
     vertices, faces = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
     params = RefineParams(stride=c.stride, iterations=c.iterations, samples=c.samples, k=lk.k,
-                          sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin)
+                          sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin, outline_ring=c.outline_ring)
     refiner = Refiner(vertices, faces, camera, params, seed=config.seed)
     step = max(1, len(vertices) // PLAN_POINTS)
     return RefinedTrack(refiner, c, vertices[::step], config.status.covariance_inflation)
