@@ -59,11 +59,11 @@ def main(argv=None) -> None:
         best = self._best_std
         T_anchor = update(self, T_image, H, image_std)
         state["n"] += 1
-        if state["n"] % max(args.every, 1) == 0 or self.released or self.forgotten:
+        if state["n"] % max(args.every, 1) == 0 or self.released or self.discounted:
             T_true = truth(state["stamp"])
             anchor, image = _error(vertices, T_anchor, T_true), _error(vertices, T_image, T_true)
             print(f"{state['stamp'] - state['t0']:6.2f} s  σ {1e3 * image_std:5.2f} mm (best {1e3 * best:5.2f})  "
-                  f"released {int(self.released)} held {int(self.held)} discounted {int(self.forgotten)}  "
+                  f"released {int(self.released)} held {int(self.held)} discounted {int(self.discounted)}  "
                   f"Δχ² {self.chi2:7.1f} motion {self.motion_chi2:7.1f}  Λ/H' {ratio:5.0f}  "
                   f"anchor {anchor[0]:5.2f} mm {anchor[1]:5.2f} deg  image {image[0]:5.2f} mm {image[1]:5.2f} deg")
         return T_anchor

@@ -1,7 +1,18 @@
-"""Rendered test scenes shared by several test files (tests/conftest.py's fixtures, tests/test_refine.py)."""
+"""Test scenes shared by several test files (tests/conftest.py's fixtures, tests/test_refine.py,
+tests/test_refine_kernels.py)."""
 from __future__ import annotations
 
 import numpy as np
+
+
+def synthetic_crest() -> tuple[np.ndarray, np.ndarray]:
+    """The default synthetic crest's (vertices centred on their mean, faces)."""
+    import trimesh
+
+    from app.sim.simulator import DEFAULT_MESH
+
+    mesh = trimesh.load(DEFAULT_MESH)
+    return np.asarray(mesh.vertices) - np.asarray(mesh.vertices).mean(axis=0), np.asarray(mesh.faces)
 
 
 def crest_in_tissue(ctx, distance_m: float):
@@ -13,11 +24,9 @@ def crest_in_tissue(ctx, distance_m: float):
     from app.geometry import se3
     from app.render.scene import SceneRenderer
     from app.sim import world
-    from app.sim.simulator import D415_640x480, DEFAULT_MESH
+    from app.sim.simulator import D415_640x480
 
-    mesh = trimesh.load(DEFAULT_MESH)
-    vertices = np.asarray(mesh.vertices) - np.asarray(mesh.vertices).mean(axis=0)
-    faces = np.asarray(mesh.faces)
+    vertices, faces = synthetic_crest()
     tissue = world.soft_tissue_mesh(trimesh.Trimesh(vertices, faces), np.random.default_rng(0))
     scene = SceneRenderer(ctx, D415_640x480)
     scene.add_mesh("bone", vertices, faces, label=1)

@@ -11,8 +11,8 @@ from app.filter.refine import Refiner, RefineParams, exp_se3, template_std
 from app.geometry import se3
 from app.geometry.camera import PinholeCamera
 from app.sim import world
-from app.sim.simulator import D415_640x480, DEFAULT_MESH
-from tests.scenes import crest_in_tissue
+from app.sim.simulator import D415_640x480
+from tests.scenes import crest_in_tissue, synthetic_crest
 
 
 @pytest.fixture(scope="module")
@@ -267,9 +267,7 @@ def test_the_model_silhouette_against_opengl_with_and_without_the_ring(gl_ctx, d
     round: 6.4 % / 10.5 % outside at 0.42 / 0.65 m (BENCHMARKS.md §6h). Both miss under 1 %."""
     from app.render.scene import SceneRenderer
 
-    mesh = trimesh.load(DEFAULT_MESH)
-    vertices = np.asarray(mesh.vertices) - np.asarray(mesh.vertices).mean(axis=0)
-    faces = np.asarray(mesh.faces)
+    vertices, faces = synthetic_crest()
     scene = SceneRenderer(gl_ctx, D415_640x480)
     scene.add_mesh("bone", vertices, faces, label=1)
     T = se3.from_rotvec_trans(np.array([np.pi, 0.1, 0.1]), np.array([0.0, 0.0, distance]))

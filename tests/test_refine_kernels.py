@@ -4,20 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import trimesh
 from scipy.spatial import cKDTree
 
 from app.filter import refine_kernels as kernels
 from app.filter.refine import Refiner, RefineParams
 from app.geometry import se3
-from app.sim.simulator import D415_640x480, DEFAULT_MESH
+from app.sim.simulator import D415_640x480
+from tests.scenes import synthetic_crest
 
 
 @pytest.fixture(scope="module")
 def crest():
-    mesh = trimesh.load(DEFAULT_MESH)
-    vertices = np.asarray(mesh.vertices) - np.asarray(mesh.vertices).mean(axis=0)
-    return vertices, np.asarray(mesh.faces)
+    return synthetic_crest()
 
 
 @pytest.fixture(scope="module")

@@ -220,7 +220,7 @@ def test_ct_crest_is_held_under_an_80_percent_hand(tmp_path):
 
 
 def test_a_stride_1_view_does_not_make_the_same_view_at_stride_2_weak(far_frame):
-    """The prior's clear test compares views on one grid (refine_track._prior_std). The same image,
+    """The prior's clear test compares views on one grid (refine_track.RefinedTrack._on_grid). The same image,
     refined first at stride 1 (a small silhouette: four times the points, about half the predicted
     error) and then at stride 2, is one view: the second frame must not be held as weak. Compared
     raw, crest_left_02 bone_moves (seed 0) was held 6.4 mm off after rest (BENCHMARKS.md §6c)."""
@@ -264,7 +264,7 @@ def test_a_clearer_view_discounts_the_information_built_on_a_poorer_one():
     Δχ² (0.2 mm, 1e9 / 6: 6.7) stays under 25: it is fused, not released."""
     for ratio, share in ((2.0, 1.0 / (1.0 + 200.0 / 256.0)), (0.0, 1.0 / (1.0 + 200.0 / 16.0))):
         prior, truth, biased = _poor_then_clear(ratio)
-        assert not prior.released and prior.forgotten == (ratio > 0)
+        assert not prior.released and prior.discounted == (ratio > 0)
         moved = log_increment(biased, prior.T_base_bone, CENTER)
         np.testing.assert_allclose(moved, [0, 0, 0, 0, -0.0002 * share, 0], atol=1e-10)
 
@@ -277,21 +277,21 @@ def test_the_discount_needs_the_view_to_improve_by_the_ratio():
     rng = np.random.default_rng(5)
     for _ in range(100):
         prior.update(np.eye(4), _info(), image_std=CLEAR_STD * rng.uniform(0.8, 1.2))
-        assert not prior.forgotten
+        assert not prior.discounted
     np.testing.assert_allclose(prior.information, 100 * _info() / 6.0, rtol=1e-12)
     prior = StaticPrior(StaticPriorConfig(forget_ratio=2.0), CENTER, inflation=6.0)
     stds = np.linspace(4.0, 1.0, 31) * CLEAR_STD
     fired = []
     for std in stds:
         prior.update(np.eye(4), _info() * (CLEAR_STD / std) ** 2, image_std=std)
-        fired.append(prior.forgotten)
+        fired.append(prior.discounted)
     first_half = int(np.argmax(stds <= 2.0 * CLEAR_STD * (1 + 1e-9)))   # the first σ <= 4σ / 2
     assert sum(fired) == 2 and fired.index(True) == first_half, fired
     assert fired[-1]   # σ = CLEAR_STD: half the basis 2σ set by the first discount
 
 
 def test_a_stride_1_fit_enters_the_prior_with_a_quarter_of_its_information(far_frame):
-    """refine_track._prior_H: the prior counts a stride-1 fit's H on the configured stride-2 grid,
+    """RefinedTrack._on_grid: the prior counts a stride-1 fit's H on the configured stride-2 grid,
     H · (1/2)² (correlated full-resolution pixels; the calibration of BENCHMARKS.md §6: inflation
     12.7 at stride 1 against 2.9 at stride 2 for 90 % coverage); a stride-2 fit as it is."""
     from app.filter.refine import Refiner, RefineParams
@@ -303,11 +303,15 @@ def test_a_stride_1_fit_enters_the_prior_with_a_quarter_of_its_information(far_f
     result = fine.refine(measured, T_camera_bone)
     assert result.stride == 1
     track = RefinedTrack(fine, RefineConfig(), vertices, inflation=6.0)
-    np.testing.assert_allclose(track._prior_H(result), result.H / 4.0, rtol=1e-12)
+    grid_H, grid_std = track._on_grid(result, 0.001)
+    np.testing.assert_allclose(grid_H, result.H / 4.0, rtol=1e-12)
+    assert grid_std == pytest.approx(0.002, rel=1e-12)           # σ_grid = σ stride_grid / stride
     coarse = Refiner(vertices, faces, D415_640x480, RefineParams(fine_below=0))
     result2 = coarse.refine(measured, T_camera_bone)
     assert result2.stride == 2
-    np.testing.assert_allclose(RefinedTrack(coarse, RefineConfig(), vertices, 6.0)._prior_H(result2), result2.H)
+    grid_H2, grid_std2 = RefinedTrack(coarse, RefineConfig(), vertices, 6.0)._on_grid(result2, 0.001)
+    np.testing.assert_allclose(grid_H2, result2.H)
+    assert grid_std2 == 0.001
 
 
 @pytest.mark.slow

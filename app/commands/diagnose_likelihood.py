@@ -80,8 +80,9 @@ def _scorers(config, reader):
     """The tracker's GL likelihood (filter resolution) and refinement (full resolution) for the trial's mesh."""
     import numpy as np
 
-    from app.filter.refine import Refiner, RefineParams
+    from app.filter.refine import Refiner
     from app.mesh import prepare_mesh
+    from app.pipeline.tracker import refine_params
     from app.render.context import shared_context
     from app.render.likelihood import GLLikelihoodBackend
 
@@ -90,9 +91,7 @@ def _scorers(config, reader):
     camera_small = reader.meta.camera.resized(*config.resolution)
     backend = GLLikelihoodBackend(shared_context(), np.asarray(tracking.vertices), np.asarray(tracking.faces),
                                   camera_small, config.particles, config.likelihood, near=config.near, far=config.far)
-    lk, c = config.likelihood, config.refine
-    params = RefineParams(stride=c.stride, iterations=c.iterations, samples=c.samples, k=lk.k,
-                          sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin, outline_ring=c.outline_ring)
+    params = refine_params(config)
     return backend, Refiner(np.asarray(mesh.vertices), np.asarray(mesh.faces), reader.meta.camera, params), camera_small
 
 

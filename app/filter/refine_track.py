@@ -34,7 +34,7 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
 - the static-bone prior (``static_prior``, app/filter/static_prior.py): the kept fit is fused with
   the track's held base-frame pose; a frame whose image constrains the template clearly worse than
   the clearest view since the last release (a hand over the bone; both errors on the configured grid,
-  :meth:`RefinedTrack._prior_std`) holds the pose, and a fit from
+  :meth:`RefinedTrack._on_grid`) holds the pose, and a fit from
   the filter's estimate replaces a held pose only when it would release the prior (a clear frame
   that contradicts it). Under an 80 % hand the refinement alone slid along the crest (crest_left_03,
   seed 0: lost from 2.6 s, with or without the filter's reseed and the feedback: "track alone" in
@@ -186,34 +186,32 @@ class RefinedTrack:
         T_base_camera = se3.inverse(T_camera_base)
         return T_base_camera @ result.T_camera_bone, result
 
-    def _prior_std(self, result: RefineResult, std: float) -> float:
-        """The template error on the configured grid (``refine.stride``), for the prior's relative clear
-        test: a small silhouette is refined at stride 1 (refine.py's ``fine_below``), four times the
-        points, so its H predicts about half the error of the same view at stride 2 (σ ∝ N^-1/2, N ∝
-        stride^-2): σ_grid = σ · stride_grid / stride. Compared raw, one stride-1 fit set the clearest
-        view at 0.36 mm and every later stride-2 view of the bone at rest (0.7 mm) was held as weak
-        (crest_left_02 bone_moves seed 0: 6.4 mm after rest; BENCHMARKS.md §6c)."""
-        if result.stride <= 0 or not np.isfinite(std):
-            return std
-        return std * self.refiner.params.stride / result.stride
+    def _on_grid(self, result: RefineResult, std: float) -> tuple[np.ndarray, float]:
+        """The fit's information and template error on the configured grid (``refine.stride``), for the
+        static prior: with g = stride / stride_grid, H_grid = H g² and σ_grid = σ / g (σ ∝ N^-1/2,
+        H ∝ N, N ∝ stride^-2). A small silhouette is refined at stride 1 (refine.py's ``fine_below``).
 
-    def _prior_H(self, result: RefineResult) -> np.ndarray:
-        """The fit's information on the configured grid, for the static prior: H_grid = H · (stride /
-        stride_grid)², the counterpart of :meth:`_prior_std` (σ ∝ N^-1/2, H ∝ N). A stride-1 fit has four
-        times the pixels of the same view at stride 2, but its errors are not four times smaller: the
-        inflation that makes the predicted template error cover the measured one is 8.1 / 12.7 / 15.4
-        (68 / 90 / 95 %) on static_far's stride-1 frames against 2.1 / 2.9 / 3.2 at stride 2 on the clear
-        near view (BENCHMARKS.md §6, "Calibrating the predicted template error"): four times, as this
-        scaling says. The residuals of neighbouring full-resolution pixels are correlated (the
-        simulator's noise is independent per pixel, so there it is the objective's own error: the
-        invalid band along the silhouette, the depth unit's steps; a real stereo sensor adds its
-        matching window). Unscaled, the stride-1 frames of a small silhouette after a fast reposition
-        weighed four times their worth in the prior, and the prior then held their biased pose
-        against the clearer stride-2 views that followed (BENCHMARKS.md §6h)."""
+        σ, for the prior's relative clear test: a stride-1 fit's H predicts about half the error of the
+        same view at stride 2. Compared raw, one stride-1 fit set the clearest view at 0.36 mm and every
+        later stride-2 view of the bone at rest (0.7 mm) was held as weak (crest_left_02 bone_moves
+        seed 0: 6.4 mm after rest; BENCHMARKS.md §6c).
+
+        H, for the prior's weights and tests: a stride-1 fit has four times the pixels of the same view
+        at stride 2, but its errors are not four times smaller: the inflation that makes the predicted
+        template error cover the measured one is 8.1 / 12.7 / 15.4 (68 / 90 / 95 %) on static_far's
+        stride-1 frames against 2.1 / 2.9 / 3.2 at stride 2 on the clear near view (BENCHMARKS.md §6,
+        "Calibrating the predicted template error"): four times, as this scaling says. The residuals
+        of neighbouring full-resolution pixels are correlated (the simulator's noise is independent per
+        pixel, so there it is the objective's own error: the invalid band along the silhouette, the
+        depth unit's steps; a real stereo sensor adds its matching window). Unscaled, the stride-1
+        frames of a small silhouette after a fast reposition weighed four times their worth in the
+        prior, which then held their biased pose against the clearer stride-2 views that followed
+        (BENCHMARKS.md §6h)."""
         H = np.asarray(result.H, float)
         if result.stride <= 0:
-            return H
-        return H * (result.stride / self.refiner.params.stride) ** 2
+            return H, std
+        g = result.stride / self.refiner.params.stride
+        return H * g * g, std / g
 
     def _seed_fits(self, depth, T_camera_base) -> list:
         """The seeded first frame (:meth:`seed`): from the start pose, at each width of ``SEED_WIDTHS``, a
@@ -277,15 +275,16 @@ class RefinedTrack:
         estimate replaces a held pose only when the image alone pins it (it releases the prior); else
         the track's own fit is fused with the prior. Returns (source, T_base_bone, result, std)."""
         prior = self.prior
-        if prior.active and source == "filter" and not prior.would_release(T_best, self._prior_H(best), self._prior_std(best, std)):
+        grid_H, grid_std = self._on_grid(best, std)
+        if prior.active and source == "filter" and not prior.would_release(T_best, grid_H, grid_std):
             track = [f for f in fits if f[0] == "track" and f[2].fitness >= self.config.keep_fitness]
             if not track:
                 return source, T_best, best, std
             source, T_best, best = track[0]
             std = template_std(best.H, self.plan_points, self.inflation)
-        grid_std = self._prior_std(best, std)
-        T_held = prior.update(T_best, self._prior_H(best), grid_std)
-        self.last_info.update(chi2=prior.chi2, motion_chi2=prior.motion_chi2, released=prior.released, held=prior.held, discounted=prior.forgotten,
+            grid_H, grid_std = self._on_grid(best, std)
+        T_held = prior.update(T_best, grid_H, grid_std)
+        self.last_info.update(chi2=prior.chi2, motion_chi2=prior.motion_chi2, released=prior.released, held=prior.held, discounted=prior.discounted,
                               held_chi2=0.0 if prior.released else prior.chi2,
                               img_std_mm=1e3 * std, grid_std_mm=1e3 * grid_std)
         return source, T_held, best, std

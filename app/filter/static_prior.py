@@ -72,7 +72,7 @@ from the anchor to T_img:
   over those 1.5 s. A view that only fluctuates (σ within the clear test's 1.5x) never discounts:
   the static scenes average every clear frame as before (BENCHMARKS.md §6h).
 
-The caller passes H on one grid (refine_track._prior_H: a stride-1 fit's H x 1/4), as it passes σ:
+The caller passes H on one grid (refine_track.RefinedTrack._on_grid: a stride-1 fit's H x 1/4), as it passes σ:
 a stride-1 fit's errors are not four times smaller than the same view's at stride 2 (the
 calibration of BENCHMARKS.md §6: 12.7 against 2.9 for 90 % coverage).
 
@@ -151,7 +151,7 @@ class StaticPrior:
         self._cap = 0.0
         self._best_std = float("inf")
         self._basis_std = float("inf")
-        self.forgotten = False
+        self.discounted = False
         self.released = False
         self.held = False
         self.chi2 = float("nan")
@@ -203,13 +203,13 @@ class StaticPrior:
         last release (not under a hand): it may release or move the prior."""
         return image_std <= self.config.clear_ratio * self._best_std
 
-    def _forget(self, image_std: float) -> None:
+    def _discount(self, image_std: float) -> None:
         """Discount Λ when the view has improved (module docstring, "clear frame, the view improves"):
         with σ_b the template error of the view that built Λ, a clear frame with σ <= σ_b / forget_ratio
         scales Λ by (σ / σ_b)² and makes σ the new σ_b."""
         ratio = self.config.forget_ratio
-        self.forgotten = bool(ratio > 0.0 and np.isfinite(self._basis_std) and image_std * ratio <= self._basis_std)
-        if self.forgotten:
+        self.discounted = bool(ratio > 0.0 and np.isfinite(self._basis_std) and image_std * ratio <= self._basis_std)
+        if self.discounted:
             self.information = self.information * (image_std / self._basis_std) ** 2
             self._basis_std = image_std
 
@@ -217,7 +217,7 @@ class StaticPrior:
         """Fuse one frame's refined pose and information; returns the new anchor (module docstring).
         ``image_std`` (m): the predicted template error from the image alone (refine.template_std of
         H); only a clear frame (module docstring) may release or move the prior."""
-        self.forgotten = False
+        self.discounted = False
         if not self.active:
             self.released, self.held, self.chi2 = True, False, float("nan")
             return self.start(T_base_bone_image, H, image_std)
@@ -238,7 +238,7 @@ class StaticPrior:
         if self.held:
             return self.T_base_bone
         self._best_std = min(self._best_std, float(image_std))
-        self._forget(float(image_std))
+        self._discount(float(image_std))
         total = self.information + H1
         step = np.linalg.solve(total + 1e-12 * np.eye(6), H1 @ delta)
         self.T_base_bone = self.T_base_bone @ se3.inverse(increment(step, self.center))

@@ -281,14 +281,20 @@ def _filter_config(config: TrackerConfig) -> TrackerConfig:
     return replace(config, status=replace(config.status, min_ok_fraction=0.0))
 
 
+def refine_params(config: TrackerConfig) -> RefineParams:
+    """The refinement's settings from the configuration (``refine.*``, and the likelihood's noise model
+    and occluder margin, which the refinement shares)."""
+    c, lk = config.refine, config.likelihood
+    return RefineParams(stride=c.stride, iterations=c.iterations, samples=c.samples, k=lk.k,
+                        sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin, outline_ring=c.outline_ring)
+
+
 def _refined_track(config: TrackerConfig, mesh: trimesh.Trimesh, camera: PinholeCamera) -> RefinedTrack | None:
     """The refinement on the full mesh at the camera's full resolution, or None when disabled."""
-    c, lk = config.refine, config.likelihood
+    c = config.refine
     if not c.enabled:
         return None
     vertices, faces = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
-    params = RefineParams(stride=c.stride, iterations=c.iterations, samples=c.samples, k=lk.k,
-                          sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin, outline_ring=c.outline_ring)
-    refiner = Refiner(vertices, faces, camera, params, seed=config.seed)
+    refiner = Refiner(vertices, faces, camera, refine_params(config), seed=config.seed)
     step = max(1, len(vertices) // PLAN_POINTS)
     return RefinedTrack(refiner, c, vertices[::step], config.status.covariance_inflation)
