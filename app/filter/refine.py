@@ -80,6 +80,7 @@ TUKEY_C = 3.0   # Tukey's constant in σ(z): 4.685 is the 95 %-efficiency value;
 RENDER_LEVER = 0.05   # m, radius at which a rotation step is compared with rerender_step
 FINE_BELOW = 1150     # silhouette cells at ``stride`` under which a frame is refined at stride 1 (module docstring)
 PAIR_WIDTHS = 3.0     # a step of width w associates pairs up to PAIR_WIDTHS w apart (its Tukey cut-off, step 5)
+NO_NEIGHBOURS = np.zeros((0, 8), np.int64)   # normal_equations without the tissue border
 GRID_CELL = 0.002     # m, cell of the samples' grid for the nearest-sample search: 2 mm took 0.6-0.7x the CPU of 1 mm (0.7 mm: 1.7x) on a CT crest at 0.42 and 0.65 m
 
 
@@ -95,7 +96,9 @@ class RefineParams:
     stop_translation (m) / stop_rotation (rad) : an increment smaller than both ends the iterations;
     rerender_step (m) : the silhouette and the measurements are taken again only after a step that
     moved the model more than this (translation, or rotation x 5 cm); re-association is every step;
-    outline_ring : the z-buffer's hole fill also grows the silhouette by a pixel (:func:`fill_holes`).
+    outline_ring : the z-buffer's hole fill also grows the silhouette by a pixel (:func:`fill_holes`);
+    tissue_border : a measurement next to a buried one (its 8 neighbouring cells) is left out of the
+    fit (step 5).
     """
 
     stride: int = 2
@@ -119,6 +122,7 @@ class RefineParams:
     behind_z: float = 3.0
     backend: str = "numba"
     outline_ring: bool = True
+    tissue_border: bool = False
 
 
 @dataclass
@@ -279,6 +283,31 @@ class Refiner:
         y = np.column_stack([(u - cam.cx) / cam.fx * zi, (v - cam.cy) / cam.fy * zi, zi])
         return y, zbuf[rows, cols]
 
+    def neighbours(self, depth: np.ndarray, rendered, stride: int) -> np.ndarray:
+        """(M, 8) indices of each measurement's neighbours on the crop grid (-1: none), in the order
+        of :meth:`measurements` at the same ``rendered`` z-buffer; (0, 8) without ``tissue_border``."""
+        zbuf, (x0, y0, _, _) = rendered
+        if not self.params.tissue_border or zbuf.size == 0:
+            return NO_NEIGHBOURS
+        if self.grid is not None:
+            return kernels.neighbours(depth, zbuf, x0, y0, stride, self.params.occluder_margin)
+        z = np.asarray(depth[y0::stride, x0::stride], float)[:zbuf.shape[0], :zbuf.shape[1]]
+        zb = zbuf[:z.shape[0], :z.shape[1]]
+        with np.errstate(invalid="ignore"):
+            usable = np.isfinite(zb) & np.isfinite(z) & (z > 0) & (z >= zb - self.params.occluder_margin)
+        index = np.where(usable, np.cumsum(usable).reshape(usable.shape) - 1, -1)
+        padded = np.pad(index, 1, constant_values=-1)
+        h, w = index.shape
+        shifted = [padded[1 + dr:1 + dr + h, 1 + dc:1 + dc + w] for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]
+        return np.stack([s[usable] for s in shifted], axis=1).astype(np.int64).reshape(-1, 8)
+
+    def _measure(self, depth, T_camera_bone, stride, rendered=None):
+        """(y, z*, neighbours): :meth:`measurements` and :meth:`neighbours` of one z-buffer."""
+        if rendered is None:
+            rendered = self.model_depth(T_camera_bone, stride)
+        y, z_model = self.measurements(depth, T_camera_bone, stride, rendered)
+        return y, z_model, self.neighbours(depth, rendered, stride)
+
     def choose_stride(self, T_camera_bone: np.ndarray):
         """(stride, rendered): the grid step of this frame, ``params.stride``, or 1 when the bone's
         silhouette at that step has fewer than ``fine_below`` cells (a far or small view: four times
@@ -308,26 +337,28 @@ class Refiner:
         x, n = kernels.gather(j, g.points, g.normals)
         return p, x, n, d
 
-    def _gn_step(self, p, x, n, d, sigma, width, in_front):
+    def _gn_step(self, p, x, n, d, sigma, width, in_front, nbrs=NO_NEIGHBOURS):
         """One weighted GN system: returns (δ, H, used, weighted rms). ``in_front`` (M,) m: how far
-        each measurement lies in front of the model's depth z* (z* − z)."""
+        each measurement lies in front of the model's depth z* (z* − z); ``nbrs``: :meth:`neighbours`."""
         prm = self.params
         if self.grid is not None:
             H, g, used, num, den = kernels.normal_equations(p, x, n, d, sigma, in_front, self.center, float(width),
-                                                            prm.tukey_c, prm.front_sigmas)
+                                                            prm.tukey_c, prm.front_sigmas, nbrs)
         else:
-            H, g, used, num, den = self._normal_equations(p, x, n, d, sigma, width, in_front)
+            H, g, used, num, den = self._normal_equations(p, x, n, d, sigma, width, in_front, nbrs)
         if used < prm.min_points:
             return None, H, used, float("nan")
         delta = -np.linalg.solve(H + 1e-12 * np.eye(6), g)
         return delta, H, used, float(np.sqrt(num / max(den, 1e-30)))
 
-    def _normal_equations(self, p, x, n, d, sigma, width, in_front):
+    def _normal_equations(self, p, x, n, d, sigma, width, in_front, nbrs=NO_NEIGHBOURS):
         """The numpy reference of :func:`app.filter.refine_kernels.normal_equations` (steps 4-6)."""
         r = np.einsum("ij,ij->i", n, p - x)
         s = np.maximum(self.params.tukey_c * sigma, width)
         buried = in_front > np.maximum(self.params.front_sigmas * sigma, width)
         keep = (np.abs(r) < s) & (d < 3.0 * s) & ~buried
+        if len(nbrs) == len(p) and len(p):
+            keep &= ~np.any((nbrs >= 0) & buried[np.maximum(nbrs, 0)], axis=1)
         u = r[keep] / s[keep]
         w = (1.0 - u * u) ** 2 / sigma[keep] ** 2
         J = np.column_stack([np.cross(p[keep] - self.center, n[keep]), n[keep]])
@@ -352,14 +383,14 @@ class Refiner:
         y, last = None, None
         for it in range(prm.iterations):
             if y is None:                          # re-render after a step that moved the model visibly
-                y, z_model = self.measurements(depth, T, stride, rendered)
+                y, z_model, nbrs = self._measure(depth, T, stride, rendered)
                 rendered = None
                 sigma = self.sigma(y[:, 2])
             if len(y) < prm.min_points:
                 break
             width = start_width * 0.5 ** it
             p, x, n, d = self._associate(y, T, max(prm.pair_radius, PAIR_WIDTHS * width))
-            delta, H, used, rms = self._gn_step(p, x, n, d, sigma, width, z_model - y[:, 2])
+            delta, H, used, rms = self._gn_step(p, x, n, d, sigma, width, z_model - y[:, 2], nbrs)
             if delta is None:
                 break
             ok = True
@@ -383,13 +414,13 @@ class Refiner:
 
     def _finish(self, depth, T, H, used, rms, ok, stride) -> RefineResult:
         """Fitness, counts and the information matrix at the final pose."""
-        y, z_model = self.measurements(depth, T, stride)
+        y, z_model, nbrs = self._measure(depth, T, stride)
         if len(y) == 0:
             return RefineResult(T, H, float("nan"), 0, 0, used, rms, ok, stride=stride)
         p, x, n, d = self._associate(y, T)
         sigma = self.sigma(y[:, 2])
         if ok:
-            _, H, used, rms = self._gn_step(p, x, n, d, sigma, 0.0, z_model - y[:, 2])
+            _, H, used, rms = self._gn_step(p, x, n, d, sigma, 0.0, z_model - y[:, 2], nbrs)
         return self._result(depth, T, H, used, rms, ok, y, p, x, n, d, sigma, stride)
 
     def _result(self, depth, T, H, used, rms, ok, y, p, x, n, d, sigma, stride) -> RefineResult:

@@ -15,6 +15,8 @@ without temporaries (tests/test_refine_kernels.py compares both on random poses)
   of the searched cube (no point outside it can be nearer) or the cube holds the ball of ``radius``
   (then j = -1, d = inf: not associated, as the k-d tree's ``distance_upper_bound``); shells that
   the grid's distance transform shows empty are skipped;
+- :func:`neighbours`: each measurement's 8 neighbouring measurements on the crop grid (step 5's
+  tissue border);
 - :func:`normal_equations`: the robust point-to-plane Gauss-Newton system (step 4-6):
   r_i = n_iᵀ(p_i − x_i), Tukey's w_i = (1 − (r_i/s_i)²)² / σ_i², J_i = [((p_i − c) × n_i)ᵀ, n_iᵀ],
   H = Σ w_i J_iᵀJ_i, g = Σ w_i J_iᵀ r_i.
@@ -162,6 +164,39 @@ def measurements(depth, zbuf, x0, y0, stride, fx, fy, cx, cy, occluder_margin):
 
 
 @_njit()
+def neighbours(depth, zbuf, x0, y0, stride, occluder_margin):
+    """(M, 8) int64: for each of :func:`measurements`' points (same order), the indices of the
+    measurements in its 8 neighbouring cells of the crop grid, -1 where that cell has none."""
+    h = max(min(zbuf.shape[0], (depth.shape[0] - y0 + stride - 1) // stride), 0)
+    w = max(min(zbuf.shape[1], (depth.shape[1] - x0 + stride - 1) // stride), 0)
+    index = np.full((h, w), -1, np.int64)
+    m = 0
+    for r in range(h):
+        for c in range(w):
+            zm = zbuf[r, c]
+            z = np.float64(depth[y0 + r * stride, x0 + c * stride])
+            if zm == np.inf or not (np.isfinite(z) and z > 0.0 and z >= zm - occluder_margin):
+                continue
+            index[r, c] = m
+            m += 1
+    out = np.full((m, 8), -1, np.int64)
+    for r in range(h):
+        for c in range(w):
+            i = index[r, c]
+            if i < 0:
+                continue
+            k = 0
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    if dr == 0 and dc == 0:
+                        continue
+                    if 0 <= r + dr < h and 0 <= c + dc < w:
+                        out[i, k] = index[r + dr, c + dc]
+                    k += 1
+    return out
+
+
+@_njit()
 def nearest(query, points, start, empty, origin, cell, dims, radius):
     """(j (Q,) index into the grid's sorted points, d (Q,)) of each query's nearest point; d = inf,
     j = -1 where none lies within ``radius`` (module docstring). ``empty`` (C,): shells of cells
@@ -226,10 +261,15 @@ def _cube_clearance(qx, qy, qz, ix, iy, iz, r, origin, cell):
 
 
 @_njit()
-def normal_equations(p, x, n, d, sigma, in_front, center, width, tukey_c, front_sigmas):
+def normal_equations(p, x, n, d, sigma, in_front, center, width, tukey_c, front_sigmas, nbrs):
     """(H (6, 6), g (6,), used, Σ w σ² r², Σ w σ²) of the robust GN system (module docstring); a pair is
     used when |r| < s, d < 3 s and the measurement is not buried (z* − z <= max(front σ, width)),
-    s = max(tukey_c σ, width)."""
+    s = max(tukey_c σ, width), and, with ``nbrs`` ((M, 8) from :func:`neighbours`; (0, 8) for none),
+    when none of its neighbouring measurements is buried (the tissue's border)."""
+    buried = np.empty(p.shape[0], np.bool_)
+    for i in range(p.shape[0]):
+        buried[i] = in_front[i] > max(front_sigmas * sigma[i], width)
+    border = nbrs.shape[0] == p.shape[0]
     H = np.zeros((6, 6))
     g = np.zeros(6)
     used = 0
@@ -238,8 +278,15 @@ def normal_equations(p, x, n, d, sigma, in_front, center, width, tukey_c, front_
     for i in range(p.shape[0]):
         s = max(tukey_c * sigma[i], width)
         r = n[i, 0] * (p[i, 0] - x[i, 0]) + n[i, 1] * (p[i, 1] - x[i, 1]) + n[i, 2] * (p[i, 2] - x[i, 2])
-        if not (abs(r) < s and d[i] < 3.0 * s) or in_front[i] > max(front_sigmas * sigma[i], width):
+        if not (abs(r) < s and d[i] < 3.0 * s) or buried[i]:
             continue
+        if border:
+            beside = False
+            for k in range(8):
+                if nbrs[i, k] >= 0 and buried[nbrs[i, k]]:
+                    beside = True
+            if beside:
+                continue
         u = r / s
         w = (1.0 - u * u) ** 2 / sigma[i] ** 2
         ax, ay, az = p[i, 0] - center[0], p[i, 1] - center[1], p[i, 2] - center[2]

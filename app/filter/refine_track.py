@@ -77,7 +77,8 @@ class RefineConfig:
     static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames, prior_motion_frames,
     prior_forget_ratio (app/filter/static_prior.py); seed_starts, seed_spread (the seeded first frame's multi-start,
     :meth:`RefinedTrack._start_fits`); outline_ring (the model's z-buffer grown by a pixel:
-    app/filter/refine.py :func:`~app.filter.refine.fill_holes`)."""
+    app/filter/refine.py :func:`~app.filter.refine.fill_holes`); tissue_border (a measurement beside a
+    buried one is left out of the fit: app/filter/refine.py step 5)."""
 
     enabled: bool = True
     stride: int = 2
@@ -99,6 +100,7 @@ class RefineConfig:
     seed_starts: int = 16
     seed_spread: float = 0.5
     outline_ring: bool = True
+    tissue_border: bool = False
 
 
 @dataclass

@@ -286,7 +286,8 @@ def refine_params(config: TrackerConfig) -> RefineParams:
     and occluder margin, which the refinement shares)."""
     c, lk = config.refine, config.likelihood
     return RefineParams(stride=c.stride, iterations=c.iterations, samples=c.samples, k=lk.k,
-                        sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin, outline_ring=c.outline_ring)
+                        sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin, outline_ring=c.outline_ring,
+                        tissue_border=c.tissue_border)
 
 
 def _refined_track(config: TrackerConfig, mesh: trimesh.Trimesh, camera: PinholeCamera) -> RefinedTrack | None:
