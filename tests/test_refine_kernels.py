@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from app.filter import refine_kernels as kernels
-from app.filter.refine import Refiner, RefineParams
+from app.filter.refine import NO_NEIGHBOURS, Refiner, RefineParams
 from app.geometry import se3
 from app.sim.simulator import D415_640x480
 from tests.scenes import synthetic_crest
@@ -82,20 +82,62 @@ def test_normal_equations_match_numpy(refiners, rng):
     y[::7, 2] -= 0.004                            # some measurements in front of the model (tissue)
     p, x, n, d = ref_np._associate(y, T)
     sigma = ref_np.sigma(y[:, 2])
+    nbrs = kernels.neighbours(depth, *_zbuf_and_corner(ref_nb, T), 2, ref_nb.params.occluder_margin)
     for width in (0.0, 0.002, 0.01):
-        H, g, used, num, den = kernels.normal_equations(p, x, n, d, sigma, z_model - y[:, 2], ref_nb.center, width,
-                                                        ref_nb.params.tukey_c, ref_nb.params.front_sigmas)
-        H_ref, g_ref, used_ref, num_ref, den_ref = ref_np._normal_equations(p, x, n, d, sigma, width, z_model - y[:, 2])
-        assert used == used_ref > 100
-        np.testing.assert_allclose(H, H_ref, rtol=1e-10, atol=1e-10 * np.abs(H_ref).max())
-        np.testing.assert_allclose(g, g_ref, rtol=1e-9, atol=1e-10 * np.abs(g_ref).max())
-        assert num == pytest.approx(num_ref, rel=1e-10) and den == pytest.approx(den_ref, rel=1e-10)
+        for border in (NO_NEIGHBOURS, nbrs):
+            H, g, used, num, den = kernels.normal_equations(p, x, n, d, sigma, z_model - y[:, 2], ref_nb.center, width,
+                                                            ref_nb.params.tukey_c, ref_nb.params.front_sigmas, border)
+            H_ref, g_ref, used_ref, num_ref, den_ref = ref_np._normal_equations(p, x, n, d, sigma, width, z_model - y[:, 2],
+                                                                                border)
+            assert used == used_ref > 100
+            np.testing.assert_allclose(H, H_ref, rtol=1e-10, atol=1e-10 * np.abs(H_ref).max())
+            np.testing.assert_allclose(g, g_ref, rtol=1e-9, atol=1e-10 * np.abs(g_ref).max())
+            assert num == pytest.approx(num_ref, rel=1e-10) and den == pytest.approx(den_ref, rel=1e-10)
+        without = kernels.normal_equations(p, x, n, d, sigma, z_model - y[:, 2], ref_nb.center, width,
+                                           ref_nb.params.tukey_c, ref_nb.params.front_sigmas, NO_NEIGHBOURS)[2]
+        if width < 0.004:            # the 4 mm are buried: their neighbours leave the fit
+            assert used < 0.8 * without
+        else:                        # a wider step buries nothing: the border is empty
+            assert used == without
 
 
-@pytest.mark.parametrize("distance", [0.42, 0.8])
-def test_refine_numba_equals_numpy_on_random_poses(refiners, distance, rng):
+def _zbuf_and_corner(refiner, T):
+    zbuf, (x0, y0, _, _) = refiner.model_depth(T, 2)
+    return zbuf, x0, y0
+
+
+def test_neighbours_match_numpy_and_the_grid(refiners, rng):
+    """Each measurement's 8 neighbours (refine_kernels.neighbours, the tissue border of step 5): numba =
+    numpy, in :meth:`Refiner.measurements`' order, and a neighbour of a neighbour's cell is the cell
+    itself (the relation is symmetric); the image's invalid pixels have none."""
+    T = _pose(rng)
+    depth = _depth(refiners["numpy"], T, rng)
+    out = {}
+    for backend, ref in refiners.items():
+        ref.params.tissue_border = True
+        try:
+            rendered = ref.model_depth(T, 2)
+            out[backend] = ref.neighbours(depth, rendered, 2)
+            y, _ = ref.measurements(depth, T, 2, rendered)
+        finally:
+            ref.params.tissue_border = False
+        assert out[backend].shape == (len(y), 8)
+    np.testing.assert_array_equal(out["numba"], out["numpy"])
+    nbrs = out["numba"]
+    i, k = np.nonzero(nbrs >= 0)
+    assert np.all(nbrs[nbrs[i, k], 7 - k] == i)       # slot k's opposite direction is slot 7 - k
+    interior = np.all(nbrs >= 0, axis=1)
+    assert 0.5 < interior.mean() < 0.99             # most have all 8; the outline and the invalid pixels' neighbours not
+    assert refiners["numba"].neighbours(depth, rendered, 2).shape == (0, 8)   # off: none
+
+
+@pytest.mark.parametrize("distance, border", [(0.42, False), (0.8, False), (0.42, True)])
+def test_refine_numba_equals_numpy_on_random_poses(refiners, distance, border, rng, monkeypatch):
     """The whole refinement from 3 mm / 3 deg off: the same pose, information, fitness and shares;
-    at 0.8 m the synthetic crest's small silhouette (~1,160 cells at stride 2) is refined at stride 1."""
+    at 0.8 m the synthetic crest's small silhouette (~1,160 cells at stride 2) is refined at stride 1;
+    with the tissue border (step 5) too."""
+    for ref in refiners.values():
+        monkeypatch.setattr(ref.params, "tissue_border", border)
     for _ in range(4):
         T = _pose(rng, distance)
         depth = _depth(refiners["numpy"], T, rng)
