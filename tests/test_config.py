@@ -89,6 +89,7 @@ def test_unknown_section_is_rejected_with_the_valid_ones():
     ({"refine": {"prior_forget_ratio": 0.5}}, "refine.prior_forget_ratio", "above 1"),
     ({"refine": {"prior_forget_ratio": -1.0}}, "refine.prior_forget_ratio", "outside the allowed range"),
     ({"refine": {"outline_ring": "no"}}, "refine.outline_ring", "true or false"),
+    ({"refine": {"tissue_border": 1}}, "refine.tissue_border", "true or false"),
     ({"filter": [1, 2]}, "filter", "expected a mapping"),
 ])
 def test_invalid_values_name_their_key(data, key, pattern):

@@ -15,8 +15,8 @@ float tolerance: tests/test_refine_kernels.py). Per iteration, at the current po
 
 1. Expected visible surface (again after any step over ``rerender_step``; the association in
    step 3 is redone every iteration): the samples that face the camera, projected into a z-buffer on the
-   crop's grid (min depth per pixel, empty pixels next to covered ones filled by a 3x3 minimum:
-   :func:`fill_holes`, which grows the outline by a pixel unless ``outline_ring`` is off); its pixels are the
+   crop's grid (min depth per pixel, empty pixels between covered ones filled by a 3x3 minimum:
+   :func:`fill_holes`, which also grows the outline by a pixel with ``outline_ring``); its pixels are the
    bone's silhouette, z*_i its depth.
 2. Measurements: the silhouette pixels with a valid depth z_i that is not an occluder
    (z_i >= z*_i - ``occluder_margin``, the likelihood's rule, app/filter/likelihood_ref.py),
@@ -41,6 +41,15 @@ float tolerance: tests/test_refine_kernels.py). Per iteration, at the current po
    of the model's depth: soft tissue over the buried part of a correctly placed bone is not
    evidence about it (DESIGN.md; measured: with the tissue kept, the fit from the true pose of a
    noisy synthetic frame drifted 0.76 mm out of the tissue; leaving out those more than 3 / 2 / 1.5 σ in front: 0.26 / 0.20 / 0.14 mm; without the tissue 0.04 mm).
+   The tissue's border (``tissue_border``): where the tissue meets the bone its surface runs into
+   the bone's at a shallow angle, so a band of tissue lies less than the cut-off in front of the
+   buried flank; those measurements are kept by the rule above and pull the fit towards the camera
+   on that side. A measurement whose neighbouring cell (8-neighbourhood on the crop grid,
+   :func:`app.filter.refine_kernels.neighbours`) holds a buried measurement is left out too (the
+   same width rule, so a wide first step, which buries nothing, keeps all). Measured at the truth of
+   static_far crest_right_02 (BENCHMARKS.md §6i): the mean residual of the used measurements
+   +0.74 mm, with the border +0.01 mm; refined from the truth (noise-free CT crests in tissue at
+   0.65 m, tests/test_refine.py) 0.32-0.34 mm off without it, 0.05-0.07 with it.
 6. Gauss-Newton: (Σ w_i J_iᵀJ_i / σ_i²) δ = −Σ w_i J_iᵀ r_i / σ_i², then T ← T exp(δ)⁻¹.
 7. At the final pose, the share ``behind`` of the measurements whose surface lies more than
    ``behind_sigmas`` = 1 σ inside the model (r_i < −σ_i, normals outward). Tissue and occluders only
@@ -121,8 +130,8 @@ class RefineParams:
     pair_radius: float = 0.005
     behind_z: float = 3.0
     backend: str = "numba"
-    outline_ring: bool = True
-    tissue_border: bool = False
+    outline_ring: bool = False
+    tissue_border: bool = True
 
 
 @dataclass
@@ -153,25 +162,22 @@ class RefineResult:
     stride: int = 0
 
 
-def fill_holes(zbuf: np.ndarray, ring: bool = True) -> np.ndarray:
+def fill_holes(zbuf: np.ndarray, ring: bool = False) -> np.ndarray:
     """The z-buffer's empty cells filled with the minimum of their 3x3 neighbourhood (step 1).
 
-    ``ring`` (``RefineParams.outline_ring``, the default): every empty cell next to a covered one, so
-    the silhouette is grown by a full-resolution pixel all round. Without: only a cell between two
-    covered ones (left and right, above and below, or across either diagonal), the one-cell gaps
-    between the samples; the outline is not grown.
+    Without ``ring`` (``RefineParams.outline_ring``, off by default): only a cell between two covered
+    ones (left and right, above and below, or across either diagonal), the one-cell gaps between the
+    samples; the outline is not grown. With it: every empty cell next to a covered one, so the
+    silhouette is grown by a full-resolution pixel all round.
 
-    Both measured on the eight CT crests (BENCHMARKS.md §6h). Where the soft tissue meets the bone
-    beside the silhouette, the ring's measurements are tissue within ``pair_radius`` of the buried
-    flank, and they pull the fit: refined from the truth, the mean fit of static_far crest_right_03
-    seed 1 is 0.62 mm / 0.91 deg off with the ring and 0.06 / 0.06 without; in a fast reposition's
-    partial view 1.9 against 1.3 mm. Without the ring, 24 of 24 fast repositions are found again
-    within 2 s (19 with it), and the residual-tissue scenes' worst run is 1.99 mm (2.36). But on
-    other crests the ring carries the silhouette's information (a model grown over the background
-    is otherwise never penalised): without it the static scenes' rotation median exceeds 0.5 deg in
-    7 of 120 runs (2 with it; crest_right_02 static_far 0.42 -> 0.85 deg). Neither is kept as the
-    answer: a term for the free space the model covers is the way to the edge's information without
-    the tissue's pull (not built)."""
+    Measured on the eight CT crests (BENCHMARKS.md §6h, §6i). The ring's measurements beside the
+    silhouette are tissue where the tissue meets the bone, within ``pair_radius`` of the buried
+    flank: refined from the truth, static_far crest_right_03 seed 1's mean fit is 0.53 mm / 0.81 deg
+    off with the ring, 0.06 / 0.04 without. On crest_right_02 the ring seemed to carry the edge's
+    information (without it static_far's fits were 0.40-0.51 mm / 0.66-0.89 deg off, with it
+    0.20-0.30 / 0.22-0.39), but the sensor leaves no valid pixel at a depth edge: the ring only
+    offset the pull of the tissue's border (step 5), and with that border left out the fits are
+    0.08-0.12 mm / 0.10-0.22 deg off without the ring, worse with it (0.23-0.35 mm)."""
     covered = np.isfinite(zbuf)
     filled = ndimage.minimum_filter(zbuf, size=3, mode="constant", cval=np.inf)
     if ring:

@@ -76,7 +76,7 @@ def build_grid(points: np.ndarray, normals: np.ndarray, cell: float, max_cells: 
 
 
 @_njit()
-def zbuffer(points, normals, R, t, fx, fy, cx, cy, stride, w_grid, h_grid, ring=True):
+def zbuffer(points, normals, R, t, fx, fy, cx, cy, stride, w_grid, h_grid, ring=False):
     """(zbuf (h, w) with inf where empty, c0, r0) on the crop grid; zbuf.size == 0 when nothing projects."""
     n = points.shape[0]
     cols = np.empty(n, np.int64)

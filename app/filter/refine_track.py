@@ -99,8 +99,8 @@ class RefineConfig:
     prior_forget_ratio: float = 2.0
     seed_starts: int = 16
     seed_spread: float = 0.5
-    outline_ring: bool = True
-    tissue_border: bool = False
+    outline_ring: bool = False
+    tissue_border: bool = True
 
 
 @dataclass
