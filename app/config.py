@@ -186,6 +186,7 @@ KEYS: dict[str, _Key] = {
     "refine.seed_spread": _f("refine.seed_spread", 0.0, 10.0),
     "refine.outline_ring": _Key(("refine", "outline_ring"), "bool"),
     "refine.tissue_border": _Key(("refine", "tissue_border"), "bool"),
+    "refine.behind_frames": _i("refine.behind_frames", 1, 100_000),
     "recovery.enabled": _Key(("recovery", "enabled"), "bool"),
     "recovery.after_lost_s": _f("recovery.after_lost_s", 0.0, 3600.0, lo_open=True),
     "recovery.after_uncertain_s": _f("recovery.after_uncertain_s", 0.0, 3600.0),

@@ -54,7 +54,7 @@ def replay_with_evidence(trial: Path) -> dict:
         if fits:
             r, stride = max(fits, key=lambda f: f[0].sharp)     # the track keeps the sharpest fit
             rows.append(dict(frame=frame[0], behind=r.behind, allowed=r.behind_allowed, noise=r.noise, M=r.expected,
-                             stride=stride, fitness=r.fitness, std=out.template_std))
+                             used=r.used, stride=stride, fitness=r.fitness, sharp=r.sharp, std=out.template_std))
         return out
 
     DepthTracker.process, Refiner.refine, refine_track.RefinedTrack.update = counted, recorded, kept

@@ -30,7 +30,7 @@ class _StubRefiner:
     the width to the right one; from the filter's estimate to a fit sharper but far behind the image."""
 
     def __init__(self, T_right, T_wrong, T_filter_fit):
-        self.params = SimpleNamespace(start_width=0.010, stride=2, rerender_step=5e-4)
+        self.params = SimpleNamespace(start_width=0.010, stride=2, rerender_step=5e-4, behind_z=3.0)
         self.center = np.zeros(3)
         self.widths = []
         self.fits = dict(right=T_right, wrong=T_wrong, filter=T_filter_fit)
@@ -68,7 +68,7 @@ class _ChainRefiner:
     a narrower one stays where it starts; the 1 σ share falls with the distance from the truth."""
 
     def __init__(self, T_true, behind=0.0):
-        self.params = SimpleNamespace(start_width=0.010, stride=2, rerender_step=5e-4)
+        self.params = SimpleNamespace(start_width=0.010, stride=2, rerender_step=5e-4, behind_z=3.0)
         self.center = np.zeros(3)
         self.T_true = T_true
         self.behind = behind
@@ -118,7 +118,7 @@ class _BasinRefiner:
     seed 1: every refinement from the start ended 8-9 deg off; BENCHMARKS.md §6e). Records the starts."""
 
     def __init__(self, T_true, T_wrong, basin):
-        self.params = SimpleNamespace(start_width=0.010, stride=2, rerender_step=5e-4)
+        self.params = SimpleNamespace(start_width=0.010, stride=2, rerender_step=5e-4, behind_z=3.0)
         self.center = np.array([0.01, -0.02, 0.005])
         self.T_true, self.T_wrong, self.basin = T_true, T_wrong, basin
         self.starts = []

@@ -1,6 +1,6 @@
 """How much of a right pose's seen surface the depth noise alone puts behind the model (the status's behind rule).
 
-Import as ``from app.filter.behind_noise import behind_bound, image_noise``. Used by
+Import as ``from app.filter.behind_noise import behind_bound, behind_moments, image_noise``. Used by
 app/filter/refine.py (step 7) for ``RefineResult.behind_allowed``; the rule itself is stated in
 app/filter/status.py's docstring and measured in BENCHMARKS.md §6d.
 """
@@ -38,11 +38,23 @@ def behind_bound(p: np.ndarray, n: np.ndarray, threshold: np.ndarray, noise: flo
     Poisson-binomial with mean Σ e_i and variance Σ e_i (1 − e_i); the bound is the mean plus ``z``
     standard deviations, over M. ``camera_bone``: the camera's centre in the bone frame. NaN when
     the noise is unknown."""
-    if not np.isfinite(noise) or len(p) == 0:
+    mean, var = behind_moments(p, n, threshold, noise, camera_bone)
+    if not np.isfinite(mean):
         return float("nan")
+    return float((mean + z * np.sqrt(var)) / len(p))
+
+
+def behind_moments(p: np.ndarray, n: np.ndarray, threshold: np.ndarray, noise: float,
+                   camera_bone: np.ndarray) -> tuple[float, float]:
+    """(Σ e_i, Σ e_i (1 − e_i)): the mean and variance of the count of measurements the noise alone
+    puts more than ``threshold`` behind a right pose (:func:`behind_bound`); NaN when the noise is
+    unknown. Counts of independent frames add, so several frames of one track are tested together
+    (app/filter/behind_pool.py)."""
+    if not np.isfinite(noise) or len(p) == 0:
+        return float("nan"), float("nan")
     ray = p - camera_bone
     with np.errstate(invalid="ignore"):
         cos = np.abs(np.einsum("ij,ij->i", n, ray)) / np.linalg.norm(ray, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):   # σ_n = 0 (a noise-free image): nothing lies behind
         e = np.where(np.isfinite(cos), ndtr(-threshold / (noise * np.maximum(cos, 1e-6))), 0.0)
-    return float((e.sum() + z * np.sqrt(np.sum(e * (1.0 - e)))) / len(p))
+    return float(e.sum()), float(np.sum(e * (1.0 - e)))

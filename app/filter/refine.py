@@ -81,7 +81,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from app.filter import refine_kernels as kernels
-from app.filter.behind_noise import behind_bound, image_noise
+from app.filter.behind_noise import behind_moments, image_noise
 from app.geometry import se3
 from app.geometry.camera import PinholeCamera
 
@@ -145,7 +145,8 @@ class RefineResult:
     (signed point-to-plane residual n_iᵀ(p_i − x_i) < −behind_sigmas σ_i): light does not pass
     through bone, so a right pose leaves only the noise's tail there (module docstring, step 7);
     behind_allowed : the noise bound on it; noise : the image's noise estimate (m); stride : the grid
-    step it was refined at (0 when unknown)."""
+    step it was refined at (0 when unknown); behind_mean / behind_var : the mean and variance of the
+    count the noise alone puts behind (:func:`app.filter.behind_noise.behind_moments`; NaN: unknown)."""
 
     T_camera_bone: np.ndarray
     H: np.ndarray
@@ -160,6 +161,8 @@ class RefineResult:
     behind_allowed: float = float("nan")
     noise: float = float("nan")
     stride: int = 0
+    behind_mean: float = float("nan")
+    behind_var: float = float("nan")
 
 
 def fill_holes(zbuf: np.ndarray, ring: bool = False) -> np.ndarray:
@@ -438,9 +441,10 @@ class Refiner:
         with np.errstate(invalid="ignore"):
             behind = float(np.mean(np.einsum("ij,ij->i", n, p - x) < -prm.behind_sigmas * sigma))
         noise = image_noise(depth, y, self.camera)
-        allowed = behind_bound(p, n, sigma * prm.behind_sigmas, noise, se3.inverse(T)[:3, 3], prm.behind_z)
+        mean, var = behind_moments(p, n, sigma * prm.behind_sigmas, noise, se3.inverse(T)[:3, 3])
+        allowed = (mean + prm.behind_z * np.sqrt(var)) / len(p) if np.isfinite(mean) else float("nan")
         return RefineResult(T, H, confirmed / len(p), len(p), confirmed, used, rms, ok, sharp, behind, allowed, noise,
-                            stride)
+                            stride, mean, var)
 
 
 def template_std(H: np.ndarray, points_bone: np.ndarray, inflation: float = 1.0) -> float:

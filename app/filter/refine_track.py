@@ -59,6 +59,7 @@ import numpy as np
 from app.filter.motion import draws_about_centroid
 from app.filter.refine import RENDER_LEVER as REFINE_LEVER
 from app.filter.refine import Refiner, RefineResult, template_std
+from app.filter.behind_pool import BehindPool
 from app.filter.static_prior import StaticPrior, StaticPriorConfig
 from app.geometry import se3
 
@@ -78,7 +79,8 @@ class RefineConfig:
     prior_forget_ratio (app/filter/static_prior.py); seed_starts, seed_spread (the seeded first frame's multi-start,
     :meth:`RefinedTrack._start_fits`); outline_ring (the model's z-buffer grown by a pixel:
     app/filter/refine.py :func:`~app.filter.refine.fill_holes`); tissue_border (a measurement beside a
-    buried one is left out of the fit: app/filter/refine.py step 5)."""
+    buried one is left out of the fit: app/filter/refine.py step 5); behind_frames (the behind rule
+    tested over this many of the track's last fits: app/filter/behind_pool.py)."""
 
     enabled: bool = True
     stride: int = 2
@@ -101,6 +103,7 @@ class RefineConfig:
     seed_spread: float = 0.5
     outline_ring: bool = False
     tissue_border: bool = True
+    behind_frames: int = 30
 
 
 @dataclass
@@ -163,12 +166,14 @@ class RefinedTrack:
                                          config.prior_information_frames, config.prior_motion_frames,
                                          config.prior_forget_ratio)
         self.prior = StaticPrior(prior_config, refiner.center, inflation) if config.static_prior else None
+        self.behind_pool = BehindPool(config.behind_frames, refiner.params.behind_z)
         self.reset()
 
     def reset(self) -> None:
         self.T_base_bone, self.fitness = None, float("nan")
         self._seeded, self._spread = False, None
         self.last_info: dict = {}
+        self.behind_pool.reset()
         if getattr(self, "prior", None) is not None:
             self.prior.reset()
 
@@ -180,6 +185,7 @@ class RefinedTrack:
         (:meth:`_start_fits`); None (a recovery's pose) draws none."""
         self.T_base_bone, self.fitness, self._seeded = np.array(T_base_bone, float), 1.0, True
         self._spread = spread
+        self.behind_pool.reset()
         if self.prior is not None:
             self.prior.reset()
 
@@ -328,5 +334,9 @@ class RefinedTrack:
             self.reset()
         kept = T_best if best.fitness >= c.keep_fitness else None
         held_chi2 = self.last_info.get("held_chi2", float("nan"))
+        behind = behind_excess(best)
+        if kept is not None:
+            pooled = self.behind_pool.add(best.behind, best.behind_mean, best.behind_var, best.expected)
+            behind = max(behind, pooled) if np.isfinite(pooled) else behind
         return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0,
-                             behind_excess(best), held_chi2)
+                             behind, held_chi2)
