@@ -104,6 +104,13 @@ then lowered to UNCERTAIN, never raised, when
   of before: 16 on the same trials, 14 of them on crest_right_02). At 0.65 m the fixed share had
   declined right poses on most crests (their tail is 1-2 % there: ok on 0-64 % of the frames after
   1 s); the bound follows the depth's noise instead (ok on 97-100 %).
+  The excess is also tested over the track's last ``refine.behind_frames`` = 30 fits together
+  (app/filter/behind_pool.py: their counts, means and variances add, so the bound's share shrinks as
+  1/sqrt(30)), and the larger of the two is compared. Why: with the refinement's tissue border
+  (app/filter/refine.py step 5) a fit no longer slides onto residual tissue, but under it the track
+  can sit in a minimum 1.3-1.8 mm / 2 deg off whose share behind is about its frame's own bound, every
+  frame (crest_right_02 or_deep_tissue: 0.55 % against 0.59 %): one frame cannot tell it from chance,
+  thirty can. Measured (BENCHMARKS.md §6i, 8 crests x 3 seeds).
 - the static-bone prior (app/filter/static_prior.py) kept a pose that this frame's own fit contradicts:
   its Δχ² = δᵀ (H / ``covariance_inflation``) δ from the kept pose to the image's fit exceeds
   ``max_held_chi2`` = 4 and the prior did not release onto the fit. Under the image's own inflated
