@@ -46,7 +46,11 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   the particle cloud is shifted rigidly so that its mean lands on the refined pose
   (:meth:`app.filter.particle_filter.ParticleFilter.shift_to`): the filter stays inside the
   refinement's capture range (issue 12: seeded 0-3 mm off, 98 % of ICP frames ended under 2 mm,
-  5-7.5 mm off only 16 %). Measured in BENCHMARKS.md §6.
+  5-7.5 mm off only 16 %). Measured in BENCHMARKS.md §6;
+- the behind rule's evidence (``RefineOutcome.behind``): the kept fit's own excess, or the excess of
+  the track's last ``behind_frames`` fits tested together when larger (app/filter/behind_pool.py;
+  reset with the track): a pose 1-2 mm off along residual tissue leaves about one frame's bound
+  behind it on every frame (BENCHMARKS.md §6i).
 """
 from __future__ import annotations
 
@@ -56,10 +60,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.filter.behind_pool import BehindPool
 from app.filter.motion import draws_about_centroid
 from app.filter.refine import RENDER_LEVER as REFINE_LEVER
 from app.filter.refine import Refiner, RefineResult, template_std
-from app.filter.behind_pool import BehindPool
 from app.filter.static_prior import StaticPrior, StaticPriorConfig
 from app.geometry import se3
 
@@ -112,7 +116,8 @@ class RefineOutcome:
     refined); template_std (m, inf when not refined); competitor : a competing pose fits about as
     well; competitor_fitness; source : 'track' | 'filter' | ''; seconds : time spent; behind : the kept
     fit's share of measurements inside the model in excess of the noise's bound (:func:`behind_excess`;
-    <= 0 when the noise explains it); held_chi2 : the static prior's Δχ² from the pose it kept to the
+    <= 0 when the noise explains it), or that of the track's last ``behind_frames`` fits pooled
+    (app/filter/behind_pool.py) when larger; held_chi2 : the static prior's Δχ² from the pose it kept to the
     kept fit when it did not release onto it (0 when it did, NaN without the prior; status.py)."""
 
     T_base_bone: np.ndarray | None
