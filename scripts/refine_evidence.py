@@ -8,8 +8,9 @@ Usage (from the repository root; run with nice on the shared machine)::
 Replays each trial (``osteonav replay``'s defaults, no outputs written) and records, for every
 refined frame, the kept fit's share of measurements behind the model (``behind``), the share the
 image's noise explains (``allowed``, app/filter/refine.py ``behind_bound``), the noise estimate,
-the number of measurements, the stride used, the fitness, the predicted template error, the ADD
-and the status. Prints one summary row per trial (ADD median / p95, rotation median, ok share,
+the number of measurements (``M``) and of those in the fit (``used``: not buried, not beside a buried
+one, inside the robust kernel), the stride used, the fitness, the share within 1 σ (``sharp``), the
+predicted template error, the ADD and the status. Prints one summary row per trial (ADD median / p95, rotation median, ok share,
 dangerous frames, and the same after the first 0.5 s). ``--analyse`` prints, for margins of the
 behind rule (status.max_behind_excess), how many frames the rule declines per scene kind among the
 frames otherwise ok-able (after 0.5 s, fitness >= 0.6, template error <= 1 mm) and how many of them
