@@ -82,15 +82,14 @@ def test_streams_at_controller_rate_reconnects_and_reports_faults(server):
         assert np.all(np.diff(stamps) > 0)
         assert -0.05 < time.monotonic() - stamps[-1] < 1.0
         np.testing.assert_allclose(q[-1], demo_joints(0.0), atol=0.25)
-        # the e-Series rate (500 Hz): the stamps are the controller's cycle times, so their spacings
-        # are whole periods of 2 ms. Not samples per second of wall time, nor the median spacing:
-        # the fake controller and the plugin's poller are processes on this machine, and when a
-        # loaded machine starves them the poller sees every second or third cycle (median 4 ms
-        # seen at load 5, 222 samples/s at load 12), which says nothing about the stamping.
-        periods = np.diff(stamps[n0:]) / 0.002
-        whole = np.abs(periods - np.round(periods)) < 0.05
-        assert whole.mean() > 0.95, periods[~whole][:10]
-        assert np.round(periods).min() == 1
+        # the e-Series rate (500 Hz): the stamps follow the controller's cycle times, so the spacing
+        # of two consecutive cycles is the controller's period, 2 ms (mapped to the host clock: 2.0-2.2
+        # ms seen). Not samples per second of wall time, nor the median spacing: the fake controller
+        # and the plugin's poller are processes on this machine, and when a loaded machine starves
+        # them the poller sees only every second or third cycle (median 4 ms seen at load 5, 222
+        # samples/s at load 12), which says nothing about the stamping. The shortest tenth of the
+        # spacings are consecutive cycles as long as a tenth of the pairs is caught.
+        assert abs(np.percentile(np.diff(stamps[n0:]), 10) - 0.002) < 0.0005
 
         # disconnect in the middle: the plugin notices and reconnects on its own
         t_drop = time.monotonic()
