@@ -54,3 +54,40 @@ def test_pooling_finds_a_repeated_excess_that_one_frame_cannot(rng):
     print(f"fired: one frame {single.mean():.3f}, pooled {pooled[30:].mean():.3f}")
     assert single.mean() < 0.1
     assert pooled[30:].mean() > 0.95
+
+
+def test_the_track_reports_the_pooled_excess_and_forgets_it_with_a_new_track():
+    """RefinedTrack (app/filter/refine_track.py) on a stub refinement whose fit sits at its frame's own
+    bound on every frame: the outcome's behind evidence stays ~0 with ``behind_frames`` 1 and rises
+    above ``max_behind_excess`` with 30; a new track (seed) starts the pool again."""
+    from types import SimpleNamespace
+
+    from app.filter.behind_noise import noise_bound
+    from app.filter.refine import RefineResult
+    from app.filter.refine_track import RefineConfig, RefinedTrack
+
+    M, mu, var, z = 1300, 2.6, 2.59, 3.0
+    at_bound = noise_bound(mu, var, M, z)
+    T = np.eye(4)
+    T[2, 3] = 0.42
+
+    class Refiner:
+        params = SimpleNamespace(start_width=0.010, stride=2, rerender_step=5e-4, behind_z=z)
+        center = np.zeros(3)
+
+        def refine(self, depth, T_camera_bone, start_width=None):
+            return RefineResult(T.copy(), 1e8 * np.eye(6), 0.9, M, int(0.9 * M), 1200, 1e-3, True, 0.8,
+                                at_bound, at_bound, 1e-3, 2, mu, var)
+
+    def behind(frames, n):
+        track = RefinedTrack(Refiner(), RefineConfig(static_prior=False, behind_frames=frames, seed_starts=0),
+                             np.zeros((4, 3)), inflation=6.0)
+        track.seed(T)
+        return track, [track.update(np.zeros((2, 2)), np.eye(4), T).behind for _ in range(n)]
+
+    _, single = behind(1, 40)
+    assert max(single) == pytest.approx(0.0, abs=1e-12)
+    track, pooled = behind(30, 40)
+    assert pooled[0] == pytest.approx(0.0, abs=1e-12) and pooled[-1] > MAX_BEHIND_EXCESS
+    track.seed(T)
+    assert track.update(np.zeros((2, 2)), np.eye(4), T).behind == pytest.approx(0.0, abs=1e-12)

@@ -1,6 +1,6 @@
 """How much of a right pose's seen surface the depth noise alone puts behind the model (the status's behind rule).
 
-Import as ``from app.filter.behind_noise import behind_bound, behind_moments, image_noise``. Used by
+Import as ``from app.filter.behind_noise import behind_bound, behind_moments, image_noise, noise_bound``. Used by
 app/filter/refine.py (step 7) for ``RefineResult.behind_allowed``; the rule itself is stated in
 app/filter/status.py's docstring and measured in BENCHMARKS.md §6d.
 """
@@ -39,9 +39,16 @@ def behind_bound(p: np.ndarray, n: np.ndarray, threshold: np.ndarray, noise: flo
     standard deviations, over M. ``camera_bone``: the camera's centre in the bone frame. NaN when
     the noise is unknown."""
     mean, var = behind_moments(p, n, threshold, noise, camera_bone)
-    if not np.isfinite(mean):
+    return noise_bound(mean, var, len(p), z)
+
+
+def noise_bound(mean: float, var: float, measurements: int, z: float) -> float:
+    """The bound's share, (Σ e_i + z sqrt(Σ e_i (1 − e_i))) / M, from the count's mean and variance
+    (:func:`behind_moments`; of one frame, or of several frames added: app/filter/behind_pool.py);
+    NaN when they are unknown or there is no measurement."""
+    if not (np.isfinite(mean) and np.isfinite(var)) or measurements <= 0:
         return float("nan")
-    return float((mean + z * np.sqrt(var)) / len(p))
+    return float((mean + z * np.sqrt(var)) / measurements)
 
 
 def behind_moments(p: np.ndarray, n: np.ndarray, threshold: np.ndarray, noise: float,

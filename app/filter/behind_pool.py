@@ -24,6 +24,8 @@ from collections import deque
 
 import numpy as np
 
+from app.filter.behind_noise import noise_bound
+
 
 class BehindPool:
     """The pooled behind excess over the last ``frames`` kept fits of one track (module docstring).
@@ -46,8 +48,8 @@ class BehindPool:
         variance of that count, app/filter/behind_noise.py ``behind_moments``) and return the pooled
         excess share; NaN when the noise is unknown (the frame is not pooled: the caller keeps the
         frame's own test)."""
-        if not (np.isfinite(behind) and np.isfinite(mean) and np.isfinite(var)) or measurements <= 0:
+        if not np.isfinite(noise_bound(mean, var, measurements, self.z)) or not np.isfinite(behind):
             return float("nan")
         self._counts.append((behind * measurements, mean, var, measurements))
         count, mu, variance, total = (sum(c[k] for c in self._counts) for k in range(4))
-        return float((count - mu - self.z * np.sqrt(variance)) / total)
+        return float(count / total - noise_bound(mu, variance, total, self.z))

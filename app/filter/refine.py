@@ -81,7 +81,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from app.filter import refine_kernels as kernels
-from app.filter.behind_noise import behind_moments, image_noise
+from app.filter.behind_noise import behind_moments, image_noise, noise_bound
 from app.geometry import se3
 from app.geometry.camera import PinholeCamera
 
@@ -277,20 +277,26 @@ class Refiner:
         """Camera-frame points y_i (M, 3) of the silhouette's usable pixels and their z*_i (M,);
         ``rendered``: :meth:`model_depth`'s result at this pose and stride when already computed."""
         s, cam = stride or self.params.stride, self.camera
-        zbuf, (x0, y0, x1, y1) = rendered if rendered is not None else self.model_depth(T_camera_bone, s)
+        zbuf, (x0, y0, _, _) = rendered if rendered is not None else self.model_depth(T_camera_bone, s)
         if zbuf.size == 0:
             return np.zeros((0, 3)), np.zeros(0)
         if self.grid is not None:
             return kernels.measurements(depth, zbuf, x0, y0, s, cam.fx, cam.fy, cam.cx, cam.cy, self.params.occluder_margin)
-        z = np.asarray(depth[y0:y1:s, x0:x1:s], float)[:zbuf.shape[0], :zbuf.shape[1]]
-        zbuf = zbuf[:z.shape[0], :z.shape[1]]
-        with np.errstate(invalid="ignore"):
-            usable = np.isfinite(zbuf) & np.isfinite(z) & (z > 0) & (z >= zbuf - self.params.occluder_margin)
+        z, zbuf, usable = self._usable_cells(depth, zbuf, x0, y0, s)
         rows, cols = np.nonzero(usable)
         zi = z[rows, cols]
         u, v = x0 + cols * s, y0 + rows * s
         y = np.column_stack([(u - cam.cx) / cam.fx * zi, (v - cam.cy) / cam.fy * zi, zi])
         return y, zbuf[rows, cols]
+
+    def _usable_cells(self, depth, zbuf, x0, y0, s):
+        """The numpy reference of the kernels' ``_usable``: (z, z*, usable) on the crop grid of step ``s``
+        at (x0, y0), cut to the image (step 2)."""
+        z = np.asarray(depth[y0::s, x0::s], float)[:zbuf.shape[0], :zbuf.shape[1]]
+        zbuf = zbuf[:z.shape[0], :z.shape[1]]
+        with np.errstate(invalid="ignore"):
+            usable = np.isfinite(zbuf) & np.isfinite(z) & (z > 0) & (z >= zbuf - self.params.occluder_margin)
+        return z, zbuf, usable
 
     def neighbours(self, depth: np.ndarray, rendered, stride: int) -> np.ndarray:
         """(M, 8) indices of each measurement's neighbours on the crop grid (-1: none), in the order
@@ -300,10 +306,7 @@ class Refiner:
             return NO_NEIGHBOURS
         if self.grid is not None:
             return kernels.neighbours(depth, zbuf, x0, y0, stride, self.params.occluder_margin)
-        z = np.asarray(depth[y0::stride, x0::stride], float)[:zbuf.shape[0], :zbuf.shape[1]]
-        zb = zbuf[:z.shape[0], :z.shape[1]]
-        with np.errstate(invalid="ignore"):
-            usable = np.isfinite(zb) & np.isfinite(z) & (z > 0) & (z >= zb - self.params.occluder_margin)
+        usable = self._usable_cells(depth, zbuf, x0, y0, stride)[2]
         index = np.where(usable, np.cumsum(usable).reshape(usable.shape) - 1, -1)
         padded = np.pad(index, 1, constant_values=-1)
         h, w = index.shape
@@ -442,7 +445,7 @@ class Refiner:
             behind = float(np.mean(np.einsum("ij,ij->i", n, p - x) < -prm.behind_sigmas * sigma))
         noise = image_noise(depth, y, self.camera)
         mean, var = behind_moments(p, n, sigma * prm.behind_sigmas, noise, se3.inverse(T)[:3, 3])
-        allowed = (mean + prm.behind_z * np.sqrt(var)) / len(p) if np.isfinite(mean) else float("nan")
+        allowed = noise_bound(mean, var, len(p), prm.behind_z)
         return RefineResult(T, H, confirmed / len(p), len(p), confirmed, used, rms, ok, sharp, behind, allowed, noise,
                             stride, mean, var)
 

@@ -153,7 +153,7 @@ def measurements(depth, zbuf, x0, y0, stride, fx, fy, cx, cy, occluder_margin):
             zm = zbuf[r, c]
             u = x0 + c * stride
             z = np.float64(depth[v, u])
-            if zm == np.inf or not (np.isfinite(z) and z > 0.0 and z >= zm - occluder_margin):
+            if not _usable(zm, z, occluder_margin):
                 continue
             y[m, 0] = (u - cx) / fx * z
             y[m, 1] = (v - cy) / fy * z
@@ -161,6 +161,13 @@ def measurements(depth, zbuf, x0, y0, stride, fx, fy, cx, cy, occluder_margin):
             zstar[m] = zm
             m += 1
     return y[:m], zstar[:m]
+
+
+@_njit()
+def _usable(zm, z, occluder_margin):
+    """A crop cell gives a measurement: the model covers it (z* finite) and its depth z is valid and not
+    an occluder (z >= z* − margin; refine.py step 2)."""
+    return zm != np.inf and np.isfinite(z) and z > 0.0 and z >= zm - occluder_margin
 
 
 @_njit()
@@ -173,9 +180,7 @@ def neighbours(depth, zbuf, x0, y0, stride, occluder_margin):
     m = 0
     for r in range(h):
         for c in range(w):
-            zm = zbuf[r, c]
-            z = np.float64(depth[y0 + r * stride, x0 + c * stride])
-            if zm == np.inf or not (np.isfinite(z) and z > 0.0 and z >= zm - occluder_margin):
+            if not _usable(zbuf[r, c], np.float64(depth[y0 + r * stride, x0 + c * stride]), occluder_margin):
                 continue
             index[r, c] = m
             m += 1
