@@ -94,7 +94,8 @@ class FilterOutput:
     resampled : whether any block resampled; dt : s; weighed : whether the depth was used;
     timings : seconds per stage (STAGES). Set by the tracker's local refinement
     (app/filter/refine_track.py): refine_fitness (NaN when not refined), template_std (m),
-    refined : T_base_bone is the refined pose; competitor : a competing pose fits about as well.
+    refined : T_base_bone is the refined pose; competitor : a competing pose fits about as well;
+    nearby : m, the template gap to a fit near the track that fits at least as well (NaN: none found).
     Set by the tracker's recovery (app/filter/recovery.py): reinitialised : the particles were
     re-initialised on this frame (a lost track).
     """
@@ -117,6 +118,7 @@ class FilterOutput:
     template_std: float = float("inf")
     refined: bool = False
     competitor: bool = False
+    nearby: float = float("nan")
     reinitialised: bool = False
 
 

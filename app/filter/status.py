@@ -83,6 +83,18 @@ then lowered to UNCERTAIN, never raised, when
 - a competing pose explains the image about as well: the refinements from the own track and from
   the filter's estimate converged > 5 mm / 5 deg apart with their shares within 1 σ less than
   ``refine.competitor_margin`` = 0.05 apart (tests/test_refine_status.py builds such a frame).
+- a pose near the track explains the image at least as well: every ``refine.nearby_every`` = 10 frames
+  the track refines from ``refine.nearby_starts`` = 8 poses drawn 2 mm / 2 deg about its pose, and a fit
+  that moves the template by more than ``refine.nearby_gap`` = 1 mm (its largest point displacement)
+  while its share within 1 σ less its excess behind is at least the track's own (``nearby_margin`` 0)
+  keeps the status below ok until the next search finds none (app/filter/refine_track.py
+  ``_nearby_search``). A 1 mm template error is the clinical tolerance; the 5 mm / 5 deg competitor
+  above cannot see such a pose. Measured (BENCHMARKS.md §6j, 40 trials of the eight CT crests, the
+  frames every other rule left ok): it fired on 13 of the 15 residual-tissue frames > 1 mm off and on
+  all 145 nearer ones (their minimum is a plateau: the image does not place the template within
+  1 mm), on 0 of 364 static_clear, 2 of 321 static_far and 0 of 164 static_occluded frames
+  (margin 0.02 instead: 16 and 35 clean frames). Chosen on those frames: a hint, measured again
+  on the full matrix in §6j.
 - more of the refined fit's measurements lie more than 1 σ *inside* the model (signed
   point-to-plane residual < −σ, app/filter/refine.py step 7) than the image's noise explains, by more
   than ``max_behind_excess`` = 0.2 % of them. Tissue, blood and instruments only ever lie in front
@@ -269,7 +281,9 @@ class RefinementEvidence:
     behind : share of the measurements lying more than 1 σ inside the refined model in excess of the
     share the image's noise explains (app/filter/refine_track.py ``behind_excess``; NaN: unknown);
     held_chi2 : the static prior's Δχ² from the pose it kept (held or fused) to this frame's own fit,
-    when it did not release onto that fit (app/filter/static_prior.py; 0 when released, NaN without it).
+    when it did not release onto that fit (app/filter/static_prior.py; 0 when released, NaN without it);
+    nearby : m, the template gap to a fit near the track that explains the image at least as well
+    (app/filter/refine_track.py ``RefinedTrack._nearby_search``; NaN when the last search found none).
     """
 
     fitness: float
@@ -277,6 +291,7 @@ class RefinementEvidence:
     competitor: bool
     behind: float = float("nan")
     held_chi2: float = float("nan")
+    nearby: float = float("nan")
 
 
 def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
@@ -288,6 +303,8 @@ def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
         reasons.append(f"predicted template error {1e3 * r.template_std:.2f} mm")
     if r.competitor:
         reasons.append("a competing pose explains the image about as well")
+    if r.nearby > 0.0:
+        reasons.append(f"a pose moving the template {1e3 * r.nearby:.1f} mm explains the image at least as well")
     if r.behind > t.max_behind_excess:
         reasons.append(f"{100 * r.behind:.1f} % more of the seen bone lies inside the refined model than the noise "
                        "explains (slid onto tissue?)")

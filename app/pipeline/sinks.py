@@ -130,7 +130,8 @@ class EstimateFiles:
 # tracker-result fields logged under their own plot names and units; the others go to tracker/<field>
 SCALAR_PLOTS = {"position_spread": ("spread/position_mm", 1e3), "rotation_spread": ("spread/rotation_deg", 180 / np.pi),
                 "ess_ratio": ("ess_ratio", 1.0), "log_likelihood_max": ("log_likelihood_max", 1.0),
-                "template_std": ("refine/template_std_mm", 1e3), "refine_fitness": ("refine/fitness", 1.0)}
+                "template_std": ("refine/template_std_mm", 1e3), "refine_fitness": ("refine/fitness", 1.0),
+                "nearby": ("refine/nearby_gap_mm", 1e3)}
 SKIPPED_SCALARS = ("ess", "dt")   # ess_ratio says it; dt is the stamps'
 
 

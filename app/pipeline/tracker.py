@@ -193,12 +193,14 @@ class DepthTracker:
         if (c.feedback and converged and out.T_base_bone is not None
                 and out.fitness >= c.feedback_fitness and not out.competitor):
             self.filter.shift_to(out.T_base_bone, result.T_base_bone)
-        evidence = RefinementEvidence(out.fitness, out.template_std, out.competitor, out.behind, out.held_chi2)
+        evidence = RefinementEvidence(out.fitness, out.template_std, out.competitor, out.behind, out.held_chi2,
+                                      out.nearby)
         status = with_refinement(result.status, evidence, self.config.status)
         timings = {**result.timings, "refine": out.seconds}
         T_base_bone = out.T_base_bone if out.T_base_bone is not None else result.T_base_bone
         return replace(result, T_base_bone=T_base_bone, status=status, timings=timings, refine_fitness=out.fitness,
-                       template_std=out.template_std, refined=out.T_base_bone is not None, competitor=out.competitor)
+                       template_std=out.template_std, refined=out.T_base_bone is not None, competitor=out.competitor,
+                       nearby=out.nearby)
 
     def report(self) -> dict:
         """For the summaries: the re-initialisations (count, stamps, kinds, reasons) and which points
