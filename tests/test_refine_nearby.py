@@ -1,0 +1,119 @@
+"""The search for a competitor near the track (app/filter/refine_track.py ``RefinedTrack._nearby_search``,
+status.py's "a pose near the track explains the image at least as well").
+
+The refinement is a stub whose image has a few minima: each refinement ends in the minimum nearest
+its start (by translation) with that minimum's share within 1 σ, so what the search finds is known in
+closed form. Work is counted in refinements, not seconds.
+"""
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from app.filter import status
+from app.filter.refine import RefineResult
+from app.filter.refine_track import RefineConfig, RefinedTrack, template_gap
+from app.geometry import se3
+
+Z_M = 0.42
+
+
+def _pose(x_m: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = (x_m, 0.0, Z_M)
+    return T
+
+
+class _Landscape:
+    """Refiner stub: minima [(T_camera_bone, sharp)]; records every start pose."""
+
+    params = SimpleNamespace(start_width=0.010, stride=2, rerender_step=5e-4, behind_z=3.0)
+    center = np.zeros(3)
+
+    def __init__(self, minima):
+        self.minima, self.starts = list(minima), []
+
+    def refine(self, depth, T_camera_bone, start_width=None):
+        self.starts.append(np.array(T_camera_bone))
+        T, sharp = min(self.minima, key=lambda m: np.linalg.norm(m[0][:3, 3] - T_camera_bone[:3, 3]))
+        return RefineResult(T.copy(), 1e8 * np.eye(6), 0.9, 1300, 1170, 1200, 1e-3, True, sharp,
+                            0.0, 0.01, 6e-4, 2, 2.6, 2.6)
+
+
+def _track(minima, **config):
+    refiner = _Landscape(minima)
+    points = np.array([[0.0, 0.0, 0.0], [0.03, 0.0, 0.0], [0.0, 0.02, 0.005]])
+    c = RefineConfig(static_prior=False, seed_starts=0, **config)
+    return refiner, RefinedTrack(refiner, c, points, inflation=6.0)
+
+
+def _run(track, n):
+    """n weighed frames; the filter agrees with the track (no refinement from the filter after the first)."""
+    return [track.update(np.zeros((2, 2)), np.eye(4), _pose()) for _ in range(n)]
+
+
+def test_template_gap_is_the_largest_point_displacement():
+    points = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.0, 0.02, 0.0]])
+    T_shift = _pose(0.0015)
+    assert template_gap(T_shift, _pose(), points) == pytest.approx(0.0015, abs=1e-12)
+    angle = math.radians(3.0)
+    T_turn = se3.from_rotvec_trans(np.array([0.0, 0.0, angle]), np.zeros(3))
+    # about the origin: the farthest point (5 cm) moves by the chord 2 r sin(θ/2)
+    assert template_gap(T_turn, np.eye(4), points) == pytest.approx(2 * 0.05 * math.sin(angle / 2), rel=1e-9)
+
+
+def test_a_nearby_fit_that_scores_at_least_as_well_keeps_the_status_below_ok():
+    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.71)])
+    out = _run(track, 1)[0]
+    assert out.T_base_bone is not None and np.allclose(out.T_base_bone, _pose())
+    assert out.nearby == pytest.approx(0.0015, abs=1e-9)
+    evidence = status.RefinementEvidence(out.fitness, 5e-4, out.competitor, -0.01, float("nan"), out.nearby)
+    reasons = status.refinement_reasons(evidence, status.StatusThresholds())
+    assert reasons == ["a pose moving the template 1.5 mm explains the image at least as well"]
+    assert status.with_refinement(status.TrackingStatus.OK, evidence, status.StatusThresholds()) == "uncertain"
+    clear = status.RefinementEvidence(out.fitness, 5e-4, out.competitor, -0.01, float("nan"), float("nan"))
+    assert status.with_refinement(status.TrackingStatus.OK, clear, status.StatusThresholds()) == "ok"
+
+
+@pytest.mark.parametrize("minima", [
+    [(_pose(), 0.70), (_pose(0.0015), 0.69)],     # 1.5 mm away but it explains the image worse
+    [(_pose(), 0.70), (_pose(0.0008), 0.90)],     # better, but the template moves less than 1 mm
+    [(_pose(), 0.70)],                            # a single minimum: every draw comes back
+], ids=["worse", "within-tolerance", "one-minimum"])
+def test_no_competitor_when_none_is_both_apart_and_as_good(minima):
+    _, track = _track(minima)
+    assert all(np.isnan(out.nearby) for out in _run(track, 25))
+
+
+def test_the_search_runs_every_nearby_every_frames_and_stops_at_the_first_competitor():
+    refiner, track = _track([(_pose(), 0.70)], nearby_every=10, nearby_starts=8)
+    _run(track, 25)
+    # frame 1: the filter's refinement + 8 draws; frames 2-25: the track's own; searches at 1, 11, 21
+    assert len(refiner.starts) == 25 + 3 * 8
+    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10, nearby_starts=8)
+    _run(track, 1)
+    assert 2 <= len(refiner.starts) < 1 + 8   # found before the last draw (seeded generator)
+
+
+def test_a_competitor_is_retried_first_and_held_for_nearby_hold_searches():
+    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10, nearby_hold=2)
+    first = _run(track, 10)
+    assert all(out.nearby == pytest.approx(0.0015) for out in first)
+    refiner.minima = [(_pose(), 0.70)]            # the competitor goes (a clearer view)
+    n_before = len(refiner.starts)
+    second = _run(track, 10)                      # the second search: from the competitor's pose first
+    assert np.allclose(refiner.starts[n_before + 1], _pose(0.0015))
+    assert all(out.nearby == pytest.approx(0.0015) for out in second)   # none found, held once
+    third = _run(track, 10)
+    assert all(np.isnan(out.nearby) for out in third)
+
+
+def test_a_new_track_forgets_the_competitor():
+    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10)
+    assert _run(track, 1)[0].nearby == pytest.approx(0.0015)
+    refiner.minima = [(_pose(), 0.70)]
+    track.seed(_pose())
+    assert np.isnan(_run(track, 1)[0].nearby)
