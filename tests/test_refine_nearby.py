@@ -93,6 +93,9 @@ def test_the_search_runs_every_nearby_every_frames_and_stops_at_the_first_compet
     _run(track, 25)
     # frame 1: the filter's refinement + 8 draws; frames 2-25: the track's own; searches at 1, 11, 21
     assert len(refiner.starts) == 25 + 3 * 8
+    refiner, track = _track([(_pose(), 0.70)])
+    _run(track, 25)
+    assert len(refiner.starts) == 25 + 3 * RefineConfig().nearby_starts
     refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10, nearby_starts=8)
     _run(track, 1)
     assert 2 <= len(refiner.starts) < 1 + 8   # found before the last draw (seeded generator)

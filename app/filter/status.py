@@ -84,7 +84,7 @@ then lowered to UNCERTAIN, never raised, when
   the filter's estimate converged > 5 mm / 5 deg apart with their shares within 1 σ less than
   ``refine.competitor_margin`` = 0.05 apart (tests/test_refine_status.py builds such a frame).
 - a pose near the track explains the image at least as well: every ``refine.nearby_every`` = 10 frames
-  the track refines from ``refine.nearby_starts`` = 8 poses drawn 2 mm / 2 deg about its pose, and a fit
+  the track refines from ``refine.nearby_starts`` = 4 poses drawn 2 mm / 2 deg about its pose, and a fit
   that moves the template by more than ``refine.nearby_gap`` = 1 mm (its largest point displacement)
   while its share within 1 σ less its excess behind is at least the track's own (``nearby_margin`` 0)
   keeps the status below ok until the next search finds none (app/filter/refine_track.py
