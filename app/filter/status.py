@@ -83,10 +83,10 @@ then lowered to UNCERTAIN, never raised, when
 - a competing pose explains the image about as well: the refinements from the own track and from
   the filter's estimate converged > 5 mm / 5 deg apart with their shares within 1 σ less than
   ``refine.competitor_margin`` = 0.05 apart (tests/test_refine_status.py builds such a frame).
-- a pose near the track explains the image at least as well: every ``refine.nearby_every`` = 10 frames
+- a pose near the track explains the image better: every ``refine.nearby_every`` = 10 frames
   the track refines from ``refine.nearby_starts`` = 4 poses drawn 2 mm / 2 deg about its pose, and a fit
   that moves the template by more than ``refine.nearby_gap`` = 1 mm (its largest point displacement)
-  while its share within 1 σ less its excess behind is at least the track's own (``nearby_margin`` 0)
+  while its share within 1 σ less its excess behind exceeds the track's own by ``nearby_margin`` = 0.015
   keeps the status below ok until the next search finds none (app/filter/refine_track.py
   ``_nearby_search``). A 1 mm template error is the clinical tolerance; the 5 mm / 5 deg competitor
   above cannot see such a pose. Measured (BENCHMARKS.md §6j, 40 trials of the eight CT crests, the
@@ -282,7 +282,7 @@ class RefinementEvidence:
     share the image's noise explains (app/filter/refine_track.py ``behind_excess``; NaN: unknown);
     held_chi2 : the static prior's Δχ² from the pose it kept (held or fused) to this frame's own fit,
     when it did not release onto that fit (app/filter/static_prior.py; 0 when released, NaN without it);
-    nearby : m, the template gap to a fit near the track that explains the image at least as well
+    nearby : m, the template gap to a fit near the track that explains the image better
     (app/filter/refine_track.py ``RefinedTrack._nearby_search``; NaN when the last search found none).
     """
 
@@ -304,7 +304,7 @@ def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
     if r.competitor:
         reasons.append("a competing pose explains the image about as well")
     if r.nearby > 0.0:
-        reasons.append(f"a pose moving the template {1e3 * r.nearby:.1f} mm explains the image at least as well")
+        reasons.append(f"a pose moving the template {1e3 * r.nearby:.1f} mm explains the image better")
     if r.behind > t.max_behind_excess:
         reasons.append(f"{100 * r.behind:.1f} % more of the seen bone lies inside the refined model than the noise "
                        "explains (slid onto tissue?)")
