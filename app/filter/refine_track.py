@@ -241,8 +241,8 @@ class RefinedTrack:
         13 % of those frames (BENCHMARKS.md §6i). Measured (§6j, 2,076 frames of 40 trials of the eight
         CT crests, every 5th frame searched with 8 draws at 2 mm / 2 deg): among the frames every other
         rule left ok, a fit > 1 mm away scoring at least as well existed on 13 of the 15 frames > 1 mm off
-        and on all 145 residual-tissue frames nearer, but on 0 of 364 static_clear frames, 2 of 321
-        static_far and 0 of 164 static_occluded. The refinement's minimum is a point on a clean crest
+        and on all 145 residual-tissue frames nearer, but on 0 of 416 static_clear frames, 2 of 416
+        static_far and 0 of 222 static_occluded. The refinement's minimum is a point on a clean crest
         and a plateau on a tissue-covered one. On the whole matrix (§6j) that rule (margin 0) also
         held clean runs below ok for 20-60 frames (static_other_side crest_right_02: 60): their
         competitors scored +0.000 to +0.006 above the track's, ties of a flat but right minimum, while
