@@ -1,6 +1,8 @@
 """Which fit the refinement's track keeps (app/filter/refine_track.py): the share within 1 σ less the
 share behind the model beyond the noise's bound, and the seeded first frame's Tukey widths and chains
-(issue 12, static_far crest_right_02 seed 2 and or_coarse_start crest_right_03: BENCHMARKS.md §6d)."""
+(issue 12, static_far crest_right_02 seed 2 and or_coarse_start crest_right_03: BENCHMARKS.md §6d).
+The stub tests count the first frame's refinements, so the search near the track (``refine.nearby_every``,
+tests/test_refine_nearby.py) is off in them."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -50,7 +52,7 @@ def test_seeded_track_keeps_the_consistent_fit_over_a_sharper_one_behind_the_ima
     T_wrong = se3.from_rotvec_trans(np.array([0.0, 0.1, 0.0]), np.array([0.007, 0.0, 0.65]))
     T_filter = se3.from_rotvec_trans(np.array([0.0, 0.3, 0.0]), np.array([0.01, 0.0, 0.65]))
     refiner = _StubRefiner(T_right, T_wrong, T_filter)
-    track = RefinedTrack(refiner, RefineConfig(), np.zeros((4, 3)), inflation=6.0)
+    track = RefinedTrack(refiner, RefineConfig(nearby_every=0), np.zeros((4, 3)), inflation=6.0)
     track.seed(T_seed)
     out = track.update(np.zeros((2, 2)), np.eye(4), T_filter)
     # the seed at each width, each chain ending when a refinement no longer moves the pose; the filter's estimate
@@ -90,7 +92,7 @@ def test_seeded_track_chains_the_wide_refinement_until_it_stops_moving():
     T_true = se3.from_rotvec_trans(np.zeros(3), np.array([0.0, 0.0, 0.42]))
     T_seed = se3.from_rotvec_trans(np.zeros(3), np.array([0.016, 0.0, 0.42]))
     refiner = _ChainRefiner(T_true)
-    track = RefinedTrack(refiner, RefineConfig(), np.zeros((4, 3)), inflation=6.0)
+    track = RefinedTrack(refiner, RefineConfig(nearby_every=0), np.zeros((4, 3)), inflation=6.0)
     track.seed(T_seed)
     out = track.update(np.zeros((2, 2)), np.eye(4), T_seed)
     assert refiner.widths.count(pytest.approx(0.04)) == 6
@@ -106,7 +108,7 @@ def test_a_chain_ending_behind_the_image_does_not_compete():
     track keeps the 1x / 2x first links (here: the start, a narrow width does not move it)."""
     T_true = se3.from_rotvec_trans(np.zeros(3), np.array([0.0, 0.0, 0.42]))
     T_seed = se3.from_rotvec_trans(np.zeros(3), np.array([0.016, 0.0, 0.42]))
-    track = RefinedTrack(_ChainRefiner(T_true, behind=0.25), RefineConfig(), np.zeros((4, 3)), inflation=6.0)
+    track = RefinedTrack(_ChainRefiner(T_true, behind=0.25), RefineConfig(nearby_every=0), np.zeros((4, 3)), inflation=6.0)
     track.seed(T_seed)
     out = track.update(np.zeros((2, 2)), np.eye(4), T_seed)
     np.testing.assert_allclose(out.T_base_bone, T_seed, atol=1e-12)
@@ -135,7 +137,7 @@ def _basin_case(spread, basin=0.004, seed_starts=16):
     T_seed = se3.from_rotvec_trans(np.zeros(3), np.array([0.004, 0.0, 0.42]))   # exactly ``basin`` off: outside
     T_wrong = se3.from_rotvec_trans(np.array([0.0, 0.14, 0.0]), np.array([0.009, 0.0, 0.42]))
     refiner = _BasinRefiner(T_true, T_wrong, basin)
-    track = RefinedTrack(refiner, RefineConfig(seed_starts=seed_starts), np.zeros((4, 3)), inflation=6.0)
+    track = RefinedTrack(refiner, RefineConfig(seed_starts=seed_starts, nearby_every=0), np.zeros((4, 3)), inflation=6.0)
     track.seed(T_seed, spread)
     return track, refiner, T_true, T_seed
 
