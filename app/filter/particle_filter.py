@@ -95,7 +95,7 @@ class FilterOutput:
     timings : seconds per stage (STAGES). Set by the tracker's local refinement
     (app/filter/refine_track.py): refine_fitness (NaN when not refined), template_std (m),
     refined : T_base_bone is the refined pose; competitor : a competing pose fits about as well;
-    nearby : m, the template gap to a fit near the track that fits at least as well (NaN: none found).
+    nearby : m, the template gap to a fit near the track that explains the image better (NaN: none found).
     Set by the tracker's recovery (app/filter/recovery.py): reinitialised : the particles were
     re-initialised on this frame (a lost track).
     """

@@ -47,6 +47,12 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   (:meth:`app.filter.particle_filter.ParticleFilter.shift_to`): the filter stays inside the
   refinement's capture range (issue 12: seeded 0-3 mm off, 98 % of ICP frames ended under 2 mm,
   5-7.5 mm off only 16 %). Measured in BENCHMARKS.md §6;
+- a competitor near the track (``RefineOutcome.nearby``, :meth:`RefinedTrack._nearby_search`): every
+  ``nearby_every`` (10) frames the track also refines from ``nearby_starts`` (4) draws 2 mm / 2 deg
+  about its pose; a fit moving the template by more than ``nearby_gap`` (1 mm) whose consistent share
+  exceeds the track's by ``nearby_margin`` (0.015) keeps the status below ok: under residual tissue
+  the refinement's minimum is a plateau 1-2 mm wide on which the track's fit is not the best
+  (BENCHMARKS.md §6j). It changes the status only, never the track;
 - the behind rule's evidence (``RefineOutcome.behind``): the kept fit's own excess, or the excess of
   the track's last ``behind_frames`` fits tested together when larger (app/filter/behind_pool.py;
   reset with the track): a pose 1-2 mm off along residual tissue leaves about one frame's bound
@@ -129,7 +135,7 @@ class RefineOutcome:
     <= 0 when the noise explains it), or that of the track's last ``behind_frames`` fits pooled
     (app/filter/behind_pool.py) when larger; held_chi2 : the static prior's Δχ² from the pose it kept to the
     kept fit when it did not release onto it (0 when it did, NaN without the prior; status.py); nearby :
-    the template gap (m) to a fit near the track that explains the image at least as well, found by the
+    the template gap (m) to a fit near the track that explains the image better, found by the
     last nearby search (:meth:`RefinedTrack._nearby_search`; NaN when none was found)."""
 
     T_base_bone: np.ndarray | None
@@ -227,9 +233,9 @@ class RefinedTrack:
         the track, refine (default first width) from ``nearby_starts`` poses drawn about the kept pose at
         ``nearby_sigma_p`` / ``nearby_sigma_r`` (turned about the bone's centroid, :func:`draws_about_centroid`);
         a fit whose template lies more than ``nearby_gap`` from the kept pose's (:func:`template_gap`)
-        and whose consistency (:func:`consistent_sharp`) exceeds the kept fit's by at least ``nearby_margin``
-        is a competitor near the track: it explains the image better. The search stops at the first; its gap (m) is the answer until
-        the next search (NaN: none). The status is not ok while there is one (status.py). The next
+        and whose consistency (:func:`consistent_sharp`) exceeds the kept fit's by at least
+        ``nearby_margin`` is a competitor near the track: it explains the image better. The search
+        stops at the first; its gap (m) is the answer until the next search (NaN: none). The status is not ok while there is one (status.py). The next
         search refines from the competitor's pose first (the track's pose moved with it in the base
         frame), and a competitor found is the answer for ``nearby_hold`` searches unless a newer one
         replaces it: on a plateau one search's draws can miss a competitor that is still there
