@@ -13,9 +13,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from app import metrics
 from app.filter import status
 from app.filter.refine import RefineResult
-from app.filter.refine_track import RefineConfig, RefinedTrack, template_gap
+from app.filter.refine_track import RefineConfig, RefinedTrack
 from app.geometry import se3
 
 Z_M = 0.42
@@ -55,14 +56,15 @@ def _run(track, n):
     return [track.update(np.zeros((2, 2)), np.eye(4), _pose()) for _ in range(n)]
 
 
-def test_template_gap_is_the_largest_point_displacement():
+def test_the_template_gap_is_the_largest_point_displacement():
+    """The gap the search compares with ``nearby_gap`` (app.metrics.mdd), against closed forms."""
     points = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.0, 0.02, 0.0]])
     T_shift = _pose(0.0015)
-    assert template_gap(T_shift, _pose(), points) == pytest.approx(0.0015, abs=1e-12)
+    assert metrics.mdd(T_shift, _pose(), points) == pytest.approx(0.0015, abs=1e-12)
     angle = math.radians(3.0)
     T_turn = se3.from_rotvec_trans(np.array([0.0, 0.0, angle]), np.zeros(3))
     # about the origin: the farthest point (5 cm) moves by the chord 2 r sin(θ/2)
-    assert template_gap(T_turn, np.eye(4), points) == pytest.approx(2 * 0.05 * math.sin(angle / 2), rel=1e-9)
+    assert metrics.mdd(T_turn, np.eye(4), points) == pytest.approx(2 * 0.05 * math.sin(angle / 2), rel=1e-9)
 
 
 def test_a_nearby_fit_that_explains_the_image_better_keeps_the_status_below_ok():

@@ -66,6 +66,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app import metrics
 from app.filter.behind_pool import BehindPool
 from app.filter.motion import draws_about_centroid
 from app.filter.refine import RENDER_LEVER as REFINE_LEVER
@@ -164,13 +165,6 @@ def consistent_sharp(result: RefineResult) -> float:
     return float(result.sharp - max(behind_excess(result), 0.0))
 
 
-def template_gap(T_a: np.ndarray, T_b: np.ndarray, points_bone: np.ndarray) -> float:
-    """The largest displacement (m) of the template's points (bone frame, (K, 3)) between two poses of
-    the bone: max_k |T_a p_k − T_b p_k|, what the projected template would move by."""
-    moved = se3.transform_points(T_a, points_bone) - se3.transform_points(T_b, points_bone)
-    return float(np.sqrt((moved ** 2).sum(axis=1)).max())
-
-
 def pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """Translation (m) and rotation (rad) between two poses."""
     return float(se3.translation_distance(T_a, T_b)), float(se3.rotation_angle(T_a, T_b))
@@ -232,7 +226,8 @@ class RefinedTrack:
         """Is the kept pose the best explanation of the image around it? Every ``nearby_every`` frames of
         the track, refine (default first width) from ``nearby_starts`` poses drawn about the kept pose at
         ``nearby_sigma_p`` / ``nearby_sigma_r`` (turned about the bone's centroid, :func:`draws_about_centroid`);
-        a fit whose template lies more than ``nearby_gap`` from the kept pose's (:func:`template_gap`)
+        a fit whose template lies more than ``nearby_gap`` from the kept pose's (the largest displacement
+        of the template's points, max_k |T_fit p_k − T_kept p_k|: :func:`app.metrics.mdd`)
         and whose consistency (:func:`consistent_sharp`) exceeds the kept fit's by at least
         ``nearby_margin`` is a competitor near the track: it explains the image better. The search
         stops at the first; its gap (m) is the answer until the next search (NaN: none). The status is not ok while there is one (status.py). The next
@@ -263,10 +258,7 @@ class RefinedTrack:
         self._since_nearby, self._nearby_age = 0, self._nearby_age + 1
         if self._nearby_age >= c.nearby_hold:
             self._nearby = float("nan")
-        q0, p0 = se3.to_quat_trans(T_kept)
-        centre = se3.transform_points(T_kept, self.refiner.center[None])[0]
-        p, q = draws_about_centroid(centre, p0, q0, c.nearby_starts, c.nearby_sigma_p, c.nearby_sigma_r, self._nearby_rng)
-        starts = list(se3.from_quat_trans(q, p))
+        starts = list(self._draws(T_kept, c.nearby_starts, c.nearby_sigma_p, c.nearby_sigma_r, self._nearby_rng))
         if self._nearby_pose is not None:
             starts.insert(0, T_kept @ self._nearby_pose)
         self._nearby_pose = None
@@ -276,7 +268,7 @@ class RefinedTrack:
             T_fit, result = self._refine(depth, T_camera_base, T_start)
             if not (result.converged and np.isfinite(result.fitness)):
                 continue
-            gap = template_gap(T_fit, T_kept, points)
+            gap = metrics.mdd(T_fit, T_kept, points)
             if gap > c.nearby_gap and consistent_sharp(result) >= own + c.nearby_margin:
                 self._nearby, self._nearby_pose, self._nearby_age = gap, se3.inverse(T_kept) @ T_fit, 0
                 break
@@ -358,11 +350,18 @@ class RefinedTrack:
         if self._spread is None or c.seed_starts <= 0 or c.seed_spread <= 0.0:
             return []
         sigma_p, sigma_r = self._spread
-        q0, p0 = se3.to_quat_trans(self.T_base_bone)
-        centre = se3.transform_points(self.T_base_bone, self.refiner.center[None])[0]
-        p, q = draws_about_centroid(centre, p0, q0, c.seed_starts, c.seed_spread * sigma_p, c.seed_spread * sigma_r,
-                                    np.random.default_rng(SEED_STARTS_RNG))
-        return [("track", *self._refine(depth, T_camera_base, T_start)) for T_start in se3.from_quat_trans(q, p)]
+        starts = self._draws(self.T_base_bone, c.seed_starts, c.seed_spread * sigma_p, c.seed_spread * sigma_r,
+                             np.random.default_rng(SEED_STARTS_RNG))
+        return [("track", *self._refine(depth, T_camera_base, T_start)) for T_start in starts]
+
+    def _draws(self, T_base_bone: np.ndarray, n: int, sigma_p: float, sigma_r: float, rng) -> np.ndarray:
+        """(n, 4, 4) base-frame poses drawn about ``T_base_bone``, turned about the bone's centroid
+        (app/filter/motion.py :func:`draws_about_centroid`): the multi-starts of the first frame and of
+        the nearby search."""
+        q0, p0 = se3.to_quat_trans(T_base_bone)
+        centre_base = se3.transform_points(T_base_bone, self.refiner.center[None])[0]
+        p, q = draws_about_centroid(centre_base, p0, q0, n, sigma_p, sigma_r, rng)
+        return se3.from_quat_trans(q, p)
 
     def _needs_filter(self, T_filter: np.ndarray) -> bool:
         c = self.config
