@@ -101,6 +101,34 @@ def test_under_residual_tissue_the_status_is_rarely_ok_while_off(mesh, tmp_path)
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(not (PELVIS / "crest_left_02.ply").is_file(), reason=f"no crest_left_02 at {PELVIS}")
+@pytest.mark.parametrize("followups", [3, 0], ids=["followed-up", "not-followed-up"])
+def test_the_plateau_beyond_a_better_fit_within_1mm_is_found(followups, tmp_path):
+    """crest_left_02 in or_model_mismatch (seed 0, 3.5 s as in the bench's matrix;
+    a 1 s trial of the same seed is never ok while > 1 mm off either way): the first frames the other rules let be ok lie
+    1.0-1.2 mm off, the template's outline up to 3.0 mm, and the searches near the track find only
+    fits 0.2-0.5 mm away that explain the image better; searched about those fits (refine.nearby_followups,
+    BENCHMARKS.md §6k) a competitor 1.1-1.4 mm away shows and the status is not ok. Without the follow-ups
+    (the second case, the state of §6j) 14 frames were ok while more than 1 mm off: asserted so that
+    this scene keeps testing what it is meant to."""
+    from app.config import load_config
+    from app.pipeline.replay import replay
+    from app.sim.simulator import simulate
+
+    simulate(tmp_path / "trial", mesh_path=PELVIS / "crest_left_02.ply", scenario_name="or_model_mismatch",
+             seconds=3.5, seed=0)
+    config = load_config(None)
+    config.refine.nearby_followups = followups
+    result = replay(tmp_path / "trial", tmp_path / "out", config, rrd=False, projector=False)
+    add, ok = np.asarray(result.errors["add_mm"]), np.asarray(result.statuses) == "ok"
+    off = int(np.sum(ok & (add > 1.0)))
+    if followups:
+        assert off == 0, f"{off} frames ok while > 1 mm off: {add[ok & (add > 1.0)].round(2)}"
+    else:
+        assert off >= 5, f"only {off} frames ok while > 1 mm off without the follow-ups: the scene no longer tests them"
+
+
+@pytest.mark.slow
 @pytest.mark.skipif(not CRESTS, reason=f"no CT crest meshes at {PELVIS}")
 @pytest.mark.parametrize("mesh", CRESTS, ids=[m.stem for m in CRESTS])
 def test_every_ct_crest_at_0_65_m_is_precise_and_mostly_ok(mesh, tmp_path):

@@ -36,10 +36,16 @@ class _Landscape:
 
     def __init__(self, minima):
         self.minima, self.starts = list(minima), []
+        self.capture = 0.0        # m: > 0, a refinement with the default first width ends in the best minimum this near its start
 
     def refine(self, depth, T_camera_bone, start_width=None):
         self.starts.append(np.array(T_camera_bone))
-        T, sharp = min(self.minima, key=lambda m: np.linalg.norm(m[0][:3, 3] - T_camera_bone[:3, 3]))
+        apart = [np.linalg.norm(m[0][:3, 3] - T_camera_bone[:3, 3]) for m in self.minima]
+        reach = [m for m, d in zip(self.minima, apart) if d <= self.capture]
+        if start_width is None and reach:
+            T, sharp = max(reach, key=lambda m: m[1])
+        else:
+            T, sharp = self.minima[int(np.argmin(apart))]
         return RefineResult(T.copy(), 1e8 * np.eye(6), 0.9, 1300, 1170, 1200, 1e-3, True, sharp,
                             0.0, 0.01, 6e-4, 2, 2.6, 2.6)
 
@@ -87,7 +93,7 @@ def test_a_nearby_fit_that_explains_the_image_better_keeps_the_status_below_ok()
     [(_pose(), 0.70)],                            # a single minimum: every draw comes back
 ], ids=["worse", "tie", "within-tolerance", "one-minimum"])
 def test_no_competitor_when_none_is_both_apart_and_as_good(minima):
-    _, track = _track(minima)
+    _, track = _track(minima, nearby_followups=0)
     assert all(np.isnan(out.nearby) for out in _run(track, 25))
 
 
@@ -123,3 +129,47 @@ def test_a_new_track_forgets_the_competitor():
     refiner.minima = [(_pose(), 0.70)]
     track.seed(_pose())
     assert np.isnan(_run(track, 1)[0].nearby)
+
+
+def _after_first_frame(minima, **config):
+    """A track on the minimum at 0 whose searches' draws all start where they are drawn about
+    (σ ~ 0) and end in the best minimum within 1 mm: what a search finds depends on where it searches."""
+    refiner, track = _track(minima, nearby_sigma_p=1e-9, nearby_sigma_r=1e-9, **config)
+    first = _run(track, 1)[0]
+    assert np.allclose(first.T_base_bone, _pose()) and np.isnan(first.nearby)
+    refiner.capture = 0.001
+    return refiner, track
+
+
+def test_a_better_fit_within_the_gap_is_searched_about_until_a_competitor_shows():
+    """The follow-up searches (``nearby_followups``): the search at frame 11 finds a fit 0.8 mm away that
+    explains the image better (within ``nearby_gap``: no competitor yet); the next frame searches about
+    that fit and finds one 1.6 mm from the track. Without them the competitor stays unseen."""
+    minima = [(_pose(), 0.70), (_pose(0.0008), 0.90), (_pose(0.0016), 0.95)]
+    refiner, track = _after_first_frame(minima, nearby_every=10, nearby_followups=3)
+    outs = _run(track, 11)
+    assert all(np.isnan(out.nearby) for out in outs[:9])           # frames 2-10: no search
+    assert outs[9].nearby == pytest.approx(0.0008)                  # frame 11: a better fit within the gap
+    assert outs[10].nearby == pytest.approx(0.0016)                 # frame 12: searched about it: the competitor
+    assert np.allclose(refiner.starts[-1], _pose(0.0008), atol=1e-6)
+    evidence = status.RefinementEvidence(0.9, 5e-4, False, -0.01, float("nan"), outs[9].nearby)
+    assert status.with_refinement(status.TrackingStatus.OK, evidence, status.StatusThresholds()) == "uncertain"
+    _, plain = _after_first_frame(minima, nearby_every=10, nearby_followups=0)
+    assert all(np.isnan(out.nearby) for out in _run(plain, 11))
+
+
+def test_the_follow_up_searches_end_after_nearby_followups_frames():
+    """A better fit within the gap and nothing beyond it: nearby_followups follow-ups (the status below ok
+    meanwhile), then the track is clear until the next search; each follow-up costs nearby_starts
+    refinements."""
+    refiner, track = _after_first_frame([(_pose(), 0.70), (_pose(0.0008), 0.90)], nearby_every=10,
+                                        nearby_followups=3, nearby_starts=4)
+    n_before = len(refiner.starts)
+    outs = _run(track, 23)
+    gaps = [out.nearby for out in outs]
+    assert all(np.isnan(g) for g in gaps[:9])
+    assert gaps[9:13] == pytest.approx([0.0008] * 3 + [float("nan")], nan_ok=True)   # frames 11-13 follow up, 14 clears
+    assert all(np.isnan(g) for g in gaps[12:22])
+    assert gaps[22] == pytest.approx(0.0008)                         # frame 24: the next search, 10 frames on
+    # 23 frames of the track's own refinement + 4 searches (frames 11, 12, 13, 14) + the one at 24
+    assert len(refiner.starts) - n_before == 23 + 5 * 4
