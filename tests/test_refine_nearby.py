@@ -1,4 +1,4 @@
-"""The search for a competitor near the track (app/filter/refine_track.py ``RefinedTrack._nearby_search``,
+"""The search for a competitor near the track (app/filter/nearby_search.py ``NearbySearch``, run by ``RefinedTrack.update``,
 status.py's "a pose near the track explains the image better").
 
 The refinement is a stub whose image has a few minima: each refinement ends in the minimum nearest

@@ -47,7 +47,7 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   (:meth:`app.filter.particle_filter.ParticleFilter.shift_to`): the filter stays inside the
   refinement's capture range (issue 12: seeded 0-3 mm off, 98 % of ICP frames ended under 2 mm,
   5-7.5 mm off only 16 %). Measured in BENCHMARKS.md §6;
-- a competitor near the track (``RefineOutcome.nearby``, :meth:`RefinedTrack._nearby_search`): every
+- a competitor near the track (``RefineOutcome.nearby``, :class:`app.filter.nearby_search.NearbySearch`): every
   ``nearby_every`` (10) frames the track also refines from ``nearby_starts`` (4) draws 2 mm / 2 deg
   about its pose; a fit moving the template by more than ``nearby_gap`` (1 mm) whose consistent share
   exceeds the track's by ``nearby_margin`` (0.015) keeps the status below ok: under residual tissue
@@ -68,9 +68,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from app import metrics
 from app.filter.behind_pool import BehindPool
 from app.filter.motion import draws_about_centroid
+from app.filter.nearby_search import NearbySearch
 from app.filter.refine import RENDER_LEVER as REFINE_LEVER
 from app.filter.refine import Refiner, RefineResult, template_std
 from app.filter.static_prior import StaticPrior, StaticPriorConfig
@@ -81,7 +81,6 @@ SEED_WIDTHS = (1.0, 2.0, 4.0)  # the seeded first frame's Tukey widths (x Refine
 SEED_CHAIN = 6                 # at most this many refinements chained at each seeded width (BENCHMARKS.md §6d)
 SEED_SINGLE = (1.0, 2.0)       # widths whose first link is a candidate whatever its consistency (the single refinements of §6d)
 SEED_STARTS_RNG = 20261124     # the multi-start's own generator seed (:meth:`RefinedTrack._start_fits`)
-NEARBY_RNG = 20261125          # the nearby search's own generator seed (:meth:`RefinedTrack._nearby_search`)
 
 
 @dataclass
@@ -96,7 +95,7 @@ class RefineConfig:
     buried one is left out of the fit: app/filter/refine.py step 5); behind_frames (the behind rule
     tested over this many of the track's last fits: app/filter/behind_pool.py); nearby_every, nearby_starts,
     nearby_sigma_p (m), nearby_sigma_r (rad), nearby_gap (m), nearby_margin, nearby_hold, nearby_followups (the search
-    for a competitor near the track: :meth:`RefinedTrack._nearby_search`)."""
+    for a competitor near the track: :class:`app.filter.nearby_search.NearbySearch`)."""
 
     enabled: bool = True
     stride: int = 2
@@ -140,7 +139,7 @@ class RefineOutcome:
     (app/filter/behind_pool.py) when larger; held_chi2 : the static prior's Δχ² from the pose it kept to the
     kept fit when it did not release onto it (0 when it did, NaN without the prior; status.py); nearby :
     the template gap (m) to a fit near the track that explains the image better, found by the
-    last nearby search (:meth:`RefinedTrack._nearby_search`; NaN when none was found)."""
+    last nearby search (:class:`app.filter.nearby_search.NearbySearch`; NaN when none was found)."""
 
     T_base_bone: np.ndarray | None
     fitness: float
@@ -195,6 +194,7 @@ class RefinedTrack:
                                          config.prior_forget_ratio)
         self.prior = StaticPrior(prior_config, refiner.center, inflation) if config.static_prior else None
         self.behind_pool = BehindPool(config.behind_frames, refiner.params.behind_z)
+        self.nearby = NearbySearch(config, self.plan_points + refiner.center, self._draws)
         self.reset()
 
     def reset(self) -> None:
@@ -202,7 +202,7 @@ class RefinedTrack:
         self._seeded, self._spread = False, None
         self.last_info: dict = {}
         self.behind_pool.reset()
-        self._reset_nearby()
+        self.nearby.reset()
         if getattr(self, "prior", None) is not None:
             self.prior.reset()
 
@@ -215,104 +215,17 @@ class RefinedTrack:
         self.T_base_bone, self.fitness, self._seeded = np.array(T_base_bone, float), 1.0, True
         self._spread = spread
         self.behind_pool.reset()
-        self._reset_nearby()
+        self.nearby.reset()
         if self.prior is not None:
             self.prior.reset()
 
-    def _reset_nearby(self) -> None:
-        """A new track: its first unseeded frame searches (:meth:`_nearby_search`), from a fresh generator."""
-        self._nearby_rng = np.random.default_rng(NEARBY_RNG)
-        self._since_nearby = self.config.nearby_every
-        self._nearby, self._nearby_pose, self._nearby_age = float("nan"), None, 0
-        self._follow_from, self._followups = None, 0
-
-    def _nearby_search(self, depth, T_camera_base, T_kept: np.ndarray, kept: RefineResult) -> float:
-        """Is the kept pose the best explanation of the image around it? Every ``nearby_every`` frames of
-        the track, refine (default first width) from ``nearby_starts`` poses drawn about the kept pose at
-        ``nearby_sigma_p`` / ``nearby_sigma_r`` (turned about the bone's centroid, :func:`draws_about_centroid`);
-        a fit whose template lies more than ``nearby_gap`` from the kept pose's (the largest displacement
-        of the template's points, max_k |T_fit p_k − T_kept p_k|: :func:`app.metrics.mdd`)
-        and whose consistency (:func:`consistent_sharp`) exceeds the kept fit's by at least
-        ``nearby_margin`` is a competitor near the track: it explains the image better. The search
-        stops at the first; its gap (m) is the answer until the next search (NaN: none). The status is not ok while there is one (status.py). The next
-        search refines from the competitor's pose first (the track's pose moved with it in the base
-        frame), and a competitor found is the answer for ``nearby_hold`` searches unless a newer one
-        replaces it: on a plateau one search's draws can miss a competitor that is still there
-        (crest_left_02 or_model_mismatch: 3 of 32 searches found none, each leaving 10 frames ok
-        while 1.0-1.3 mm off; BENCHMARKS.md §6j).
-
-        Follow-ups: a search that finds no competitor but a fit within ``nearby_gap`` scoring at least
-        ``nearby_margin`` above the track's searches again on the next frame, its draws about that
-        fit, up to ``nearby_followups`` frames in a row; meanwhile the answer is that fit's gap (the
-        status below ok: the image prefers a pose the track is not at, and how far the better poses
-        extend is not known yet). Why: on crest_left_02 (or_model_mismatch seed 0, or_deep_tissue
-        seed 2) the searches of the first ok-able frames found fits 0.2-0.5 mm away better by
-        +0.017 to +0.047 and nothing beyond 1 mm, and 23 frames 1.0-1.2 mm off were ok with the
-        template's outline up to 3.2 mm off; searched about those fits, a competitor 1.1-1.4 mm away
-        showed within 1-3 frames (those 23 frames are no longer ok). Its cost in the matrix's 232 runs
-        without residual tissue: 149 of their 46,890 ok frames (0.3 %) in 32 runs, mostly one frame
-        whose follow-up then found nothing; 115 of them in two fast repositions where such a frame
-        restarted the recovery's 90-frame confirmation (BENCHMARKS.md §6k).
-
-        Why: under residual tissue on the ridge (or_deep_tissue, or_model_mismatch) the track sat in a
-        minimum 1-1.8 mm off that the 5 mm / 5 deg competitor rule cannot see, and its status was ok on
-        13 % of those frames (BENCHMARKS.md §6i). Measured (§6j, 2,076 frames of 40 trials of the eight
-        CT crests, every 5th frame searched with 8 draws at 2 mm / 2 deg): among the frames every other
-        rule left ok, a fit > 1 mm away scoring at least as well existed on 13 of the 15 frames > 1 mm off
-        and on all 145 residual-tissue frames nearer, but on 0 of 416 static_clear frames, 2 of 416
-        static_far and 0 of 222 static_occluded. The refinement's minimum is a point on a clean crest
-        and a plateau on a tissue-covered one. On the whole matrix (§6j) that rule (margin 0) also
-        held clean runs below ok for 20-60 frames (static_other_side crest_right_02: 60): their
-        competitors scored +0.000 to +0.006 above the track's, ties of a flat but right minimum, while
-        the residual-tissue competitors were better by more (with 0.015 asked the probe's detections
-        drop from 149 to 147 of 160 frames, clean frames flagged 1 -> 0 of 1,054). Four draws, not
-        eight: on the 158 residual-tissue frames with a competitor the first draw found it on 103 and
-        the first four on 149, and eight every 10 frames doubled the refinement's cost (bench-rate, §6j)."""
-        c = self.config
-        self._since_nearby += 1
-        if c.nearby_starts <= 0 or c.nearby_every <= 0 or self._since_nearby < c.nearby_every:
-            return self._nearby
-        following, self._since_nearby = self._follow_from is not None, 0
-        if not following:
-            self._nearby_age += 1
-            if self._nearby_age >= c.nearby_hold:
-                self._nearby = float("nan")
-        found, better = self._search_about(depth, T_camera_base, T_kept, consistent_sharp(kept))
-        if found is not None:
-            gap, self._nearby_pose = found
-            self._nearby, self._nearby_age, self._followups = gap, 0, 0
-            return self._nearby
-        if better is not None and self._followups < c.nearby_followups:
-            gap, self._follow_from = better
-            self._followups, self._since_nearby = self._followups + 1, c.nearby_every - 1
-            return gap if math.isnan(self._nearby) else self._nearby
-        self._followups = 0
-        return self._nearby
-
-    def _search_about(self, depth, T_camera_base, T_kept: np.ndarray, own: float):
-        """One nearby search (:meth:`_nearby_search`): refine from the retried competitor's pose, then from
-        ``nearby_starts`` draws about the kept pose or, in a follow-up, about the better fit followed.
-        Returns (competitor, better): the first fit more than ``nearby_gap`` away scoring at least
-        ``nearby_margin`` above ``own``, and else the best such fit within the gap, each as (gap m,
-        pose relative to the kept one), or None."""
-        c = self.config
-        T_centre = T_kept if self._follow_from is None else T_kept @ self._follow_from
-        starts = list(self._draws(T_centre, c.nearby_starts, c.nearby_sigma_p, c.nearby_sigma_r, self._nearby_rng))
-        if self._nearby_pose is not None:
-            starts.insert(0, T_kept @ self._nearby_pose)
-        self._nearby_pose, self._follow_from = None, None
-        points = self.plan_points + self.refiner.center
-        better, best_score = None, own + c.nearby_margin
-        for T_start in starts:
-            T_fit, result = self._refine(depth, T_camera_base, T_start)
-            if not (result.converged and np.isfinite(result.fitness)):
-                continue
-            gap, score = metrics.mdd(T_fit, T_kept, points), consistent_sharp(result)
-            if score >= own + c.nearby_margin and gap > c.nearby_gap:
-                return (gap, se3.inverse(T_kept) @ T_fit), None
-            if score >= best_score:
-                better, best_score = (gap, se3.inverse(T_kept) @ T_fit), score
-        return None, better
+    def _scored_fit(self, depth, T_camera_base, T_start: np.ndarray):
+        """(T_base_bone, consistent sharp share) of the refinement from ``T_start`` (default first width);
+        None when it did not converge: the nearby search's fit (app/filter/nearby_search.py)."""
+        T_fit, result = self._refine(depth, T_camera_base, T_start)
+        if not (result.converged and np.isfinite(result.fitness)):
+            return None
+        return T_fit, consistent_sharp(result)
 
     def _refine(self, depth, T_camera_base, T_base_bone, start_width=None) -> tuple[np.ndarray, RefineResult]:
         result = self.refiner.refine(depth, T_camera_base @ T_base_bone, start_width)
@@ -470,6 +383,7 @@ class RefinedTrack:
         if kept is not None:
             pooled = self.behind_pool.add(best.behind, best.behind_mean, best.behind_var, best.expected)
             behind = max(behind, pooled) if np.isfinite(pooled) else behind
-            nearby = self._nearby_search(depth, T_camera_base, kept, best)
+            nearby = self.nearby.step(lambda T_start: self._scored_fit(depth, T_camera_base, T_start), kept,
+                                      consistent_sharp(best))
         return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0,
                              behind, held_chi2, nearby)

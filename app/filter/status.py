@@ -87,8 +87,8 @@ then lowered to UNCERTAIN, never raised, when
   the track refines from ``refine.nearby_starts`` = 4 poses drawn 2 mm / 2 deg about its pose, and a fit
   that moves the template by more than ``refine.nearby_gap`` = 1 mm (its largest point displacement)
   while its share within 1 σ less its excess behind exceeds the track's own by ``nearby_margin`` = 0.015
-  keeps the status below ok until the next search finds none (app/filter/refine_track.py
-  ``_nearby_search``); a fit within 1 mm that scores so (the track is not at the image's best pose)
+  keeps the status below ok until the next search finds none (app/filter/nearby_search.py
+  ``NearbySearch``); a fit within 1 mm that scores so (the track is not at the image's best pose)
   keeps it below ok while ``refine.nearby_followups`` = 3 searches on the next frames look about
   it for one further away (crest_left_02 under residual tissue: 23 ok frames 1.0-1.2 mm off, the
   outline up to 3.2 mm off, none with them; §6k). A 1 mm template error is the clinical tolerance; the 5 mm / 5 deg competitor
@@ -288,7 +288,7 @@ class RefinementEvidence:
     held_chi2 : the static prior's Δχ² from the pose it kept (held or fused) to this frame's own fit,
     when it did not release onto that fit (app/filter/static_prior.py; 0 when released, NaN without it);
     nearby : m, the template gap to a fit near the track that explains the image better
-    (app/filter/refine_track.py ``RefinedTrack._nearby_search``; NaN when the last search found none).
+    (app/filter/nearby_search.py ``NearbySearch``; NaN when the last search found none).
     """
 
     fitness: float

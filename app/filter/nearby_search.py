@@ -1,0 +1,139 @@
+"""The search for a competitor near the refined track (issue 12, BENCHMARKS.md §6j, §6k).
+
+Import as ``from app.filter.nearby_search import NearbySearch``. Owned by
+app/filter/refine_track.py's :class:`~app.filter.refine_track.RefinedTrack` (one per track, reset with
+it); its answer is ``RefineOutcome.nearby``, and status.py keeps the status below ok while it is a gap.
+
+Is the kept pose the best explanation of the image around it? Every ``nearby_every`` frames of
+the track, refine (default first width) from ``nearby_starts`` poses drawn about the kept pose at
+``nearby_sigma_p`` / ``nearby_sigma_r`` (turned about the bone's centroid,
+:func:`app.filter.motion.draws_about_centroid`);
+a fit whose template lies more than ``nearby_gap`` from the kept pose's (the largest displacement
+of the template's points, max_k |T_fit p_k − T_kept p_k|: :func:`app.metrics.mdd`)
+and whose consistency (:func:`app.filter.refine_track.consistent_sharp`) exceeds the kept fit's by at least
+``nearby_margin`` is a competitor near the track: it explains the image better. The search
+stops at the first; its gap (m) is the answer until the next search (NaN: none). The status is
+not ok while there is one (status.py). The next
+search refines from the competitor's pose first (the track's pose moved with it in the base
+frame), and a competitor found is the answer for ``nearby_hold`` searches unless a newer one
+replaces it: on a plateau one search's draws can miss a competitor that is still there
+(crest_left_02 or_model_mismatch: 3 of 32 searches found none, each leaving 10 frames ok
+while 1.0-1.3 mm off; BENCHMARKS.md §6j).
+
+Follow-ups: a search that finds no competitor but a fit within ``nearby_gap`` scoring at least
+``nearby_margin`` above the track's searches again on the next frame, its draws about that
+fit, up to ``nearby_followups`` frames in a row; meanwhile the answer is that fit's gap (the
+status below ok: the image prefers a pose the track is not at, and how far the better poses
+extend is not known yet). Why: on crest_left_02 (or_model_mismatch seed 0, or_deep_tissue
+seed 2) the searches of the first ok-able frames found fits 0.2-0.5 mm away better by
++0.017 to +0.047 and nothing beyond 1 mm, and 23 frames 1.0-1.2 mm off were ok with the
+template's outline up to 3.2 mm off; searched about those fits, a competitor 1.1-1.4 mm away
+showed within 1-3 frames (those 23 frames are no longer ok). Its cost in the matrix's 232 runs
+without residual tissue: 149 of their 46,890 ok frames (0.3 %) in 32 runs, mostly one frame
+whose follow-up then found nothing; 115 of them in two fast repositions where such a frame
+restarted the recovery's 90-frame confirmation (BENCHMARKS.md §6k).
+
+Why the search: under residual tissue on the ridge (or_deep_tissue, or_model_mismatch) the track sat in a
+minimum 1-1.8 mm off that the 5 mm / 5 deg competitor rule cannot see, and its status was ok on
+13 % of those frames (BENCHMARKS.md §6i). Measured (§6j, 2,076 frames of 40 trials of the eight
+CT crests, every 5th frame searched with 8 draws at 2 mm / 2 deg): among the frames every other
+rule left ok, a fit > 1 mm away scoring at least as well existed on 13 of the 15 frames > 1 mm off
+and on all 145 residual-tissue frames nearer, but on 0 of 416 static_clear frames, 2 of 416
+static_far and 0 of 222 static_occluded. The refinement's minimum is a point on a clean crest
+and a plateau on a tissue-covered one. On the whole matrix (§6j) that rule (margin 0) also
+held clean runs below ok for 20-60 frames (static_other_side crest_right_02: 60): their
+competitors scored +0.000 to +0.006 above the track's, ties of a flat but right minimum, while
+the residual-tissue competitors were better by more (with 0.015 asked the probe's detections
+drop from 149 to 147 of 160 frames, clean frames flagged 1 -> 0 of 1,054). Four draws, not
+eight: on the 158 residual-tissue frames with a competitor the first draw found it on 103 and
+the first four on 149, and eight every 10 frames doubled the refinement's cost (bench-rate, §6j).
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numpy as np
+
+from app import metrics
+from app.geometry import se3
+
+NEARBY_RNG = 20261125          # the search's own generator seed: a replay repeats
+
+# fit(T_start) -> (T_base_bone of the refined fit, its consistent sharp share), None when it did not converge
+Fit = Callable[[np.ndarray], "tuple[np.ndarray, float] | None"]
+# draws(T_base_bone, n, sigma_p, sigma_r, rng) -> (n, 4, 4) poses about T_base_bone, turned about the bone's centroid
+Draws = Callable[..., np.ndarray]
+
+
+class NearbySearch:
+    """The search of the module docstring for one track.
+
+    Parameters
+    ----------
+    config : the ``nearby_*`` fields of app/filter/refine_track.py's ``RefineConfig``
+    points_bone : (N, 3) the template's points (bone frame, m): the gap is their largest displacement
+    draws : the track's multi-start draws (``RefinedTrack._draws``)
+    """
+
+    def __init__(self, config, points_bone: np.ndarray, draws: Draws):
+        self.config, self.points_bone, self.draws = config, np.asarray(points_bone, float), draws
+        self.reset()
+
+    def reset(self) -> None:
+        """A new track: its first frame searches, from a fresh generator."""
+        self._rng = np.random.default_rng(NEARBY_RNG)
+        self._since = self.config.nearby_every
+        self._gap, self._competitor_rel, self._age = math.nan, None, 0
+        self._follow_rel, self._followups = None, 0
+
+    def step(self, fit: Fit, T_base_bone_kept: np.ndarray, own: float) -> float:
+        """One frame of the track (kept pose ``T_base_bone_kept``, its consistent sharp share ``own``):
+        search when due and answer the gap (m) to a fit that explains the image better (NaN: none)."""
+        c = self.config
+        self._since += 1
+        if c.nearby_starts <= 0 or c.nearby_every <= 0 or self._since < c.nearby_every:
+            return self._gap
+        following, self._since = self._follow_rel is not None, 0
+        if not following:
+            self._age += 1
+            if self._age >= c.nearby_hold:
+                self._gap = math.nan
+        found, better = self._search(fit, T_base_bone_kept, own)
+        if found is not None:
+            self._gap, self._competitor_rel = found
+            self._age, self._followups = 0, 0
+            return self._gap
+        if better is not None and self._followups < c.nearby_followups:
+            gap, self._follow_rel = better
+            self._followups, self._since = self._followups + 1, c.nearby_every - 1
+            return gap if math.isnan(self._gap) else self._gap
+        self._followups = 0
+        return self._gap
+
+    def _search(self, fit: Fit, T_kept: np.ndarray, own: float):
+        """Refine from the retried competitor's pose, then from ``nearby_starts`` draws about the kept pose
+        or, in a follow-up, about the better fit followed. Returns (competitor, better): the first fit
+        more than ``nearby_gap`` away scoring at least ``nearby_margin`` above ``own``, and else the best
+        such fit within the gap, each as (gap m, pose relative to the kept one), or None."""
+        c = self.config
+        T_centre = T_kept if self._follow_rel is None else T_kept @ self._follow_rel
+        starts = list(self.draws(T_centre, c.nearby_starts, c.nearby_sigma_p, c.nearby_sigma_r, self._rng))
+        if self._competitor_rel is not None:
+            starts.insert(0, T_kept @ self._competitor_rel)
+        self._competitor_rel, self._follow_rel = None, None
+        T_kept_inv, threshold = se3.inverse(T_kept), own + c.nearby_margin
+        better, best_score = None, threshold
+        for T_start in starts:
+            scored = fit(T_start)
+            if scored is None:
+                continue
+            T_fit, score = scored
+            if score < threshold:
+                continue
+            gap = metrics.mdd(T_fit, T_kept, self.points_bone)
+            if gap > c.nearby_gap:
+                return (gap, T_kept_inv @ T_fit), None
+            if score >= best_score:
+                better, best_score = (gap, T_kept_inv @ T_fit), score
+        return None, better
