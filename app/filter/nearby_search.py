@@ -9,7 +9,7 @@ the track, refine (default first width) from ``nearby_starts`` poses drawn about
 ``nearby_sigma_p`` / ``nearby_sigma_r`` (turned about the bone's centroid,
 :func:`app.filter.motion.draws_about_centroid`);
 a fit whose template lies more than ``nearby_gap`` from the kept pose's (the largest displacement
-of the template's points, max_k |T_fit p_k − T_kept p_k|: :func:`app.metrics.mdd`)
+of the template's points, max_k |T_base_fit p_k − T_base_kept p_k|: :func:`app.metrics.mdd`)
 and whose consistency (:func:`app.filter.refine_track.consistent_sharp`) exceeds the kept fit's by at least
 ``nearby_margin`` is a competitor near the track: it explains the image better. The search
 stops at the first; its gap (m) is the answer until the next search (NaN: none). The status is
@@ -84,8 +84,8 @@ class NearbySearch:
         """A new track: its first frame searches, from a fresh generator."""
         self._rng = np.random.default_rng(NEARBY_RNG)
         self._since = self.config.nearby_every
-        self._gap, self._competitor_rel, self._age = math.nan, None, 0
-        self._follow_rel, self._followups = None, 0
+        self._gap, self._T_kept_competitor, self._age = math.nan, None, 0
+        self._T_kept_follow, self._followups = None, 0
 
     def step(self, fit: Fit, T_base_bone_kept: np.ndarray, own: float) -> float:
         """One frame of the track (kept pose ``T_base_bone_kept``, its consistent sharp share ``own``):
@@ -94,46 +94,46 @@ class NearbySearch:
         self._since += 1
         if c.nearby_starts <= 0 or c.nearby_every <= 0 or self._since < c.nearby_every:
             return self._gap
-        following, self._since = self._follow_rel is not None, 0
+        following, self._since = self._T_kept_follow is not None, 0
         if not following:
             self._age += 1
             if self._age >= c.nearby_hold:
                 self._gap = math.nan
         found, better = self._search(fit, T_base_bone_kept, own)
         if found is not None:
-            self._gap, self._competitor_rel = found
+            self._gap, self._T_kept_competitor = found
             self._age, self._followups = 0, 0
             return self._gap
         if better is not None and self._followups < c.nearby_followups:
-            gap, self._follow_rel = better
+            gap, self._T_kept_follow = better
             self._followups, self._since = self._followups + 1, c.nearby_every - 1
             return gap if math.isnan(self._gap) else self._gap
         self._followups = 0
         return self._gap
 
-    def _search(self, fit: Fit, T_kept: np.ndarray, own: float):
+    def _search(self, fit: Fit, T_base_kept: np.ndarray, own: float):
         """Refine from the retried competitor's pose, then from ``nearby_starts`` draws about the kept pose
         or, in a follow-up, about the better fit followed. Returns (competitor, better): the first fit
         more than ``nearby_gap`` away scoring at least ``nearby_margin`` above ``own``, and else the best
         such fit within the gap, each as (gap m, pose relative to the kept one), or None."""
         c = self.config
-        T_centre = T_kept if self._follow_rel is None else T_kept @ self._follow_rel
-        starts = list(self.draws(T_centre, c.nearby_starts, c.nearby_sigma_p, c.nearby_sigma_r, self._rng))
-        if self._competitor_rel is not None:
-            starts.insert(0, T_kept @ self._competitor_rel)
-        self._competitor_rel, self._follow_rel = None, None
-        T_kept_inv, threshold = se3.inverse(T_kept), own + c.nearby_margin
+        T_base_centre = T_base_kept if self._T_kept_follow is None else T_base_kept @ self._T_kept_follow
+        starts = list(self.draws(T_base_centre, c.nearby_starts, c.nearby_sigma_p, c.nearby_sigma_r, self._rng))
+        if self._T_kept_competitor is not None:
+            starts.insert(0, T_base_kept @ self._T_kept_competitor)
+        self._T_kept_competitor, self._T_kept_follow = None, None
+        T_kept_base, threshold = se3.inverse(T_base_kept), own + c.nearby_margin
         better, best_score = None, threshold
         for T_start in starts:
             scored = fit(T_start)
             if scored is None:
                 continue
-            T_fit, score = scored
+            T_base_fit, score = scored
             if score < threshold:
                 continue
-            gap = metrics.mdd(T_fit, T_kept, self.points_bone)
+            gap = metrics.mdd(T_base_fit, T_base_kept, self.points_bone)
             if gap > c.nearby_gap:
-                return (gap, T_kept_inv @ T_fit), None
+                return (gap, T_kept_base @ T_base_fit), None
             if score >= best_score:
-                better, best_score = (gap, T_kept_inv @ T_fit), score
+                better, best_score = (gap, T_kept_base @ T_base_fit), score
         return None, better
