@@ -81,6 +81,7 @@ CEM_SIGMA_M, CEM_SIGMA_RAD = 0.004, math.radians(4.0)
 ANCHOR_SHARE = 0.6
 TRACK_CLUSTERS = 2
 MIN_SHARP = 0.5
+VERIFY_WIDTHS = (2.0, 0.0)   # first Tukey widths (x start_width) of a candidate's verification chains (module docstring, 5)
 INCUMBENT = "incumbent"   # the source of the tracker's current estimate among the verified (module docstring, 6)
 
 
@@ -228,17 +229,15 @@ class WideSearch:
         return best_p, best_q, best_ll, spent
 
     def _verify(self, found, depth_full, T_base_camera, evaluations: int) -> SearchResult:
-        """Refine each candidate (wide first step, then again) and keep the best confirmed fit."""
+        """Refine each candidate (module docstring, 5: one chain per first width of ``VERIFY_WIDTHS``,
+        the more consistent fit kept; the incumbent as the track refines) and keep the best confirmed fit."""
         T_camera_base = se3.inverse(T_base_camera)
-        width = 2.0 * self.refiner.params.start_width
         verified, refinements = [], 0
         for _, p, q, source in found:
             T_camera_bone = T_camera_base @ se3.from_quat_trans(q, p)
-            # the incumbent is refined as the track refines (no wide first step: it is where the track is)
-            result = self.refiner.refine(depth_full, T_camera_bone, 0.0 if source == INCUMBENT else width)
-            result = self.refiner.refine(depth_full, result.T_camera_bone)
-            refinements += 2
-            if result.converged and np.isfinite(result.fitness):
+            result, spent = self._verified_fit(depth_full, T_camera_bone, source == INCUMBENT)
+            refinements += spent
+            if result is not None:
                 verified.append((result.fitness, consistent_sharp(result), T_base_camera @ result.T_camera_bone, source))
         incumbent = next(((f, s) for f, s, _, src in verified if src == INCUMBENT), (math.nan, math.nan))
         candidates = [(f, s, T) for f, s, T, src in verified if src != INCUMBENT]
@@ -253,6 +252,23 @@ class WideSearch:
                                 kept=True, incumbent=incumbent)
         return SearchResult(T_base_bone, fitness, sharp, evaluations, refinements, source, candidates,
                             incumbent=incumbent)
+
+    def _verified_fit(self, depth_full, T_camera_bone, incumbent: bool):
+        """(the most consistent converged fit or None, refinements spent) from one candidate: per first
+        width of ``VERIFY_WIDTHS`` (x ``start_width``) a refinement and one more from its result at the
+        default width; the incumbent twice at width 0, as the track refines each frame (a default-width
+        second step turned the true pose of crest_right_05 28 deg with a quarter of the crest in view)."""
+        default = self.refiner.params.start_width
+        chains = [(0.0, 0.0)] if incumbent else [(f * default, default) for f in VERIFY_WIDTHS]
+        best, spent = None, 0
+        for first, second in chains:
+            result = self.refiner.refine(depth_full, T_camera_bone, first)
+            result = self.refiner.refine(depth_full, result.T_camera_bone, second)
+            spent += 2
+            if result.converged and np.isfinite(result.fitness) and \
+                    (best is None or consistent_sharp(result) > consistent_sharp(best)):
+                best = result
+        return best, spent
 
 
 def image_anchors(depth: np.ndarray, camera, T_base_camera: np.ndarray, count: int,
