@@ -29,8 +29,15 @@ drawn from the image and the track instead of a template bank:
    about the bone's centroid, so the crest does not swing about the bone frame's origin).
 5. **Verification** by the refinement (app/filter/refine.py, robust point-to-plane Gauss-Newton at
    the sensor's resolution) from the ``refine_top`` best (the best from the track and the others
-   from the image), once with twice the first Tukey width
-   (a wider capture, as refine_track.py's seeded start) and once more from its result; a candidate
+   from the image) in two chains, each a refinement and one more from its result at the default
+   first Tukey width: one starting at twice that width (a wider capture, as refine_track.py's
+   seeded start), one at width 0 (``VERIFY_WIDTHS``); the more consistent fit of the two stands for
+   the candidate. With most of the crest out of the image the landscape along the ridge is flat and
+   a wide first step lets the fit slide: or_fast_reposition crest_right_02 seed 2 at 3.92 s (31 % of
+   the crest's samples in the image), a candidate 16 mm / 24 deg off refined to 3.5 mm / 18 deg
+   (sharp 0.49, not confirmed) from the wide start and to 0.4 mm / 2.7 deg (0.68, against the wrong
+   track's 0.56) from width 0; the fit started *at the truth* slid 8 mm at the wide width (BENCHMARKS.md
+   §6l). A candidate
    is found only when its refined fit confirms at least ``min_fitness`` (status.min_fitness, 0.6)
    of the expected visible surface within 3 σ and its consistent sharp share (within 1 σ, less the
    share behind the model beyond the noise) is at least ``min_sharp`` = 0.5: a right pose leaves
@@ -38,8 +45,15 @@ drawn from the image and the track instead of a template bank:
    while wrong fits that confirmed 0.63-0.65 within 3 σ had 0.17-0.23; among those the one with the highest
    :func:`app.filter.refine_track.consistent_sharp` wins (refine_track.py's rule for two fits).
    Nothing confirmed (the bone out of view, hidden): the search declines, and the tracker keeps its state.
-6. **The incumbent.** The tracker's current estimate is verified too (refined twice from where it
-   is, as the track refines: no wide first step, no local search first) and takes part in the ranking; where it is
+6. **The incumbent.** The tracker's current estimate is verified too (no wide first step, no local
+   search first: a refinement from where it is at width 0, then one more at width 0, as the track
+   refines each frame, and one more at the default width; the more consistent of the two chains
+   stands for it, as for a candidate; ``INCUMBENT_WIDTHS``). With the default-width chain alone,
+   crest_right_05 seed 3's track, 0.1 mm off at 3.67 s with a quarter of the crest in view, was
+   turned 28 deg to a sharp share of 0.56 and lost to a candidate 31 deg off at 0.59; with the
+   width-0 chain alone, crest_right_04 seed 3's track 0.2 mm off at 3.50 s scored 0.72 and lost to a
+   candidate 3.5 mm / 6.7 deg off at 0.76, which the default-width chain had kept (BENCHMARKS.md
+   §6l). It takes part in the ranking; where it is
    confirmed and no candidate's consistent sharp share beats it, the search *keeps* the track
    (``SearchResult.kept``): replacing a track by a pose that explains the image less well is never
    what the evidence says. Measured on or_fast_reposition crest_right_04 seed 0 at 3.68 s (the slow
@@ -50,7 +64,7 @@ drawn from the image and the track instead of a template bank:
 
 The budget is counted in likelihood evaluations (``evaluations``: poses scored by the backend, 60 %
 to the image's candidates, 10 % to the track's, the rest to the local search) plus ``2 * refine_top``
-refinements (2 more for the incumbent): work, never seconds (0.52-0.60 s of CPU per search on the CT crests, BENCHMARKS.md §6b).
+refinements (``4 * refine_top``: two chains each; 4 more for the incumbent): work, never seconds (0.52-0.60 s of CPU per search on the CT crests, BENCHMARKS.md §6b).
 A found pose is no evidence of being right: the recovery's confirmation rule
 (app/filter/recovery.py, "Honesty") keeps it from being ok until the rules have agreed for
 ``confirm_frames`` weighed frames in a row.
@@ -82,6 +96,7 @@ ANCHOR_SHARE = 0.6
 TRACK_CLUSTERS = 2
 MIN_SHARP = 0.5
 VERIFY_WIDTHS = (2.0, 0.0)   # first Tukey widths (x start_width) of a candidate's verification chains (module docstring, 5)
+INCUMBENT_WIDTHS = (0.0, 1.0)   # second Tukey widths (x start_width) of the incumbent's chains, each from width 0
 INCUMBENT = "incumbent"   # the source of the tracker's current estimate among the verified (module docstring, 6)
 
 
@@ -256,10 +271,10 @@ class WideSearch:
     def _verified_fit(self, depth_full, T_camera_bone, incumbent: bool):
         """(the most consistent converged fit or None, refinements spent) from one candidate: per first
         width of ``VERIFY_WIDTHS`` (x ``start_width``) a refinement and one more from its result at the
-        default width; the incumbent twice at width 0, as the track refines each frame (a default-width
-        second step turned the true pose of crest_right_05 28 deg with a quarter of the crest in view)."""
+        default width; the incumbent from width 0, then at each second width of ``INCUMBENT_WIDTHS``
+        (module docstring, 5 and 6)."""
         default = self.refiner.params.start_width
-        chains = [(0.0, 0.0)] if incumbent else [(f * default, default) for f in VERIFY_WIDTHS]
+        chains = [(0.0, f * default) for f in INCUMBENT_WIDTHS] if incumbent else [(f * default, default) for f in VERIFY_WIDTHS]
         best, spent = None, 0
         for first, second in chains:
             result = self.refiner.refine(depth_full, T_camera_bone, first)
