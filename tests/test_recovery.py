@@ -671,7 +671,7 @@ def _verified(scores, incumbent_x_mm=0):
 def test_a_search_keeps_the_track_when_no_candidate_explains_the_image_better():
     """or_fast_reposition crest_right_04 seed 0 at 3.68 s: candidates 9 mm off at a sharp share of
     0.50, the track in place 0.76: kept (no pose to move to), and the incumbent refined from where
-    it is (no wide first step). A better candidate still wins; on a tie the track is kept; an
+    it is (no wide first step). A better candidate still wins; on a tie or within the margin (0.015) the track is kept; an
     incumbent the refinement does not confirm never blocks a confirmed candidate."""
     result, refiner = _verified({9: (0.97, 0.50), 0: (0.97, 0.76)})
     assert result.kept and result.T_base_bone is None and result.sharp == pytest.approx(0.76)
@@ -681,6 +681,8 @@ def test_a_search_keeps_the_track_when_no_candidate_explains_the_image_better():
     assert not better.kept and better.T_base_bone[0, 3] == pytest.approx(0.009)
     tie, _ = _verified({9: (0.97, 0.76), 0: (0.97, 0.76)})
     assert tie.kept
+    within_margin, _ = _verified({9: (0.97, 0.77), 0: (0.97, 0.76)})    # better by 0.01, under the 0.015 margin
+    assert within_margin.kept and within_margin.sharp == pytest.approx(0.76)
     unconfirmed, _ = _verified({9: (0.97, 0.55), 0: (0.50, 0.90)})   # fit under min_fitness 0.6
     assert not unconfirmed.kept and unconfirmed.T_base_bone[0, 3] == pytest.approx(0.009)
     nothing, _ = _verified({9: (0.97, 0.30), 0: (0.50, 0.90)})

@@ -105,7 +105,9 @@ class SearchConfig:
     """evaluations : likelihood evaluations (poses scored) per search; anchors : image anchors;
     yaw_steps : turns about the up axis per anchor; clusters : distinct candidates searched locally;
     refine_top : of those, refined and verified; min_fitness : a refined fit confirming less is not
-    found (status.min_fitness)."""
+    found (status.min_fitness); margin : a candidate replaces a confirmed incumbent only when its
+    consistent sharp share exceeds the incumbent's by more than this (refine.nearby_margin: the
+    track's own rule for a fit that explains the image better; module docstring, 6)."""
 
     evaluations: int = 4000
     anchors: int = 8
@@ -114,6 +116,7 @@ class SearchConfig:
     refine_top: int = 3
     min_fitness: float = 0.6
     min_sharp: float = MIN_SHARP
+    margin: float = 0.015
 
 
 @dataclass
@@ -260,8 +263,10 @@ class WideSearch:
         if not confirmed:
             best = max(verified, key=lambda v: v[1], default=(math.nan, math.nan, None, ""))
             return SearchResult(None, best[0], best[1], evaluations, refinements, "", candidates, incumbent=incumbent)
-        # the highest consistent sharp share wins; on a tie the incumbent (nothing says to move it)
-        fitness, sharp, T_base_bone, source = max(confirmed, key=lambda v: (v[1], v[3] == INCUMBENT))
+        # the highest consistent sharp share wins; the incumbent unless beaten by more than the margin
+        margin = self.config.margin
+        fitness, sharp, T_base_bone, source = max(confirmed, key=lambda v: (v[1] + (margin if v[3] == INCUMBENT else 0.0),
+                                                                            v[3] == INCUMBENT))
         if source == INCUMBENT:
             return SearchResult(None, fitness, sharp, evaluations, refinements, INCUMBENT, candidates,
                                 kept=True, incumbent=incumbent)

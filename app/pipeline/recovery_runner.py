@@ -176,7 +176,8 @@ def _wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedT
 
     if not config.recovery.search or refined_track is None:
         return None
-    search = SearchConfig(evaluations=config.recovery.search_evaluations, min_fitness=config.status.min_fitness)
+    search = SearchConfig(evaluations=config.recovery.search_evaluations, min_fitness=config.status.min_fitness,
+                          margin=config.refine.nearby_margin)
     return WideSearch(backend, camera, refined_track.refiner, vertices, search)
 
 
