@@ -249,6 +249,13 @@ def test_the_wide_search_finds_a_bone_moved_12_cm_and_45_deg_from_the_last_ok_po
     assert result.evaluations <= tracker.config.recovery.search_evaluations and result.refinements <= 4 * tracker.wide_search.config.refine_top
 
 
+def test_the_wide_search_takes_its_margin_from_refine_nearby_margin(search_frame):
+    """One rule for "explains the image better" (wide_search.py, 6): the search's margin is the
+    configured refine.nearby_margin, the track's own."""
+    tracker = search_frame[0]
+    assert tracker.wide_search.config.margin == tracker.config.refine.nearby_margin == 0.015
+
+
 def test_the_wide_search_declines_where_the_bone_is_not_in_the_image(search_frame):
     """A flat table only (the bone out of view): nothing confirmed, no pose."""
     from app.depth_image import downsample_nearest

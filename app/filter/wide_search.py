@@ -54,17 +54,23 @@ drawn from the image and the track instead of a template bank:
    width-0 chain alone, crest_right_04 seed 3's track 0.2 mm off at 3.50 s scored 0.72 and lost to a
    candidate 3.5 mm / 6.7 deg off at 0.76, which the default-width chain had kept (BENCHMARKS.md
    §6l). It takes part in the ranking; where it is
-   confirmed and no candidate's consistent sharp share beats it, the search *keeps* the track
-   (``SearchResult.kept``): replacing a track by a pose that explains the image less well is never
-   what the evidence says. Measured on or_fast_reposition crest_right_04 seed 0 at 3.68 s (the slow
+   confirmed and no candidate's consistent sharp share beats it by more than ``margin``
+   (refine.nearby_margin, 0.015: the track's own rule for a fit that explains the image better,
+   app/filter/nearby_search.py), the search *keeps* the track (``SearchResult.kept``): replacing a
+   track by a pose that explains the image less well, or only as well, is never what the evidence
+   says. Without the margin a search replaced a track 0.1 mm off by a fit 0.5 mm off that scored
+   0.006 more (crest_right_02 seed 3 at 6.07 s), which restarts the recovery's confirmation, and
+   under residual tissue (48 runs, one never-ok search each but three) the searches replaced the
+   track 38 times of 45, with it 7 (BENCHMARKS.md §6l). Measured on or_fast_reposition crest_right_04 seed 0 at 3.68 s (the slow
    trigger on a track 0.84 mm off that could not be ok with a quarter of the crest in view): every
    verified candidate lay 8.8-9.8 mm / 24-26 deg off at a sharp share of 0.46-0.50, the track
    refined in place scored 0.76, and the search replaced it: 8 mm off for the next second
    (BENCHMARKS.md §6g).
 
 The budget is counted in likelihood evaluations (``evaluations``: poses scored by the backend, 60 %
-to the image's candidates, 10 % to the track's, the rest to the local search) plus ``2 * refine_top``
-refinements (``4 * refine_top``: two chains each; 4 more for the incumbent): work, never seconds (0.52-0.60 s of CPU per search on the CT crests, BENCHMARKS.md §6b).
+to the image's candidates, 10 % to the track's, the rest to the local search) plus ``4 * refine_top``
+refinements (two chains of two each; 4 more for the incumbent): work, never seconds (0.45 s of CPU
+per search on average over the 48 fast repositions of BENCHMARKS.md §6l, 0.38 s with one chain each).
 A found pose is no evidence of being right: the recovery's confirmation rule
 (app/filter/recovery.py, "Honesty") keeps it from being ok until the rules have agreed for
 ``confirm_frames`` weighed frames in a row.
