@@ -46,8 +46,8 @@ drawn from the image and the track instead of a template bank:
    :func:`app.filter.refine_track.consistent_sharp` wins (refine_track.py's rule for two fits).
    Nothing confirmed (the bone out of view, hidden): the search declines, and the tracker keeps its state.
 6. **The incumbent.** The tracker's current estimate is verified too (no wide first step, no local
-   search first: a refinement from where it is at width 0, then one more at width 0, as the track
-   refines each frame, and one more at the default width; the more consistent of the two chains
+   search first: a refinement from where it is at width 0, then from its result one more at width 0,
+   as the track refines each frame, and one more at the default width; the more consistent of the two chains
    stands for it, as for a candidate; ``INCUMBENT_WIDTHS``). With the default-width chain alone,
    crest_right_05 seed 3's track, 0.1 mm off at 3.67 s with a quarter of the crest in view, was
    turned 28 deg to a sharp share of 0.56 and lost to a candidate 31 deg off at 0.59; with the
@@ -69,7 +69,7 @@ drawn from the image and the track instead of a template bank:
 
 The budget is counted in likelihood evaluations (``evaluations``: poses scored by the backend, 60 %
 to the image's candidates, 10 % to the track's, the rest to the local search) plus ``4 * refine_top``
-refinements (two chains of two each; 4 more for the incumbent): work, never seconds (0.45 s of CPU
+refinements (two chains of two each; 3 more for the incumbent: one refinement, then two from it): work, never seconds (0.45 s of CPU
 per search on average over the 48 fast repositions of BENCHMARKS.md §6l, 0.38 s with one chain each).
 A found pose is no evidence of being right: the recovery's confirmation rule
 (app/filter/recovery.py, "Honesty") keeps it from being ok until the rules have agreed for
@@ -282,18 +282,23 @@ class WideSearch:
     def _verified_fit(self, depth_full, T_camera_bone, incumbent: bool):
         """(the most consistent converged fit or None, refinements spent) from one candidate: per first
         width of ``VERIFY_WIDTHS`` (x ``start_width``) a refinement and one more from its result at the
-        default width; the incumbent from width 0, then at each second width of ``INCUMBENT_WIDTHS``
-        (module docstring, 5 and 6)."""
+        default width; the incumbent: one refinement at width 0, then one more from it at each second
+        width of ``INCUMBENT_WIDTHS`` (module docstring, 5 and 6)."""
         default = self.refiner.params.start_width
-        chains = [(0.0, f * default) for f in INCUMBENT_WIDTHS] if incumbent else [(f * default, default) for f in VERIFY_WIDTHS]
+        if incumbent:
+            chains = [(0.0, [f * default for f in INCUMBENT_WIDTHS])]
+        else:
+            chains = [(f * default, [default]) for f in VERIFY_WIDTHS]
         best, spent = None, 0
-        for first, second in chains:
-            result = self.refiner.refine(depth_full, T_camera_bone, first)
-            result = self.refiner.refine(depth_full, result.T_camera_bone, second)
-            spent += 2
-            if result.converged and np.isfinite(result.fitness) and \
-                    (best is None or consistent_sharp(result) > consistent_sharp(best)):
-                best = result
+        for first, seconds in chains:
+            start = self.refiner.refine(depth_full, T_camera_bone, first)
+            spent += 1
+            for second in seconds:
+                result = self.refiner.refine(depth_full, start.T_camera_bone, second)
+                spent += 1
+                if result.converged and np.isfinite(result.fitness) and \
+                        (best is None or consistent_sharp(result) > consistent_sharp(best)):
+                    best = result
         return best, spent
 
 
