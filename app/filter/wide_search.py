@@ -60,8 +60,8 @@ drawn from the image and the track instead of a template bank:
    track by a pose that explains the image less well, or only as well, is never what the evidence
    says. Without the margin a search replaced a track 0.1 mm off by a fit 0.5 mm off that scored
    0.006 more (crest_right_02 seed 3 at 6.07 s), which restarts the recovery's confirmation, and
-   under residual tissue (48 runs, one never-ok search each but three) the searches replaced the
-   track 38 times of 45, with it 7 (BENCHMARKS.md §6l). Measured on or_fast_reposition crest_right_04 seed 0 at 3.68 s (the slow
+   under residual tissue the 45 never-ok searches of 48 runs replaced the track 38 times, with it 7
+   (BENCHMARKS.md §6l). Measured on or_fast_reposition crest_right_04 seed 0 at 3.68 s (the slow
    trigger on a track 0.84 mm off that could not be ok with a quarter of the crest in view): every
    verified candidate lay 8.8-9.8 mm / 24-26 deg off at a sharp share of 0.46-0.50, the track
    refined in place scored 0.76, and the search replaced it: 8 mm off for the next second
@@ -69,8 +69,9 @@ drawn from the image and the track instead of a template bank:
 
 The budget is counted in likelihood evaluations (``evaluations``: poses scored by the backend, 60 %
 to the image's candidates, 10 % to the track's, the rest to the local search) plus ``4 * refine_top``
-refinements (two chains of two each; 3 more for the incumbent: one refinement, then two from it): work, never seconds (0.45 s of CPU
-per search on average over the 48 fast repositions of BENCHMARKS.md §6l, 0.38 s with one chain each).
+refinements (two chains of two each; 3 more for the incumbent: one refinement, then two from it):
+work, never seconds (0.45 s of CPU per search on average over the 48 fast repositions of
+BENCHMARKS.md §6l, 0.38 s with one chain each).
 A found pose is no evidence of being right: the recovery's confirmation rule
 (app/filter/recovery.py, "Honesty") keeps it from being ok until the rules have agreed for
 ``confirm_frames`` weighed frames in a row.
@@ -269,10 +270,12 @@ class WideSearch:
         if not confirmed:
             best = max(verified, key=lambda v: v[1], default=(math.nan, math.nan, None, ""))
             return SearchResult(None, best[0], best[1], evaluations, refinements, "", candidates, incumbent=incumbent)
-        # the highest consistent sharp share wins; the incumbent unless beaten by more than the margin
-        margin = self.config.margin
-        fitness, sharp, T_base_bone, source = max(confirmed, key=lambda v: (v[1] + (margin if v[3] == INCUMBENT else 0.0),
-                                                                            v[3] == INCUMBENT))
+        # the highest consistent sharp share wins; the incumbent counts its share plus the margin (kept
+        # unless beaten by more) and wins a tie
+        def rank(v):
+            return (v[1] + self.config.margin, True) if v[3] == INCUMBENT else (v[1], False)
+
+        fitness, sharp, T_base_bone, source = max(confirmed, key=rank)
         if source == INCUMBENT:
             return SearchResult(None, fitness, sharp, evaluations, refinements, INCUMBENT, candidates,
                                 kept=True, incumbent=incumbent)
