@@ -56,7 +56,14 @@ tissue at a good fit restarts the slow trigger's count with every move, and noth
 or_fast_reposition crest_left_03 seed 2 slid from 76 to 175 mm off over 5 s at a fit of 0.77-0.95,
 never searched, never found again (BENCHMARKS.md §6g). A bone is repositioned in about a second
 (or_fast_reposition 0.9 s, bone_moves 0.8 s); a search while it still moves is no harm: it keeps
-the track unless it finds a pose that explains the image better (wide_search.py, 6).
+the track unless it finds a pose that explains the image better (wide_search.py, 6). While the
+track is a found or kept pose awaiting its confirmation ("Honesty" below) the factor is 1: such a
+pose is a hypothesis, and one the rules have not found ok for ``after_uncertain_s`` is searched
+again, moving or not (or_fast_reposition crest_left_05 seed 4: a search confirmed a pose 68 mm off
+at a sharp share of 0.515 with a fifth of the crest in view, the rules never found it ok, and the
+sliding trigger searched again 2 s later, which found the bone: 2.03 s after it was in view, 1.02 s
+with the factor 1; BENCHMARKS.md §6m). Searching again costs only CPU there: a kept pose's
+confirmation count under way goes on (:meth:`RecoveryPolicy.kept`).
 
 **When.** A due attempt waits while the bone is mostly hidden: it runs only on a frame where at
 least ``min_visible_share`` (0.6) of the model's expected silhouette at the last confident pose is
@@ -323,7 +330,7 @@ class RecoveryPolicy:
               and self._not_ok >= self.period.frames(c.after_uncertain_s) and self._far(T_base_bone)):
             self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
         elif (c.after_uncertain_s and (self._ever_ok or beyond) and self._far(T_base_bone)
-              and self._not_ok_moving >= self.period.frames(SLIDING_FACTOR * c.after_uncertain_s)):
+              and self._not_ok_moving >= self.period.frames(self._sliding_factor() * c.after_uncertain_s)):
             self._due(f"not ok for {self._not_ok_moving} weighed frames, moving or not, "
                       f"{self._gap_text(T_base_bone)} from the last ok pose")
         elif (c.after_uncertain_s and not self._ever_ok and not self.events and not self.declined_searches
@@ -335,6 +342,11 @@ class RecoveryPolicy:
                       f"{self.kept_searches} kept the track), "
                       f"{self._gap_text(T_base_bone)} from the last ok pose")
         return status
+
+    def _sliding_factor(self) -> float:
+        """The sliding trigger's factor on ``after_uncertain_s`` (module docstring, "Trigger", the fifth):
+        1 while the track is a found or kept pose awaiting its confirmation, else SLIDING_FACTOR."""
+        return 1.0 if self._unconfirmed else SLIDING_FACTOR
 
     def _back_in_view(self, weighed: bool) -> int:
         """The count of not-weighed frames (not ok) just ended by a weighed one when it reached
