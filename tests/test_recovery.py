@@ -659,9 +659,10 @@ class _ScoredRefiner:
         from app.filter.refine import RefineResult
 
         self.widths.append(start_width)
-        fitness, sharp = self.scores[round(1e3 * T_camera_bone[0, 3])]
-        return RefineResult(np.array(T_camera_bone), np.eye(6), fitness, 100, int(100 * fitness), 100, 1e-3, True,
-                            sharp=sharp, behind=0.0, behind_allowed=0.05, noise=1e-3)
+        fitness, sharp, *pixels = self.scores[round(1e3 * T_camera_bone[0, 3])]
+        expected, stride = pixels or (100, 1)
+        return RefineResult(np.array(T_camera_bone), np.eye(6), fitness, expected, int(expected * fitness), expected,
+                            1e-3, True, sharp=sharp, behind=0.0, behind_allowed=0.05, noise=1e-3, stride=stride)
 
 
 def _verified(scores, incumbent_x_mm=0):
@@ -696,6 +697,28 @@ def test_a_search_keeps_the_track_when_no_candidate_explains_the_image_better():
     assert not unconfirmed.kept and unconfirmed.T_base_bone[0, 3] == pytest.approx(0.009)
     nothing, _ = _verified({9: (0.97, 0.30), 0: (0.50, 0.90)})
     assert not nothing.kept and nothing.T_base_bone is None   # declined, as without an incumbent
+
+
+def test_a_candidate_explaining_fewer_pixels_does_not_replace_the_track():
+    """or_fast_reposition crest_right_05 seed 3 at 3.67 s (every image cluster verified): the track
+    0.2 mm off scored a consistent sharp share of 0.608 over 2,023 silhouette pixels and lost to a fit
+    11.9 mm / 18.9 deg off at 0.630 over 1,544. A candidate replaces a confirmed track only when it
+    beats its share by more than the margin while explaining at least as many full-resolution pixels
+    (share x expected x stride^2: a fit at stride 2 samples every fourth)."""
+    from app.filter.wide_search import explained_pixels
+
+    impostor, _ = _verified({9: (0.99, 0.630, 1544, 1), 0: (0.78, 0.608, 2023, 1)})
+    assert impostor.kept and impostor.sharp == pytest.approx(0.608)
+    better, _ = _verified({9: (0.86, 0.717, 3984, 1), 0: (0.66, 0.266, 1265, 1)})   # the bone found, 4.67 s
+    assert not better.kept and better.T_base_bone[0, 3] == pytest.approx(0.009)
+    strided, _ = _verified({9: (0.9, 0.70, 600, 2), 0: (0.9, 0.60, 2000, 1)})      # 0.70 x 600 x 4 = 1680 >= 1200
+    assert not strided.kept
+    no_track, _ = _verified({9: (0.99, 0.630, 1544, 1), 0: (0.5, 0.608, 2023, 1)})   # the track not confirmed
+    assert no_track.T_base_bone is not None
+    from app.filter.refine import RefineResult
+    fit = RefineResult(np.eye(4), np.eye(6), 0.9, 500, 450, 500, 1e-3, True, sharp=0.6, behind=0.0,
+                       behind_allowed=0.05, noise=1e-3, stride=2)
+    assert explained_pixels(fit) == pytest.approx(0.6 * 500 * 4)
 
 
 class _SlidingRefiner(_ScoredRefiner):

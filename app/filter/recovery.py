@@ -88,7 +88,7 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
   candidates from the image (where its height map stands out, the crest's ridge put there, turned
   about up) and from the track's recent not-lost estimates (:meth:`RecoveryPolicy.track_poses`: it
   followed part of the move), scored by the likelihood backend, searched locally and verified by
-  the refinement; ``search_evaluations`` likelihood evaluations plus 15 refinements (work, never
+  the refinement; ``search_evaluations`` likelihood evaluations plus 23 refinements (work, never
   seconds). A found pose seeds the cloud (FOUND_SIGMA_M / FOUND_SIGMA_RAD about it) and the
   refinement's track (RefinedTrack.seed, which resets the static-bone prior: its held base-frame
   pose is where the bone WAS and must not drag the track back). A search that confirms nothing

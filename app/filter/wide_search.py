@@ -28,8 +28,11 @@ drawn from the image and the track instead of a template bank:
    (Rubinstein and Kroese 2004: draw around the best, keep the best; σ halved per round; turns
    about the bone's centroid, so the crest does not swing about the bone frame's origin).
 5. **Verification** by the refinement (app/filter/refine.py, robust point-to-plane Gauss-Newton at
-   the sensor's resolution) from the ``refine_top`` best (the best from the track and the others
-   from the image) in two chains, each a refinement and one more from its result at the default
+   the sensor's resolution) from the ``refine_top`` (5) best (the best from the track and the others
+   from the image: every image cluster; with two image slots, the crest turned 180 deg about up,
+   which the filter's likelihood at 160x120 can score above the bone, took both while a cluster
+   1.5 mm from the bone went unverified: or_fast_reposition crest_left_02 seed 1 at the filter's
+   seed 1, 4.41 s; BENCHMARKS.md §6m) in two chains, each a refinement and one more from its result at the default
    first Tukey width: one starting at twice that width (a wider capture, as refine_track.py's
    seeded start), one at width 0 (``VERIFY_WIDTHS``); the more consistent fit of the two stands for
    the candidate. With most of the crest out of the image the landscape along the ridge is flat and
@@ -56,22 +59,27 @@ drawn from the image and the track instead of a template bank:
    §6l). It takes part in the ranking; where it is
    confirmed and no candidate's consistent sharp share beats it by more than ``margin``
    (refine.nearby_margin, 0.015: the track's own rule for a fit that explains the image better,
-   app/filter/nearby_search.py), the search *keeps* the track (``SearchResult.kept``): replacing a
+   app/filter/nearby_search.py) *while explaining at least as many of the image's pixels*
+   (:func:`explained_pixels`: the share times the silhouette's usable measurements at full
+   resolution), the search *keeps* the track (``SearchResult.kept``): replacing a
    track by a pose that explains the image less well, or only as well, is never what the evidence
-   says. Without the margin a search replaced a track 0.1 mm off by a fit 0.5 mm off that scored
-   0.006 more (crest_right_02 seed 3 at 6.07 s), which restarts the recovery's confirmation, and
-   under residual tissue the 45 never-ok searches of 48 runs replaced the track 38 times, with it 7
-   (BENCHMARKS.md §6l). Measured on or_fast_reposition crest_right_04 seed 0 at 3.68 s (the slow
-   trigger on a track 0.84 mm off that could not be ok with a quarter of the crest in view): every
-   verified candidate lay 8.8-9.8 mm / 24-26 deg off at a sharp share of 0.46-0.50, the track
-   refined in place scored 0.76, and the search replaced it: 8 mm off for the next second
-   (BENCHMARKS.md §6g).
+   says. A share alone does not tell a fit over few measurements from one over many (a pose that
+   puts more of the model out of the image needs to explain less): with every image cluster verified, or_fast_reposition crest_right_05 seed 3's track 0.2 mm off
+   (0.608 of 2,023 pixels) lost at 3.67 s to a fit 11.9 mm / 18.9 deg off (0.630 of 1,544), and three
+   right tracks were so replaced over 48 runs at the filter's seed 1 (BENCHMARKS.md §6m). Without
+   the margin a search replaced a track 0.1 mm off by a fit 0.5 mm off that scored 0.006 more
+   (crest_right_02 seed 3 at 6.07 s), which restarts the recovery's confirmation, and under residual
+   tissue the 45 never-ok searches of 48 runs replaced the track 38 times, with it 7 (BENCHMARKS.md
+   §6l). Measured on or_fast_reposition crest_right_04 seed 0 at 3.68 s (the slow trigger on a track
+   0.84 mm off that could not be ok with a quarter of the crest in view): every verified candidate
+   lay 8.8-9.8 mm / 24-26 deg off at a sharp share of 0.46-0.50, the track refined in place scored
+   0.76, and the search replaced it: 8 mm off for the next second (BENCHMARKS.md §6g).
 
 The budget is counted in likelihood evaluations (``evaluations``: poses scored by the backend, 60 %
 to the image's candidates, 10 % to the track's, the rest to the local search) plus ``4 * refine_top``
-refinements (two chains of two each; 3 more for the incumbent: one refinement, then two from it):
-work, never seconds (0.45 s of CPU per search on average over the 48 fast repositions of
-BENCHMARKS.md §6l, 0.38 s with one chain each).
+refinements (two chains of two each; 3 more for the incumbent: one refinement, then two from it;
+23 in all): work, never seconds (0.60 s of CPU per search on average over the 48 fast repositions
+at the filter's seed 1, BENCHMARKS.md §6m; 0.45 s with three candidates, §6l).
 A found pose is no evidence of being right: the recovery's confirmation rule
 (app/filter/recovery.py, "Honesty") keeps it from being ok until the rules have agreed for
 ``confirm_frames`` weighed frames in a row.
@@ -120,7 +128,7 @@ class SearchConfig:
     anchors: int = 8
     yaw_steps: int = 24
     clusters: int = 6
-    refine_top: int = 3
+    refine_top: int = 5
     min_fitness: float = 0.6
     min_sharp: float = MIN_SHARP
     margin: float = 0.015
@@ -263,24 +271,31 @@ class WideSearch:
             result, spent = self._verified_fit(depth_full, T_camera_bone, source == INCUMBENT)
             refinements += spent
             if result is not None:
-                verified.append((result.fitness, consistent_sharp(result), T_base_camera @ result.T_camera_bone, source))
-        incumbent = next(((f, s) for f, s, _, src in verified if src == INCUMBENT), (math.nan, math.nan))
-        candidates = [(f, s, T) for f, s, T, src in verified if src != INCUMBENT]
+                verified.append((result.fitness, consistent_sharp(result), T_base_camera @ result.T_camera_bone, source,
+                                 explained_pixels(result)))
+        incumbent = next(((f, s) for f, s, _, src, _ in verified if src == INCUMBENT), (math.nan, math.nan))
+        candidates = [(f, s, T) for f, s, T, src, _ in verified if src != INCUMBENT]
         confirmed = [v for v in verified if v[0] >= self.config.min_fitness and v[1] >= self.config.min_sharp]
         if not confirmed:
-            best = max(verified, key=lambda v: v[1], default=(math.nan, math.nan, None, ""))
+            best = max(verified, key=lambda v: v[1], default=(math.nan, math.nan, None, "", 0.0))
             return SearchResult(None, best[0], best[1], evaluations, refinements, "", candidates, incumbent=incumbent)
-        # the highest consistent sharp share wins; the incumbent counts its share plus the margin (kept
-        # unless beaten by more) and wins a tie
-        def rank(v):
-            return (v[1] + self.config.margin, True) if v[3] == INCUMBENT else (v[1], False)
-
-        fitness, sharp, T_base_bone, source = max(confirmed, key=rank)
+        fitness, sharp, T_base_bone, source, _ = self._winner(confirmed)
         if source == INCUMBENT:
             return SearchResult(None, fitness, sharp, evaluations, refinements, INCUMBENT, candidates,
                                 kept=True, incumbent=incumbent)
         return SearchResult(T_base_bone, fitness, sharp, evaluations, refinements, source, candidates,
                             incumbent=incumbent)
+
+    def _winner(self, confirmed: list) -> tuple:
+        """The confirmed fit that stands (module docstring, 6): without a confirmed incumbent the highest
+        consistent sharp share; with one, the best of the candidates that beat its share by more than
+        ``margin`` while explaining at least as many pixels (:func:`explained_pixels`), else the incumbent."""
+        incumbent = next((v for v in confirmed if v[3] == INCUMBENT), None)
+        if incumbent is None:
+            return max(confirmed, key=lambda v: v[1])
+        rivals = [v for v in confirmed if v[3] != INCUMBENT
+                  and v[1] > incumbent[1] + self.config.margin and v[4] >= incumbent[4]]
+        return max(rivals, key=lambda v: v[1]) if rivals else incumbent
 
     def _verified_fit(self, depth_full, T_camera_bone, incumbent: bool):
         """(the most consistent converged fit or None, refinements spent) from one candidate: per first
@@ -303,6 +318,13 @@ class WideSearch:
                         (best is None or consistent_sharp(result) > consistent_sharp(best)):
                     best = result
         return best, spent
+
+
+def explained_pixels(result) -> float:
+    """The full-resolution pixels a fit explains: its consistent sharp share of the silhouette's usable
+    measurements, ``consistent_sharp * expected * stride**2`` (a fit at stride 2 samples every
+    fourth pixel)."""
+    return consistent_sharp(result) * result.expected * max(result.stride, 1) ** 2
 
 
 def image_anchors(depth: np.ndarray, camera, T_base_camera: np.ndarray, count: int,
