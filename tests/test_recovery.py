@@ -250,6 +250,29 @@ def test_the_wide_search_finds_a_bone_moved_12_cm_and_45_deg_from_the_last_ok_po
     assert result.refinements <= 4 * tracker.wide_search.config.refine_top      # two chains of two per candidate
 
 
+def test_the_wide_search_verifies_every_image_cluster_and_the_best_track_cluster(search_frame, monkeypatch):
+    """With two image slots the crest turned 180 deg about up, which the filter's likelihood can score
+    above the bone, took both while a cluster 1.5 mm from the bone went unverified (or_fast_reposition
+    crest_left_02 seed 1 at the filter's seed 1; BENCHMARKS.md §6m): every image cluster the local
+    search ran on is verified, with the best of the track's, and the tracker's estimate."""
+    from app.depth_image import downsample_nearest
+    from app.filter.wide_search import INCUMBENT, TRACK_CLUSTERS, WideSearch
+
+    tracker, depth, T_base_camera, T_true = search_frame
+    search = tracker.wide_search
+    sources, verify = [], WideSearch._verify
+
+    def spy(self, found, *args):
+        sources.extend(src for *_, src in found)
+        return verify(self, found, *args)
+
+    monkeypatch.setattr(WideSearch, "_verify", spy)
+    small = downsample_nearest(depth, *tracker.config.resolution)
+    search.run(small, depth, T_base_camera, T_true, [T_true], np.random.default_rng(3), incumbent=T_true)
+    assert sources.count("image") == search.config.clusters - TRACK_CLUSTERS
+    assert sources.count("track") == 1 and sources.count(INCUMBENT) == 1
+
+
 def test_the_wide_search_takes_its_margin_from_refine_nearby_margin(search_frame):
     """One rule for "explains the image better" (wide_search.py, 6): the search's margin is the
     configured refine.nearby_margin, the track's own."""

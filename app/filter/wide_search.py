@@ -88,6 +88,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -152,6 +153,17 @@ class SearchResult:
     candidates: list = field(default_factory=list)
     kept: bool = False
     incumbent: tuple = (math.nan, math.nan)
+
+
+class _Verified(NamedTuple):
+    """One verified pose: its refined fit's fitness and consistent sharp share, the refined pose (base
+    frame), its source ('image' | 'track' | INCUMBENT) and :func:`explained_pixels`."""
+
+    fitness: float
+    sharp: float
+    T_base_bone: np.ndarray | None
+    source: str
+    pixels: float
 
 
 class WideSearch:
@@ -271,31 +283,32 @@ class WideSearch:
             result, spent = self._verified_fit(depth_full, T_camera_bone, source == INCUMBENT)
             refinements += spent
             if result is not None:
-                verified.append((result.fitness, consistent_sharp(result), T_base_camera @ result.T_camera_bone, source,
-                                 explained_pixels(result)))
-        incumbent = next(((f, s) for f, s, _, src, _ in verified if src == INCUMBENT), (math.nan, math.nan))
-        candidates = [(f, s, T) for f, s, T, src, _ in verified if src != INCUMBENT]
-        confirmed = [v for v in verified if v[0] >= self.config.min_fitness and v[1] >= self.config.min_sharp]
+                verified.append(_Verified(result.fitness, consistent_sharp(result),
+                                          T_base_camera @ result.T_camera_bone, source, explained_pixels(result)))
+        incumbent = next(((v.fitness, v.sharp) for v in verified if v.source == INCUMBENT), (math.nan, math.nan))
+        candidates = [(v.fitness, v.sharp, v.T_base_bone) for v in verified if v.source != INCUMBENT]
+        confirmed = [v for v in verified if v.fitness >= self.config.min_fitness and v.sharp >= self.config.min_sharp]
         if not confirmed:
-            best = max(verified, key=lambda v: v[1], default=(math.nan, math.nan, None, "", 0.0))
-            return SearchResult(None, best[0], best[1], evaluations, refinements, "", candidates, incumbent=incumbent)
-        fitness, sharp, T_base_bone, source, _ = self._winner(confirmed)
-        if source == INCUMBENT:
-            return SearchResult(None, fitness, sharp, evaluations, refinements, INCUMBENT, candidates,
+            best = max(verified, key=lambda v: v.sharp, default=_Verified(math.nan, math.nan, None, "", 0.0))
+            return SearchResult(None, best.fitness, best.sharp, evaluations, refinements, "", candidates,
+                                incumbent=incumbent)
+        winner = self._winner(confirmed)
+        if winner.source == INCUMBENT:
+            return SearchResult(None, winner.fitness, winner.sharp, evaluations, refinements, INCUMBENT, candidates,
                                 kept=True, incumbent=incumbent)
-        return SearchResult(T_base_bone, fitness, sharp, evaluations, refinements, source, candidates,
-                            incumbent=incumbent)
+        return SearchResult(winner.T_base_bone, winner.fitness, winner.sharp, evaluations, refinements, winner.source,
+                            candidates, incumbent=incumbent)
 
-    def _winner(self, confirmed: list) -> tuple:
+    def _winner(self, confirmed: list[_Verified]) -> _Verified:
         """The confirmed fit that stands (module docstring, 6): without a confirmed incumbent the highest
         consistent sharp share; with one, the best of the candidates that beat its share by more than
         ``margin`` while explaining at least as many pixels (:func:`explained_pixels`), else the incumbent."""
-        incumbent = next((v for v in confirmed if v[3] == INCUMBENT), None)
+        incumbent = next((v for v in confirmed if v.source == INCUMBENT), None)
         if incumbent is None:
-            return max(confirmed, key=lambda v: v[1])
-        rivals = [v for v in confirmed if v[3] != INCUMBENT
-                  and v[1] > incumbent[1] + self.config.margin and v[4] >= incumbent[4]]
-        return max(rivals, key=lambda v: v[1]) if rivals else incumbent
+            return max(confirmed, key=lambda v: v.sharp)
+        rivals = [v for v in confirmed if v.source != INCUMBENT
+                  and v.sharp > incumbent.sharp + self.config.margin and v.pixels >= incumbent.pixels]
+        return max(rivals, key=lambda v: v.sharp) if rivals else incumbent
 
     def _verified_fit(self, depth_full, T_camera_bone, incumbent: bool):
         """(the most consistent converged fit or None, refinements spent) from one candidate: per first
