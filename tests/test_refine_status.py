@@ -69,6 +69,10 @@ def test_the_track_is_kept_while_the_filter_agrees(twin_frame):
     track.update(depth, T_BASE_CAMERA, T_base_a)
     again = track.update(depth, T_BASE_CAMERA, T_base_a @ se3.from_rotvec_trans(np.zeros(3), np.array([0.001, 0, 0])))
     assert again.source == "track" and not again.competitor      # one refinement, no second candidate
+    # the kept fit's consistent sharp share, which the recovery tests against the search's bar
+    # (app/filter/recovery.py, the sixth trigger): a clean frame at the right pose clears it
+    from app.filter.wide_search import MIN_SHARP
+    assert MIN_SHARP < again.sharp <= again.fitness
 
 
 def test_no_fit_breaks_the_track(twin_frame):
@@ -76,6 +80,7 @@ def test_no_fit_breaks_the_track(twin_frame):
     track = _track(vertices, faces)
     out = track.update(np.zeros((480, 640)), T_BASE_CAMERA, T_base_a)
     assert out.T_base_bone is None and track.T_base_bone is None and out.template_std == math.inf
+    assert math.isnan(out.sharp)                                  # no fit converged: the recovery's bar test is off
 
 
 @pytest.mark.parametrize("fitness, std, competitor, expected", [

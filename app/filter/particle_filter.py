@@ -95,7 +95,8 @@ class FilterOutput:
     timings : seconds per stage (STAGES). Set by the tracker's local refinement
     (app/filter/refine_track.py): refine_fitness (NaN when not refined), template_std (m),
     refined : T_base_bone is the refined pose; competitor : a competing pose fits about as well;
-    nearby : m, the template gap to a fit near the track that explains the image better (NaN: none found).
+    nearby : m, the template gap to a fit near the track that explains the image better (NaN: none found);
+    refine_sharp : the best fit's consistent sharp share, kept or not (NaN when no fit converged).
     Set by the tracker's recovery (app/filter/recovery.py): reinitialised : the particles were
     re-initialised on this frame (a lost track).
     """
@@ -119,6 +120,7 @@ class FilterOutput:
     refined: bool = False
     competitor: bool = False
     nearby: float = float("nan")
+    refine_sharp: float = float("nan")
     reinitialised: bool = False
 
 

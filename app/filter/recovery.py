@@ -64,6 +64,16 @@ at a sharp share of 0.515 with a fifth of the crest in view, the rules never fou
 sliding trigger searched again 2 s later, which found the bone: 2.03 s after it was in view, 1.02 s
 with the factor 1; BENCHMARKS.md §6m). Searching again costs only CPU there: a kept pose's
 confirmation count under way goes on (:meth:`RecoveryPolicy.kept`).
+A sixth: a found or kept pose awaiting its confirmation whose refined fit falls below the bar the
+wide search found it by (``search_bar``, wide_search.MIN_SHARP: a consistent sharp share of 0.5;
+the frame's best fit, kept or not) on ``after_lost_s`` of weighed frames in a row that the rules do
+not find ok, far from the last ok pose: the search would not accept it on this image. On
+or_fast_reposition crest_right_02 seed 3 at the filter's seed 1, a pose found 11 mm / 34 deg off at
+0.502 with a third of the crest in view explained ~1,250 pixels of a silhouette that grew to
+~4,150 as the rest came into view (a share of 0.30), and waited 1 s for the sliding trigger: found
+2.52 s after the bone was in view, 2.02 s with this rule. Over the 48 fast repositions at three
+filter seeds: 143 of 144 within 2 s (141 without it; BENCHMARKS.md §6n). It uses the cooldown's
+backoff like the others.
 
 **When.** A due attempt waits while the bone is mostly hidden: it runs only on a frame where at
 least ``min_visible_share`` (0.6) of the model's expected silhouette at the last confident pose is
@@ -242,8 +252,9 @@ class RecoveryPolicy:
     def __init__(self, config: RecoveryConfig, centroid_bone: np.ndarray, surface_point_bone: np.ndarray,
                  refine_enabled: bool, min_fitness: float = 0.6,
                  still: tuple[float, float, float] = (0.03, math.radians(20.0), 0.2),
-                 start_sigmas: tuple[float, float] = (math.inf, math.inf)):
+                 start_sigmas: tuple[float, float] = (math.inf, math.inf), search_bar: float = math.nan):
         self.config = config
+        self.search_bar = search_bar           # the wide search's MIN_SHARP: a found pose below it is searched again
         self.start_sigmas = start_sigmas       # init.sigma_p (m), sigma_r (rad): the start pose's prior
         self.centroid_bone = np.asarray(centroid_bone, float).reshape(3)
         self.surface_point_bone = np.asarray(surface_point_bone, float).reshape(3)
@@ -272,6 +283,7 @@ class RecoveryPolicy:
         self.kept_searches = 0                 # searches that kept the track (no better pose found)
         self._searching = False                # a search found nothing: retried until an ok frame or a found pose
         self._outside = 0                      # weighed frames in a row never ok and outside the start's prior
+        self._below_bar = 0                    # weighed frames in a row an unconfirmed pose's fit is below search_bar
         self.period = FramePeriod()            # the processed frames' period: seconds to frames
 
     # -- inputs ------------------------------------------------------------------------------
@@ -286,9 +298,11 @@ class RecoveryPolicy:
 
     # -- per frame ---------------------------------------------------------------------------
     def update(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float,
-               T_base_bone: np.ndarray, stamp: float) -> TrackingStatus:
+               T_base_bone: np.ndarray, stamp: float, sharp: float = math.nan) -> TrackingStatus:
         """One frame's final status in, the status to report out (capped at uncertain while holding);
-        remembers the confident pose and decides whether a re-initialisation is due (``pending``)."""
+        remembers the confident pose and decides whether a re-initialisation is due (``pending``).
+        ``sharp``: the frame's best refined fit's consistent sharp share, kept or not (NaN when no fit
+        converged; the sixth trigger)."""
         self.period.add(stamp)
         self._since += 1
         rules_ok = status == TrackingStatus.OK
@@ -312,6 +326,8 @@ class RecoveryPolicy:
             self._outside = self._outside + 1 if beyond and not self.events else 0
         self._not_ok = 0 if moving or rules_ok else (self._not_ok + 1 if weighed else self._not_ok)
         self._not_ok_moving = 0 if rules_ok else self._not_ok_moving + int(weighed)
+        if weighed:
+            self._below_bar = self._below_bar + 1 if self._unconfirmed and not rules_ok and sharp < self.search_bar else 0
         reason = self._bad_reason(status, weighed, refined, fitness, T_base_bone)
         if reason is not None:
             self._bad += 1
@@ -333,6 +349,9 @@ class RecoveryPolicy:
               and self._not_ok_moving >= self.period.frames(self._sliding_factor() * c.after_uncertain_s)):
             self._due(f"not ok for {self._not_ok_moving} weighed frames, moving or not, "
                       f"{self._gap_text(T_base_bone)} from the last ok pose")
+        elif self._below_bar >= after_lost and self._far(T_base_bone):
+            self._due(f"the found pose's fit below the search's bar for {self._below_bar} weighed frames "
+                      f"(sharp share {sharp:.2f} < {self.search_bar:.2f}), {self._gap_text(T_base_bone)} from the last ok pose")
         elif (c.after_uncertain_s and not self._ever_ok and not self.events and not self.declined_searches
               and not self.kept_searches
               and self._not_ok >= self.period.frames(NEVER_OK_SEARCH_S)):
@@ -485,7 +504,7 @@ class RecoveryPolicy:
         self._attempts += 1
         self._searching = self._ever_ok      # a never-ok track has no last ok pose to be far from: its one search is spent
         self._unconfirmed = True   # a kept pose away from the last ok one needs evidence, as a found one (a count under way goes on)
-        self._bad, self._not_ok, self._not_ok_moving = 0, 0, 0
+        self._bad, self._not_ok, self._not_ok_moving, self._below_bar = 0, 0, 0, 0
         self._since, self._wait = 0, self._cooldown()
 
     def smc_point(self) -> np.ndarray:
@@ -500,7 +519,7 @@ class RecoveryPolicy:
         self.events.append(Reinitialisation(float(stamp), kind, self.pending or ""))
         self.pending = None
         self._attempts += 1
-        self._since, self._bad, self._not_ok, self._not_ok_moving = 0, 0, 0, 0
+        self._since, self._bad, self._not_ok, self._not_ok_moving, self._below_bar = 0, 0, 0, 0, 0
         self._wait = self._cooldown()
         self._recent.clear()
         self._hold = self.config.hold_frames

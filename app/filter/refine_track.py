@@ -139,7 +139,10 @@ class RefineOutcome:
     (app/filter/behind_pool.py) when larger; held_chi2 : the static prior's Δχ² from the pose it kept to the
     kept fit when it did not release onto it (0 when it did, NaN without the prior; status.py); nearby :
     the template gap (m) to a fit near the track that explains the image better, found by the
-    last nearby search (:class:`app.filter.nearby_search.NearbySearch`; NaN when none was found)."""
+    last nearby search (:class:`app.filter.nearby_search.NearbySearch`; NaN when none was found);
+    sharp : the frame's best fit's consistent sharp share (:func:`consistent_sharp`), kept or not (NaN
+    when no fit converged): the recovery tests a found pose against the wide search's bar with it
+    (app/filter/recovery.py, the sixth trigger; a fit too poor to keep is below the bar too)."""
 
     T_base_bone: np.ndarray | None
     fitness: float
@@ -151,6 +154,7 @@ class RefineOutcome:
     behind: float = float("nan")
     held_chi2: float = float("nan")
     nearby: float = float("nan")
+    sharp: float = float("nan")
 
 
 def behind_excess(result: RefineResult) -> float:
@@ -386,4 +390,4 @@ class RefinedTrack:
             nearby = self.nearby.step(lambda T_start: self._scored_fit(depth, T_camera_base, T_start), kept,
                                       consistent_sharp(best))
         return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0,
-                             behind, held_chi2, nearby)
+                             behind, held_chi2, nearby, consistent_sharp(best))

@@ -19,6 +19,7 @@ module does the policy's attempts on the tracker's parts (app/pipeline/tracker.p
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 
@@ -166,7 +167,15 @@ def _policy(config, vertices: np.ndarray) -> RecoveryPolicy:
     st = config.status
     return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, st.min_fitness,
                           (st.uncertain_speed, st.uncertain_angular_speed, st.motion_window_s),
-                          (config.init_sigma_p, config.init_sigma_r))
+                          (config.init_sigma_p, config.init_sigma_r), _search_bar(config))
+
+
+def _search_bar(config) -> float:
+    """The wide search's verification bar on the consistent sharp share (wide_search.MIN_SHARP) when
+    the recovery searches, else NaN (the policy's sixth trigger off)."""
+    from app.filter.wide_search import MIN_SHARP
+
+    return MIN_SHARP if config.recovery.search and config.refine.enabled else math.nan
 
 
 def _wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedTrack | None, vertices: np.ndarray):

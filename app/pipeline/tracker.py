@@ -166,7 +166,7 @@ class DepthTracker:
             result = replace(result, status=TrackingStatus.UNCERTAIN)   # start_from_point: never ok
         if self.recovery is not None:
             status = self.recovery.update(result.status, result.weighed, result.refined, result.refine_fitness,
-                                          result.T_base_bone, stamp)
+                                          result.T_base_bone, stamp, sharp=result.refine_sharp)
             result = replace(result, status=status, reinitialised=reinitialised)
         self._T_base_bone_last = result.T_base_bone
         for stage, seconds in result.timings.items():
@@ -200,7 +200,7 @@ class DepthTracker:
         T_base_bone = out.T_base_bone if out.T_base_bone is not None else result.T_base_bone
         return replace(result, T_base_bone=T_base_bone, status=status, timings=timings, refine_fitness=out.fitness,
                        template_std=out.template_std, refined=out.T_base_bone is not None, competitor=out.competitor,
-                       nearby=out.nearby)
+                       nearby=out.nearby, refine_sharp=out.sharp)
 
     def report(self) -> dict:
         """For the summaries: the re-initialisations (count, stamps, kinds, reasons) and which points
