@@ -954,6 +954,44 @@ def test_the_replay_summary_names_the_reinitialisations_and_the_searches():
     assert "3 wide searches: 1 found a pose, 1 kept the track, 0 found nothing" in text
 
 
+def test_a_kept_track_moves_onto_its_refined_pose_when_the_search_refined_it_away():
+    """or_fast_reposition crest_left_05 seed 1 at the filter's seed 3: three searches (4.69, 5.37,
+    6.70 s) kept a track 3.3 mm / 4-6 deg off whose own refinement (from its pose, width 0) sat in a
+    local minimum at a consistent sharp share of 0.26-0.30; the incumbent's wider chain had refined
+    it to 0.1 mm (0.91), but a kept search changed nothing: found 2.54 s after the bone was in view.
+    A kept track whose own fit is below the search's bar and whose refined pose lies more than
+    KEPT_MOVE_M / KEPT_MOVE_RAD away is moved there (the cloud shifted, the refined track seeded);
+    within that, or with its own fit over the bar, nothing moves. Either way it is no re-initialisation."""
+    from types import SimpleNamespace
+
+    from app.filter.wide_search import MIN_SHARP, SearchResult
+    from app.pipeline.recovery_runner import KEPT_MOVE_M, RecoveryRunner
+
+    T_now = se3.from_rotvec_trans(np.zeros(3), np.array([0.05, 0.0, 0.0]))
+    for gap, own, moves in [(3.3 * KEPT_MOVE_M, 0.28, True), (0.5 * KEPT_MOVE_M, 0.28, False),
+                            (3.3 * KEPT_MOVE_M, MIN_SHARP + 0.1, False)]:
+        T_kept = se3.from_rotvec_trans(np.zeros(3), np.array([0.05 + gap, 0.0, 0.0]))
+        seen = {"shifts": [], "seeds": []}
+
+        class Search:
+            def run(self, *args, incumbent=None):
+                return SearchResult(None, 0.99, 0.91, 10, 8, "incumbent", kept=True, T_base_bone_kept=T_kept)
+
+        filt = SimpleNamespace(rng=np.random.default_rng(0), shift_to=lambda new, old: seen["shifts"].append((new, old)))
+        track = SimpleNamespace(seed=lambda T: seen["seeds"].append(T))
+        policy = _policy()
+        policy.search_bar, policy.last_sharp = MIN_SHARP, own
+        policy.pending = "a test"
+        runner = RecoveryRunner(SimpleNamespace(particles=20), policy, Search(), filt, track, run_smc=None)
+        _, reinitialised = runner.run(None, None, np.eye(4), 1.0, T_now)
+        assert not reinitialised and not policy.events and runner.work["kept"] == 1
+        if moves:
+            assert len(seen["shifts"]) == 1 and seen["shifts"][0][0] is T_kept and seen["shifts"][0][1] is T_now
+            assert len(seen["seeds"]) == 1 and seen["seeds"][0] is T_kept
+        else:
+            assert not seen["shifts"] and not seen["seeds"]
+
+
 def test_the_runner_reports_a_reinitialisation_only_when_the_search_changed_the_track():
     """RecoveryRunner.run: a found pose seeds the cloud and the refined track (reinitialised); a search
     that kept the track or found nothing changes neither (not reinitialised, no event), and the

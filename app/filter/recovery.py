@@ -107,7 +107,11 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
   is ok or a search finds a pose, whether or not the trigger still holds (a wrong track sliding
   over the tissue restarts the slow trigger's count). A search whose best verified pose is the
   tracker's current estimate (refined in place; wide_search.py, 6) keeps the track
-  (:meth:`RecoveryPolicy.kept`): no change, no attempt, retried after the backed-off cooldown (a track
+  (:meth:`RecoveryPolicy.kept`): no attempt, retried after the backed-off cooldown; the track moves
+  only onto its own refined pose when its own fit is below the search's bar and that pose lies more
+  than 1 mm / 1 deg away (app/pipeline/recovery_runner.py,
+  KEPT_MOVE_M: the search's wider chain left the local minimum the track's own refinement sat in;
+  or_fast_reposition crest_left_05 seed 1 at the filter's seed 3, BENCHMARKS.md §6n) (a track
   0.8 mm off with a quarter of the crest in view was replaced by a pose 9 mm off that explained
   the image less well: or_fast_reposition crest_right_04 seed 0, BENCHMARKS.md §6g). Re-spreading around the last ok
   pose and the SMC from the trial's point prior both search where the bone was: on
@@ -284,6 +288,7 @@ class RecoveryPolicy:
         self._searching = False                # a search found nothing: retried until an ok frame or a found pose
         self._outside = 0                      # weighed frames in a row never ok and outside the start's prior
         self._below_bar = 0                    # weighed frames in a row an unconfirmed pose's fit is below search_bar
+        self.last_sharp = math.nan             # the last weighed frame's refined fit's consistent sharp share
         self.period = FramePeriod()            # the processed frames' period: seconds to frames
 
     # -- inputs ------------------------------------------------------------------------------
@@ -327,6 +332,7 @@ class RecoveryPolicy:
         self._not_ok = 0 if moving or rules_ok else (self._not_ok + 1 if weighed else self._not_ok)
         self._not_ok_moving = 0 if rules_ok else self._not_ok_moving + int(weighed)
         if weighed:
+            self.last_sharp = float(sharp)
             self._below_bar = self._below_bar + 1 if self._unconfirmed and not rules_ok and sharp < self.search_bar else 0
         reason = self._bad_reason(status, weighed, refined, fitness, T_base_bone)
         if reason is not None:

@@ -61,7 +61,8 @@ drawn from the image and the track instead of a template bank:
    (refine.nearby_margin, 0.015: the track's own rule for a fit that explains the image better,
    app/filter/nearby_search.py) *while explaining at least as many of the image's pixels*
    (:func:`explained_pixels`: the share times the silhouette's usable measurements at full
-   resolution), the search *keeps* the track (``SearchResult.kept``): replacing a
+   resolution), the search *keeps* the track (``SearchResult.kept``, with the incumbent's refined pose
+   in ``T_base_bone_kept``: the runner moves a track whose own fit fails the bar onto it): replacing a
    track by a pose that explains the image less well, or only as well, is never what the evidence
    says. A share alone does not tell a fit over few measurements from one over many (a pose that
    puts more of the model out of the image needs to explain less): with every image cluster verified, or_fast_reposition crest_right_05 seed 3's track 0.2 mm off
@@ -141,8 +142,9 @@ class SearchResult:
     none converged); evaluations : poses scored; refinements : refiner calls; source : 'image' |
     'track' of the winner; candidates : (fitness, consistent sharp, T_base_bone) of each verified one;
     kept : the incumbent (the tracker's current estimate) was confirmed and no candidate explained the
-    image better (module docstring, 6): T_base_bone is None and nothing is to change; incumbent :
-    (fitness, consistent sharp) of the incumbent's refined fit, NaN without one."""
+    image better (module docstring, 6): T_base_bone is None; incumbent : (fitness, consistent sharp)
+    of the incumbent's refined fit, NaN without one; T_base_bone_kept : a kept incumbent's refined
+    pose (the track refined in place, which may have left a local minimum), else None."""
 
     T_base_bone: np.ndarray | None
     fitness: float
@@ -153,6 +155,7 @@ class SearchResult:
     candidates: list = field(default_factory=list)
     kept: bool = False
     incumbent: tuple = (math.nan, math.nan)
+    T_base_bone_kept: np.ndarray | None = None
 
 
 class _Verified(NamedTuple):
@@ -295,7 +298,7 @@ class WideSearch:
         winner = self._winner(confirmed)
         if winner.source == INCUMBENT:
             return SearchResult(None, winner.fitness, winner.sharp, evaluations, refinements, INCUMBENT, candidates,
-                                kept=True, incumbent=incumbent)
+                                kept=True, incumbent=incumbent, T_base_bone_kept=winner.T_base_bone)
         return SearchResult(winner.T_base_bone, winner.fitness, winner.sharp, evaluations, refinements, winner.source,
                             candidates, incumbent=incumbent)
 

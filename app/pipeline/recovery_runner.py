@@ -9,8 +9,10 @@ module does the policy's attempts on the tracker's parts (app/pipeline/tracker.p
   and valid depth, and the bone's expected silhouette at the last confident pose is not mostly
   hidden (:func:`app.filter.visibility.visible_share`, the policy's ``may_run``);
 - **the attempt** (:meth:`RecoveryRunner.run`): the wide search (a found pose seeds the particles,
-  FOUND_SIGMA_M / FOUND_SIGMA_RAD about it, and the refinement's track; nothing found, or the
-  current estimate kept as the best explanation, changes nothing), a re-spread around the last confident pose, or the one-point SMC initialiser at the
+  FOUND_SIGMA_M / FOUND_SIGMA_RAD about it, and the refinement's track; nothing found changes
+  nothing; the current estimate kept as the best explanation is moved onto its refined pose when
+  its own fit is below the search's bar and that pose lies more than KEPT_MOVE_M / KEPT_MOVE_RAD
+  away, and is otherwise left alone), a re-spread around the last confident pose, or the one-point SMC initialiser at the
   policy's point (a re-spread instead while that point is behind a hand,
   :func:`app.filter.visibility.point_visible`);
 - **the work** the searches cost (searches, found, kept, likelihood evaluations, refinements, CPU and
@@ -26,11 +28,12 @@ from collections.abc import Callable
 import numpy as np
 
 from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD, RESPREAD, SEARCH, SMC, RecoveryPolicy
-from app.filter.refine_track import RefinedTrack
+from app.filter.refine_track import RefinedTrack, pose_gap
 from app.filter.visibility import point_visible, visible_share
 from app.geometry.camera import PinholeCamera
 
 log = logging.getLogger(__name__)
+KEPT_MOVE_M, KEPT_MOVE_RAD = 0.001, math.radians(1.0)
 
 
 class RecoveryRunner:
@@ -97,8 +100,9 @@ class RecoveryRunner:
                 T_base_bone_now: np.ndarray | None) -> tuple[float, bool]:
         """The wide search for a moved bone (app/filter/wide_search.py): a found pose seeds the cloud
         (FOUND_SIGMA_M / _RAD about it) and the refinement's track (which resets the static prior:
-        the old base-frame pose must not drag it back); nothing found changes nothing, and neither
-        does a search that kept the current estimate (the incumbent explained the image best)."""
+        the old base-frame pose must not drag it back); nothing found changes nothing; a search that
+        kept the current estimate (the incumbent explained the image best) moves the track onto the
+        incumbent's refined pose when that lies away from it (:meth:`_refined_in_place`)."""
         policy = self.policy
         wall0, cpu0 = time.perf_counter(), time.process_time()
         result = self.wide_search.run(depth_small, depth_m, T_base_camera, policy.T_base_bone_confident,
@@ -114,6 +118,7 @@ class RecoveryRunner:
             work["kept"] += 1
             log.info("recovery at %.3f s: wide search kept the track (fit %.2f, sharp %.2f; best candidate %.2f)",
                      stamp, result.fitness, result.sharp, max((c[1] for c in result.candidates), default=float("nan")))
+            self._refined_in_place(result.T_base_bone_kept, T_base_bone_now)
             policy.kept()
             return seconds, False
         if result.T_base_bone is None:
@@ -128,6 +133,27 @@ class RecoveryRunner:
                  result.fitness, result.sharp, result.source, policy.pending)
         policy.done(stamp, SEARCH)
         return seconds, True
+
+    def _refined_in_place(self, T_base_bone_kept: np.ndarray | None, T_base_bone_now: np.ndarray | None) -> None:
+        """A kept track whose own last fit is below the search's bar (``policy.last_sharp`` <
+        ``policy.search_bar``) moved onto its refined pose when that lies more than KEPT_MOVE_M /
+        KEPT_MOVE_RAD (1 mm / 1 deg) from the current estimate: the cloud shifted onto it, the refined track seeded
+        there (which resets its static prior, as a found pose does). The search verified the incumbent
+        with a wider chain than the track's own refinement (width 0 from its last pose), and that
+        chain can leave a local minimum: or_fast_reposition crest_left_05 seed 1 at the filter's
+        seed 3 kept a track 3.3 mm / 4-6 deg off at a consistent sharp share of 0.26-0.30 through
+        three searches whose chain refined it to 0.1 mm (0.91); 2.54 s, 0.36 s with the move
+        (BENCHMARKS.md §6n). Without the bar test the wider chain also moved right tracks onto fits
+        scoring a little higher: at that seed six runs were found later (refound mean 0.22 -> 0.35 s)."""
+        if T_base_bone_kept is None or T_base_bone_now is None or self.refined_track is None:
+            return
+        if not self.policy.last_sharp < self.policy.search_bar:     # the track's own fit passes the bar: left alone
+            return
+        dist, angle = pose_gap(T_base_bone_now, T_base_bone_kept)
+        if dist <= KEPT_MOVE_M and angle <= KEPT_MOVE_RAD:
+            return
+        self.filter.shift_to(T_base_bone_kept, T_base_bone_now)
+        self.refined_track.seed(T_base_bone_kept)
 
     def _smc_from(self, point_base: np.ndarray, depth_small: np.ndarray, T_base_camera: np.ndarray) -> None:
         """The one-point initialiser with the recovery's budget (likelihood evaluations), one run."""
