@@ -63,6 +63,8 @@ def _track(trial_dir, config):
     points = np.asarray(mesh.vertices)
     tracker = DepthTracker(config, mesh, reader.meta.camera)
     tracker.start(reader.meta.initial_pose)
+    if tracker.wide_search is not None:                             # the sixth trigger's bar is the search's own
+        assert tracker.recovery.search_bar == tracker.wide_search.config.min_sharp
     T_base_camera, valid = reader.camera_poses()
     stamps, add, statuses, reinit, knocked = [], [], [], [], False
     for frame in reader.iter_frames():
@@ -711,11 +713,12 @@ def test_a_search_keeps_the_track_when_no_candidate_explains_the_image_better():
     incumbent the refinement does not confirm never blocks a confirmed candidate."""
     result, refiner = _verified({9: (0.97, 0.50), 0: (0.97, 0.76)})
     assert result.kept and result.T_base_bone is None and result.sharp == pytest.approx(0.76)
+    assert np.allclose(result.T_base_bone_kept, np.eye(4))     # the incumbent's refined pose, for the runner's move
     assert result.incumbent == pytest.approx((0.97, 0.76)) and len(result.candidates) == 1
     # the candidate: a wide and a narrow chain; the incumbent: width 0, then 0 and the default from it
     assert refiner.widths == [0.008, 0.004, 0.0, 0.004, 0.0, 0.0, 0.004]
     better, _ = _verified({9: (0.97, 0.80), 0: (0.97, 0.76)})
-    assert not better.kept and better.T_base_bone[0, 3] == pytest.approx(0.009)
+    assert not better.kept and better.T_base_bone[0, 3] == pytest.approx(0.009) and better.T_base_bone_kept is None
     tie, _ = _verified({9: (0.97, 0.76), 0: (0.97, 0.76)})
     assert tie.kept
     within_margin, _ = _verified({9: (0.97, 0.77), 0: (0.97, 0.76)})    # better by 0.01, under the 0.015 margin

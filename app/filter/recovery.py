@@ -333,7 +333,7 @@ class RecoveryPolicy:
         self._not_ok_moving = 0 if rules_ok else self._not_ok_moving + int(weighed)
         if weighed:
             self.last_sharp = float(sharp)
-            self._below_bar = self._below_bar + 1 if self._unconfirmed and not rules_ok and sharp < self.search_bar else 0
+            self._below_bar = self._below_bar + 1 if self._unconfirmed and not rules_ok and self.fit_below_bar() else 0
         reason = self._bad_reason(status, weighed, refined, fitness, T_base_bone)
         if reason is not None:
             self._bad += 1
@@ -367,6 +367,11 @@ class RecoveryPolicy:
                       f"{self.kept_searches} kept the track), "
                       f"{self._gap_text(T_base_bone)} from the last ok pose")
         return status
+
+    def fit_below_bar(self) -> bool:
+        """Whether the last weighed frame's refined fit scored below ``search_bar`` (the share the wide
+        search confirms a pose by; False without a bar or a fit)."""
+        return self.last_sharp < self.search_bar
 
     def _sliding_factor(self) -> float:
         """The sliding trigger's factor on ``after_uncertain_s`` (module docstring, "Trigger", the fifth):

@@ -383,11 +383,10 @@ class RefinedTrack:
             self.reset()
         kept = T_best if best.fitness >= c.keep_fitness else None
         held_chi2 = self.last_info.get("held_chi2", float("nan"))
-        behind, nearby = behind_excess(best), float("nan")
+        behind, nearby, sharp = behind_excess(best), float("nan"), consistent_sharp(best)
         if kept is not None:
             pooled = self.behind_pool.add(best.behind, best.behind_mean, best.behind_var, best.expected)
             behind = max(behind, pooled) if np.isfinite(pooled) else behind
-            nearby = self.nearby.step(lambda T_start: self._scored_fit(depth, T_camera_base, T_start), kept,
-                                      consistent_sharp(best))
+            nearby = self.nearby.step(lambda T_start: self._scored_fit(depth, T_camera_base, T_start), kept, sharp)
         return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0,
-                             behind, held_chi2, nearby, consistent_sharp(best))
+                             behind, held_chi2, nearby, sharp)

@@ -135,8 +135,7 @@ class RecoveryRunner:
         return seconds, True
 
     def _refined_in_place(self, T_base_bone_kept: np.ndarray | None, T_base_bone_now: np.ndarray | None) -> None:
-        """A kept track whose own last fit is below the search's bar (``policy.last_sharp`` <
-        ``policy.search_bar``) moved onto its refined pose when that lies more than KEPT_MOVE_M /
+        """A kept track whose own last fit is below the search's bar (:meth:`RecoveryPolicy.fit_below_bar`) moved onto its refined pose when that lies more than KEPT_MOVE_M /
         KEPT_MOVE_RAD (1 mm / 1 deg) from the current estimate: the cloud shifted onto it, the refined track seeded
         there (which resets its static prior, as a found pose does). The search verified the incumbent
         with a wider chain than the track's own refinement (width 0 from its last pose), and that
@@ -147,7 +146,7 @@ class RecoveryRunner:
         scoring a little higher: at that seed six runs were found later (refound mean 0.22 -> 0.35 s)."""
         if T_base_bone_kept is None or T_base_bone_now is None or self.refined_track is None:
             return
-        if not self.policy.last_sharp < self.policy.search_bar:     # the track's own fit passes the bar: left alone
+        if not self.policy.fit_below_bar():                          # the track's own fit passes the bar: left alone
             return
         dist, angle = pose_gap(T_base_bone_now, T_base_bone_kept)
         if dist <= KEPT_MOVE_M and angle <= KEPT_MOVE_RAD:
@@ -183,25 +182,18 @@ def make_recovery(config, backend, camera: PinholeCamera, particle_filter, refin
     refiner), or None when ``recovery.enabled`` is false."""
     if not config.recovery.enabled:
         return None
-    return RecoveryRunner(config, _policy(config, vertices), _wide_search(config, backend, camera, refined_track, vertices),
-                          particle_filter, refined_track, run_smc)
+    search = _wide_search(config, backend, camera, refined_track, vertices)
+    search_bar = math.nan if search is None else search.config.min_sharp     # no search: the sixth trigger off
+    return RecoveryRunner(config, _policy(config, vertices, search_bar), search, particle_filter, refined_track, run_smc)
 
 
-def _policy(config, vertices: np.ndarray) -> RecoveryPolicy:
+def _policy(config, vertices: np.ndarray, search_bar: float) -> RecoveryPolicy:
     centroid = vertices.mean(axis=0)
     surface_point = vertices[np.argmin(np.linalg.norm(vertices - centroid, axis=1))]
     st = config.status
     return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, st.min_fitness,
                           (st.uncertain_speed, st.uncertain_angular_speed, st.motion_window_s),
-                          (config.init_sigma_p, config.init_sigma_r), _search_bar(config))
-
-
-def _search_bar(config) -> float:
-    """The wide search's verification bar on the consistent sharp share (wide_search.MIN_SHARP) when
-    the recovery searches, else NaN (the policy's sixth trigger off)."""
-    from app.filter.wide_search import MIN_SHARP
-
-    return MIN_SHARP if config.recovery.search and config.refine.enabled else math.nan
+                          (config.init_sigma_p, config.init_sigma_r), search_bar)
 
 
 def _wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedTrack | None, vertices: np.ndarray):
