@@ -239,3 +239,32 @@ def test_ct_crest_first_frame_leaves_the_wrong_minimum_with_the_multi_start(tmp_
     assert first[False, 0] > 2.0          # the wrong minimum (4.35 mm when measured)
     assert first[False, 16] < 1.0         # the multi-start's fit (0.39 mm)
     assert first[True, 0] < 1.0 and first[True, 16] < 1.0     # 0.19 / 0.56 mm when measured
+
+
+def test_a_verified_seed_is_refined_as_the_track_refines_not_with_the_wide_seed_steps():
+    """A pose the recovery's wide search verified (RefinedTrack.seed(..., verified=True)) is already the
+    refinement's fit on the image: its first frame refines it at width 0, as every track frame, and not
+    with the seed's wide first steps, which slide it where the image leaves the crest's roll loose
+    (or_fast_reposition crest_right_02 seed 3: a pose found 0.4 mm off slid to 1-6 mm / 16-26 deg;
+    BENCHMARKS.md §6o). The stub's wide steps end on a wrong fit sharper than the right one: an
+    unverified seed takes it, a verified one stays."""
+    T_right = se3.from_rotvec_trans(np.zeros(3), np.array([0.0, 0.0, 0.42]))
+    T_wrong = se3.from_rotvec_trans(np.array([0.0, 0.4, 0.0]), np.array([0.006, 0.0, 0.42]))
+
+    class _SlidingRefiner(_ChainRefiner):
+        def refine(self, depth, T_camera_bone, start_width=None):
+            self.widths.append(start_width)
+            if start_width is None or start_width > 0.0:
+                return _result(T_wrong, sharp=0.63, behind=0.0)
+            return _result(T_camera_bone, sharp=0.52, behind=0.0)
+
+    outcomes = {}
+    for verified in (False, True):
+        refiner = _SlidingRefiner(T_right)
+        track = RefinedTrack(refiner, RefineConfig(nearby_every=0), np.zeros((4, 3)), inflation=6.0)
+        track.seed(T_right, verified=verified)
+        outcomes[verified] = (track.update(np.zeros((2, 2)), np.eye(4), T_right), refiner.widths)
+    unverified, verified = outcomes[False], outcomes[True]
+    assert se3.translation_distance(unverified[0].T_base_bone, T_wrong) < 1e-12     # the wide steps slid it
+    assert verified[1] == [0.0]                                                      # one narrow refinement
+    np.testing.assert_allclose(verified[0].T_base_bone, T_right, atol=1e-12)

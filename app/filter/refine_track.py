@@ -210,13 +210,20 @@ class RefinedTrack:
         if getattr(self, "prior", None) is not None:
             self.prior.reset()
 
-    def seed(self, T_base_bone: np.ndarray, spread: tuple[float, float] | None = None) -> None:
+    def seed(self, T_base_bone: np.ndarray, spread: tuple[float, float] | None = None, verified: bool = False) -> None:
         """Start the track at a given pose (the coarse initial alignment): the first frame refines from
         it with the wide first step as well as from the filter's estimate, and keeps the better fit.
         ``spread`` = (σ_p m, σ_r rad), the start's own prior (``init.sigma_p`` / ``sigma_r``): the
         first frame also refines from ``seed_starts`` poses drawn about the start
-        (:meth:`_start_fits`); None (a recovery's pose) draws none."""
-        self.T_base_bone, self.fitness, self._seeded = np.array(T_base_bone, float), 1.0, True
+        (:meth:`_start_fits`); None (a recovery's pose) draws none. ``verified``: the pose is already
+        the refinement's fit on this image (the recovery's wide search verified it,
+        app/filter/wide_search.py, 5 and 6): the first frame refines it as the track refines every
+        frame (width 0), not with the wide first steps, which undo the verification where the image
+        leaves the crest's roll loose. or_fast_reposition crest_right_02 seed 3 at the filter's seed 1:
+        a search found the bone 0.4 mm / 0.3 deg off at 4.09 s with a third of the crest in view; the
+        wide seed steps slid it to 1.1-5.6 mm / 16-26 deg at a sharp share of 0.41-0.51 with 3-14 % of
+        the measurements behind the model, and the track stayed there until the next search (BENCHMARKS.md §6o)."""
+        self.T_base_bone, self.fitness, self._seeded = np.array(T_base_bone, float), 1.0, not verified
         self._spread = spread
         self.behind_pool.reset()
         self.nearby.reset()

@@ -94,7 +94,7 @@ from typing import NamedTuple
 import numpy as np
 
 from app.filter.motion import draws_about_centroid
-from app.filter.refine_track import consistent_sharp
+from app.filter.refine_track import behind_excess, consistent_sharp
 from app.filter.smc_init.levels import backend_level
 from app.geometry import quaternion as quat
 from app.geometry import se3
@@ -112,8 +112,8 @@ CEM_SIGMA_M, CEM_SIGMA_RAD = 0.004, math.radians(4.0)
 ANCHOR_SHARE = 0.6
 TRACK_CLUSTERS = 2
 MIN_SHARP = 0.5
-VERIFY_WIDTHS = (2.0, 0.0)   # first Tukey widths (x start_width) of a candidate's verification chains (module docstring, 5)
-INCUMBENT_WIDTHS = (0.0, 1.0)   # second Tukey widths (x start_width) of the incumbent's chains, each from width 0
+VERIFY_CHAINS = ((2.0, (1.0,)), (0.0, (0.0, 1.0)))   # a candidate's chains: (first width, second widths) x start_width (module docstring, 5)
+INCUMBENT_CHAINS = ((0.0, (0.0, 1.0)),)   # the incumbent's: width 0, then width 0 and the default width from it (6)
 INCUMBENT = "incumbent"   # the source of the tracker's current estimate among the verified (module docstring, 6)
 
 
@@ -124,7 +124,10 @@ class SearchConfig:
     refine_top : of those, refined and verified; min_fitness : a refined fit confirming less is not
     found (status.min_fitness); margin : a candidate replaces a confirmed incumbent only when its
     consistent sharp share exceeds the incumbent's by more than this (refine.nearby_margin: the
-    track's own rule for a fit that explains the image better; module docstring, 6)."""
+    track's own rule for a fit that explains the image better; module docstring, 6);
+    max_behind_excess : a fit with more of the image behind the model than the noise explains, by more
+    than this share, is not found (status.max_behind_excess: the status would never find it ok;
+    module docstring, 5)."""
 
     evaluations: int = 4000
     anchors: int = 8
@@ -134,6 +137,7 @@ class SearchConfig:
     min_fitness: float = 0.6
     min_sharp: float = MIN_SHARP
     margin: float = 0.015
+    max_behind_excess: float = 0.002
 
 
 @dataclass
@@ -160,13 +164,15 @@ class SearchResult:
 
 class _Verified(NamedTuple):
     """One verified pose: its refined fit's fitness and consistent sharp share, the refined pose (base
-    frame), its source ('image' | 'track' | INCUMBENT) and :func:`explained_pixels`."""
+    frame), its source ('image' | 'track' | INCUMBENT), :func:`explained_pixels` and its share behind
+    the model beyond the noise (:func:`app.filter.refine_track.behind_excess`)."""
 
     fitness: float
     sharp: float
     T_base_bone: np.ndarray | None
     source: str
     pixels: float
+    behind: float = 0.0
 
 
 class WideSearch:
@@ -286,11 +292,11 @@ class WideSearch:
             result, spent = self._verified_fit(depth_full, T_camera_bone, source == INCUMBENT)
             refinements += spent
             if result is not None:
-                verified.append(_Verified(result.fitness, consistent_sharp(result),
-                                          T_base_camera @ result.T_camera_bone, source, explained_pixels(result)))
+                verified.append(_Verified(result.fitness, consistent_sharp(result), T_base_camera @ result.T_camera_bone,
+                                          source, explained_pixels(result), behind_excess(result)))
         incumbent = next(((v.fitness, v.sharp) for v in verified if v.source == INCUMBENT), (math.nan, math.nan))
         candidates = [(v.fitness, v.sharp, v.T_base_bone) for v in verified if v.source != INCUMBENT]
-        confirmed = [v for v in verified if v.fitness >= self.config.min_fitness and v.sharp >= self.config.min_sharp]
+        confirmed = [v for v in verified if self._confirms(v)]
         if not confirmed:
             best = max(verified, key=lambda v: v.sharp, default=_Verified(math.nan, math.nan, None, "", 0.0))
             return SearchResult(None, best.fitness, best.sharp, evaluations, refinements, "", candidates,
@@ -301,6 +307,18 @@ class WideSearch:
                                 kept=True, incumbent=incumbent, T_base_bone_kept=winner.T_base_bone)
         return SearchResult(winner.T_base_bone, winner.fitness, winner.sharp, evaluations, refinements, winner.source,
                             candidates, incumbent=incumbent)
+
+    def _confirms(self, v) -> bool:
+        """A verified fit is found: it confirms ``min_fitness`` of the expected visible surface within 3 σ,
+        ``min_sharp`` within 1 σ (less its excess behind), and leaves no more of the image behind the
+        model than the status allows (``max_behind_excess``; module docstring, 5). ``v``: a
+        :class:`_Verified` or a :class:`app.filter.refine.RefineResult`."""
+        if isinstance(v, _Verified):
+            fitness, sharp, behind = v.fitness, v.sharp, v.behind
+        else:
+            fitness, sharp, behind = v.fitness, consistent_sharp(v), behind_excess(v)
+        c = self.config
+        return fitness >= c.min_fitness and sharp >= c.min_sharp and not behind > c.max_behind_excess
 
     def _winner(self, confirmed: list[_Verified]) -> _Verified:
         """The confirmed fit that stands (module docstring, 6): without a confirmed incumbent the highest
@@ -314,25 +332,24 @@ class WideSearch:
         return max(rivals, key=lambda v: v.sharp) if rivals else incumbent
 
     def _verified_fit(self, depth_full, T_camera_bone, incumbent: bool):
-        """(the most consistent converged fit or None, refinements spent) from one candidate: per first
-        width of ``VERIFY_WIDTHS`` (x ``start_width``) a refinement and one more from its result at the
-        default width; the incumbent: one refinement at width 0, then one more from it at each second
-        width of ``INCUMBENT_WIDTHS`` (module docstring, 5 and 6)."""
+        """(the best converged fit or None, refinements spent) from one candidate: per chain of
+        ``VERIFY_CHAINS`` (``INCUMBENT_CHAINS`` for the incumbent; widths x ``start_width``) a refinement
+        at its first width, then one more from its result at each second width (module docstring, 5 and
+        6). The best: a fit the search would confirm (:meth:`_confirms`) before one it would not, then
+        the higher consistent sharp share."""
         default = self.refiner.params.start_width
-        if incumbent:
-            chains = [(0.0, [f * default for f in INCUMBENT_WIDTHS])]
-        else:
-            chains = [(f * default, [default]) for f in VERIFY_WIDTHS]
-        best, spent = None, 0
-        for first, seconds in chains:
-            start = self.refiner.refine(depth_full, T_camera_bone, first)
+        best, best_key, spent = None, None, 0
+        for first, seconds in (INCUMBENT_CHAINS if incumbent else VERIFY_CHAINS):
+            start = self.refiner.refine(depth_full, T_camera_bone, first * default)
             spent += 1
             for second in seconds:
-                result = self.refiner.refine(depth_full, start.T_camera_bone, second)
+                result = self.refiner.refine(depth_full, start.T_camera_bone, second * default)
                 spent += 1
-                if result.converged and np.isfinite(result.fitness) and \
-                        (best is None or consistent_sharp(result) > consistent_sharp(best)):
-                    best = result
+                if not (result.converged and np.isfinite(result.fitness)):
+                    continue
+                key = (self._confirms(result), consistent_sharp(result))
+                if best is None or key > best_key:
+                    best, best_key = result, key
         return best, spent
 
 

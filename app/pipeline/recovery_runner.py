@@ -128,7 +128,7 @@ class RecoveryRunner:
         work["found"] += 1
         self.filter.set_state(policy.state_around(result.T_base_bone, self.config.particles, self.filter.rng,
                                                   FOUND_SIGMA_M, FOUND_SIGMA_RAD))
-        self.refined_track.seed(result.T_base_bone)
+        self.refined_track.seed(result.T_base_bone, verified=True)
         log.info("recovery at %.3f s: wide search found a pose (fit %.2f, sharp %.2f, from the %s) (%s)", stamp,
                  result.fitness, result.sharp, result.source, policy.pending)
         policy.done(stamp, SEARCH)
@@ -152,7 +152,7 @@ class RecoveryRunner:
         if dist <= KEPT_MOVE_M and angle <= KEPT_MOVE_RAD:
             return
         self.filter.shift_to(T_base_bone_kept, T_base_bone_now)
-        self.refined_track.seed(T_base_bone_kept)
+        self.refined_track.seed(T_base_bone_kept, verified=True)
 
     def _smc_from(self, point_base: np.ndarray, depth_small: np.ndarray, T_base_camera: np.ndarray) -> None:
         """The one-point initialiser with the recovery's budget (likelihood evaluations), one run."""
@@ -204,7 +204,7 @@ def _wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedT
     if not config.recovery.search or refined_track is None:
         return None
     search = SearchConfig(evaluations=config.recovery.search_evaluations, min_fitness=config.status.min_fitness,
-                          margin=config.refine.nearby_margin)
+                          margin=config.refine.nearby_margin, max_behind_excess=config.status.max_behind_excess)
     return WideSearch(backend, camera, refined_track.refiner, vertices, search)
 
 
