@@ -98,10 +98,13 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
   candidates from the image (where its height map stands out, the crest's ridge put there, turned
   about up) and from the track's recent not-lost estimates (:meth:`RecoveryPolicy.track_poses`: it
   followed part of the move), scored by the likelihood backend, searched locally and verified by
-  the refinement; ``search_evaluations`` likelihood evaluations plus 23 refinements (work, never
+  the refinement; ``search_evaluations`` likelihood evaluations plus 28 refinements (work, never
   seconds). A found pose seeds the cloud (FOUND_SIGMA_M / FOUND_SIGMA_RAD about it) and the
   refinement's track (RefinedTrack.seed, which resets the static-bone prior: its held base-frame
-  pose is where the bone WAS and must not drag the track back). A search that confirms nothing
+  pose is where the bone WAS and must not drag the track back; the found pose is the search's
+  verified fit, so the track's first frame refines it at width 0, not with the seed's wide steps,
+  which slid a pose found 0.4 mm off to 16-26 deg off on or_fast_reposition crest_right_02 seed 3,
+  BENCHMARKS.md §6o). A search that confirms nothing
   (the bone out of view) changes nothing and is no attempt (:meth:`RecoveryPolicy.declined`): it
   is retried every SEARCH_RETRY_S on weighed frames away from the last ok pose until a frame
   is ok or a search finds a pose, whether or not the trigger still holds (a wrong track sliding

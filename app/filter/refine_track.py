@@ -30,7 +30,10 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   came with its prior (``init.sigma_p`` / ``sigma_r``), a multi-start: ``seed_starts`` (16) poses drawn
   about the start at ``seed_spread`` (0.5) times that prior, each refined once, every fit a candidate
   (:meth:`RefinedTrack._start_fits`: Gauss-Newton from the start alone ended in a minimum 8-9 deg off
-  under tissue patches on crest_right_02, BENCHMARKS.md §6e);
+  under tissue patches on crest_right_02, BENCHMARKS.md §6e); a pose the recovery's wide search
+  verified (``seed(..., verified=True)``) is already the refinement's fit on the image, and its first
+  frame refines it at width 0 as the track does every frame (the wide steps undid the verification
+  where the image leaves the crest's roll loose: BENCHMARKS.md §6o);
 - the static-bone prior (``static_prior``, app/filter/static_prior.py): the kept fit is fused with
   the track's held base-frame pose; a frame whose image constrains the template clearly worse than
   the clearest view since the last release (a hand over the bone; both errors on the configured grid,

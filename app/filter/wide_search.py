@@ -32,26 +32,36 @@ drawn from the image and the track instead of a template bank:
    from the image: every image cluster; with two image slots, the crest turned 180 deg about up,
    which the filter's likelihood at 160x120 can score above the bone, took both while a cluster
    1.5 mm from the bone went unverified: or_fast_reposition crest_left_02 seed 1 at the filter's
-   seed 1, 4.41 s; BENCHMARKS.md §6m) in two chains, each a refinement and one more from its result at the default
-   first Tukey width: one starting at twice that width (a wider capture, as refine_track.py's
-   seeded start), one at width 0 (``VERIFY_WIDTHS``); the more consistent fit of the two stands for
-   the candidate. With most of the crest out of the image the landscape along the ridge is flat and
-   a wide first step lets the fit slide: or_fast_reposition crest_right_02 seed 2 at 3.92 s (31 % of
+   seed 1, 4.41 s; BENCHMARKS.md §6m) in two chains (``VERIFY_CHAINS``): one starting at twice the
+   default first Tukey width (a wider capture, as refine_track.py's seeded start) followed by one
+   refinement at the default width; one at width 0, followed by one more at width 0 (as the track
+   refines each frame) and one at the default width, as the incumbent's (6). The best of a
+   candidate's fits stands for it (a fit the search would find before one it would not, then the more
+   consistent). With most of the crest out of the image the landscape along the ridge is flat and
+   a wide step lets the fit slide: or_fast_reposition crest_right_02 seed 2 at 3.92 s (31 % of
    the crest's samples in the image), a candidate 16 mm / 24 deg off refined to 3.5 mm / 18 deg
    (sharp 0.49, not confirmed) from the wide start and to 0.4 mm / 2.7 deg (0.68, against the wrong
    track's 0.56) from width 0; the fit started *at the truth* slid 8 mm at the wide width (BENCHMARKS.md
-   §6l). A candidate
+   §6l), and on crest_right_02 seed 3 from 2.6 to 4.0 s a default-width step from the truth ended
+   4.9-8.2 mm / 19-25 deg off on every probed frame, where width 0 stayed within 0.2-1.9 mm (§6o): a chain
+   whose every fit ends at the default width could not verify the bone there. A candidate
    is found only when its refined fit confirms at least ``min_fitness`` (status.min_fitness, 0.6)
-   of the expected visible surface within 3 σ and its consistent sharp share (within 1 σ, less the
+   of the expected visible surface within 3 σ, its consistent sharp share (within 1 σ, less the
    share behind the model beyond the noise) is at least ``min_sharp`` = 0.5: a right pose leaves
    Gaussian noise, ~68 % within 1 σ (0.83 at the truth of crest_left_02, or_fast_reposition at 5 s),
-   while wrong fits that confirmed 0.63-0.65 within 3 σ had 0.17-0.23; among those the one with the highest
+   while wrong fits that confirmed 0.63-0.65 within 3 σ had 0.17-0.23; and its share behind the
+   model exceeds the noise's bound by no more than ``max_behind_excess`` (status.max_behind_excess,
+   0.2 %): the status never finds such a fit ok, so the search must not find it either. On
+   crest_right_02 seed 3 (a third of the crest in view, 2.7-3.9 s) the crest rolled 20-30 deg lay its
+   flank along the tissue and scored 0.50-0.57, above the bone's own fit (0.52-0.55), but left 4-7 %
+   more of the measurements behind the model than the noise's bound (the bone's fit: none beyond
+   it); found, such fits held the track off the bone until 4.4-4.6 s (§6o). Among the found, the one with the highest
    :func:`app.filter.refine_track.consistent_sharp` wins (refine_track.py's rule for two fits).
    Nothing confirmed (the bone out of view, hidden): the search declines, and the tracker keeps its state.
 6. **The incumbent.** The tracker's current estimate is verified too (no wide first step, no local
    search first: a refinement from where it is at width 0, then from its result one more at width 0,
    as the track refines each frame, and one more at the default width; the more consistent of the two chains
-   stands for it, as for a candidate; ``INCUMBENT_WIDTHS``). With the default-width chain alone,
+   stands for it, as for a candidate; ``INCUMBENT_CHAINS``). With the default-width chain alone,
    crest_right_05 seed 3's track, 0.1 mm off at 3.67 s with a quarter of the crest in view, was
    turned 28 deg to a sharp share of 0.56 and lost to a candidate 31 deg off at 0.59; with the
    width-0 chain alone, crest_right_04 seed 3's track 0.2 mm off at 3.50 s scored 0.72 and lost to a
@@ -77,10 +87,10 @@ drawn from the image and the track instead of a template bank:
    0.76, and the search replaced it: 8 mm off for the next second (BENCHMARKS.md §6g).
 
 The budget is counted in likelihood evaluations (``evaluations``: poses scored by the backend, 60 %
-to the image's candidates, 10 % to the track's, the rest to the local search) plus ``4 * refine_top``
-refinements (two chains of two each; 3 more for the incumbent: one refinement, then two from it;
-23 in all): work, never seconds (0.60 s of CPU per search on average over the 48 fast repositions
-at the filter's seed 1, BENCHMARKS.md §6m; 0.45 s with three candidates, §6l).
+to the image's candidates, 10 % to the track's, the rest to the local search) plus ``5 * refine_top``
+refinements (two chains, of two and of three, per candidate; 3 more for the incumbent: one
+refinement, then two from it; 28 in all): work, never seconds (0.60 s of CPU per search on average
+over the 48 fast repositions at the filter's seed 1 with 23, BENCHMARKS.md §6m; with 28 §6o).
 A found pose is no evidence of being right: the recovery's confirmation rule
 (app/filter/recovery.py, "Honesty") keeps it from being ok until the rules have agreed for
 ``confirm_frames`` weighed frames in a row.
