@@ -122,7 +122,8 @@ CEM_SIGMA_M, CEM_SIGMA_RAD = 0.004, math.radians(4.0)
 ANCHOR_SHARE = 0.6
 TRACK_CLUSTERS = 2
 MIN_SHARP = 0.5
-VERIFY_CHAINS = ((2.0, (1.0,)), (0.0, (0.0, 1.0)))   # a candidate's chains: (first width, second widths) x start_width (module docstring, 5)
+# a candidate's verification chains: (first width, second widths from its result), x start_width (module docstring, 5)
+VERIFY_CHAINS = ((2.0, (1.0,)), (0.0, (0.0, 1.0)))
 INCUMBENT_CHAINS = ((0.0, (0.0, 1.0)),)   # the incumbent's: width 0, then width 0 and the default width from it (6)
 INCUMBENT = "incumbent"   # the source of the tracker's current estimate among the verified (module docstring, 6)
 
@@ -302,11 +303,12 @@ class WideSearch:
             result, spent = self._verified_fit(depth_full, T_camera_bone, source == INCUMBENT)
             refinements += spent
             if result is not None:
-                verified.append(_Verified(result.fitness, consistent_sharp(result), T_base_camera @ result.T_camera_bone,
-                                          source, explained_pixels(result), behind_excess(result)))
+                T_base_bone = T_base_camera @ result.T_camera_bone
+                verified.append(_Verified(result.fitness, consistent_sharp(result), T_base_bone, source,
+                                          explained_pixels(result), behind_excess(result)))
         incumbent = next(((v.fitness, v.sharp) for v in verified if v.source == INCUMBENT), (math.nan, math.nan))
         candidates = [(v.fitness, v.sharp, v.T_base_bone) for v in verified if v.source != INCUMBENT]
-        confirmed = [v for v in verified if self._confirms(v)]
+        confirmed = [v for v in verified if self._confirms(v.fitness, v.sharp, v.behind)]
         if not confirmed:
             best = max(verified, key=lambda v: v.sharp, default=_Verified(math.nan, math.nan, None, "", 0.0))
             return SearchResult(None, best.fitness, best.sharp, evaluations, refinements, "", candidates,
@@ -318,15 +320,11 @@ class WideSearch:
         return SearchResult(winner.T_base_bone, winner.fitness, winner.sharp, evaluations, refinements, winner.source,
                             candidates, incumbent=incumbent)
 
-    def _confirms(self, v) -> bool:
+    def _confirms(self, fitness: float, sharp: float, behind: float) -> bool:
         """A verified fit is found: it confirms ``min_fitness`` of the expected visible surface within 3 σ,
-        ``min_sharp`` within 1 σ (less its excess behind), and leaves no more of the image behind the
-        model than the status allows (``max_behind_excess``; module docstring, 5). ``v``: a
-        :class:`_Verified` or a :class:`app.filter.refine.RefineResult`."""
-        if isinstance(v, _Verified):
-            fitness, sharp, behind = v.fitness, v.sharp, v.behind
-        else:
-            fitness, sharp, behind = v.fitness, consistent_sharp(v), behind_excess(v)
+        its consistent share ``sharp`` (within 1 σ, less its excess behind) reaches ``min_sharp``, and its
+        excess ``behind`` the model is no more than the status allows (``max_behind_excess``; module
+        docstring, 5)."""
         c = self.config
         return fitness >= c.min_fitness and sharp >= c.min_sharp and not behind > c.max_behind_excess
 
@@ -357,7 +355,8 @@ class WideSearch:
                 spent += 1
                 if not (result.converged and np.isfinite(result.fitness)):
                     continue
-                key = (self._confirms(result), consistent_sharp(result))
+                sharp = consistent_sharp(result)
+                key = (self._confirms(result.fitness, sharp, behind_excess(result)), sharp)
                 if best is None or key > best_key:
                     best, best_key = result, key
         return best, spent
