@@ -22,6 +22,7 @@ import json
 
 import numpy as np
 
+from app import metrics
 from app.config import load_config
 from app.filter.refine import Refiner
 from app.filter.refine_track import behind_excess, consistent_sharp
@@ -31,21 +32,17 @@ from app.pipeline.tracker import refine_params
 from app.trial.reader import open_trial
 
 
-def _errors(T_a: np.ndarray, T_b: np.ndarray, points: np.ndarray) -> tuple[float, float]:
-    """ADD (mm) over ``points`` and the rotation (deg) between two poses of the same frame."""
-    moved_a = points @ T_a[:3, :3].T + T_a[:3, 3]
-    moved_b = points @ T_b[:3, :3].T + T_b[:3, 3]
-    add_mm = 1e3 * float(np.mean(np.linalg.norm(moved_a - moved_b, axis=1)))
-    return add_mm, float(np.rad2deg(se3.rotation_angle(T_a, T_b)))
+def _row(result, T_camera_bone_true, points_bone) -> dict:
+    """One refinement's distance from the truth (ADD over ``points_bone``, mm; rotation, deg) and its scores."""
+    T_camera_bone = result.T_camera_bone
+    return {"add_mm": 1e3 * metrics.add(T_camera_bone, T_camera_bone_true, points_bone),
+            "rot_deg": float(np.rad2deg(se3.rotation_angle(T_camera_bone, T_camera_bone_true))),
+            "sharp": result.sharp, "consistent": consistent_sharp(result), "behind_excess": behind_excess(result),
+            "pixels": explained_pixels(result), "converged": result.converged}
 
 
-def _row(result, T_true, points) -> dict:
-    add_mm, rot_deg = _errors(result.T_camera_bone, T_true, points)
-    return {"add_mm": add_mm, "rot_deg": rot_deg, "sharp": result.sharp, "consistent": consistent_sharp(result),
-            "behind_excess": behind_excess(result), "pixels": explained_pixels(result), "converged": result.converged}
-
-
-def main() -> None:
+def main(argv: list[str] | None = None) -> list[dict]:
+    """Print the table; return its rows (and write them to ``--json``)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("trial")
     ap.add_argument("--from", dest="t_from", type=float, default=0.0)
@@ -53,7 +50,9 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=9)
     ap.add_argument("--config", default=None)
     ap.add_argument("--json", default=None)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    if args.every < 1:
+        ap.error(f"--every {args.every}: give a frame step of 1 or more")
     config = load_config(args.config)
     reader = open_trial(args.trial)
     if reader.groundtruth is None:
@@ -62,7 +61,7 @@ def main() -> None:
     vertices = np.asarray(mesh.vertices, float)
     refiner = Refiner(vertices, np.asarray(mesh.faces), reader.meta.camera, refine_params(config), seed=config.seed)
     T_base_camera, valid = reader.camera_poses()
-    points = vertices[::max(1, len(vertices) // 500)]
+    points_bone = vertices[::max(1, len(vertices) // 500)]
     rows = []
     print(f"{'t (s)':>6} | {'width 0: ADD mm / deg, sharp, consistent, behind':<50} | default width: the same")
     for i in range(0, len(reader), args.every):
@@ -72,9 +71,9 @@ def main() -> None:
         depth = reader.read_depth(i)
         if depth is None:
             continue
-        T_true = se3.inverse(T_base_camera[i]) @ reader.groundtruth[i]
-        narrow = _row(refiner.refine(depth, T_true, start_width=0.0), T_true, points)
-        wide = _row(refiner.refine(depth, T_true), T_true, points)
+        T_camera_bone_true = se3.inverse(T_base_camera[i]) @ reader.groundtruth[i]
+        narrow = _row(refiner.refine(depth, T_camera_bone_true, start_width=0.0), T_camera_bone_true, points_bone)
+        wide = _row(refiner.refine(depth, T_camera_bone_true), T_camera_bone_true, points_bone)
         rows.append({"t": t, "frame": i, "width0": narrow, "default": wide})
         print(f"{t:6.2f} | " + " | ".join(
             f"{r['add_mm']:5.2f} mm / {r['rot_deg']:4.1f} deg, {r['sharp']:.3f}, {r['consistent']:.3f}, "
@@ -82,6 +81,7 @@ def main() -> None:
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=1)
+    return rows
 
 
 if __name__ == "__main__":

@@ -106,6 +106,7 @@ import numpy as np
 from app.filter.motion import draws_about_centroid
 from app.filter.refine_track import behind_excess, consistent_sharp
 from app.filter.smc_init.levels import backend_level
+from app.filter.status import MAX_BEHIND_EXCESS
 from app.geometry import quaternion as quat
 from app.geometry import se3
 
@@ -148,7 +149,7 @@ class SearchConfig:
     min_fitness: float = 0.6
     min_sharp: float = MIN_SHARP
     margin: float = 0.015
-    max_behind_excess: float = 0.002
+    max_behind_excess: float = MAX_BEHIND_EXCESS
 
 
 @dataclass
@@ -183,7 +184,7 @@ class _Verified(NamedTuple):
     T_base_bone: np.ndarray | None
     source: str
     pixels: float
-    behind: float = 0.0
+    behind: float
 
 
 class WideSearch:
@@ -310,7 +311,7 @@ class WideSearch:
         candidates = [(v.fitness, v.sharp, v.T_base_bone) for v in verified if v.source != INCUMBENT]
         confirmed = [v for v in verified if self._confirms(v.fitness, v.sharp, v.behind)]
         if not confirmed:
-            best = max(verified, key=lambda v: v.sharp, default=_Verified(math.nan, math.nan, None, "", 0.0))
+            best = max(verified, key=lambda v: v.sharp, default=_Verified(math.nan, math.nan, None, "", 0.0, math.nan))
             return SearchResult(None, best.fitness, best.sharp, evaluations, refinements, "", candidates,
                                 incumbent=incumbent)
         winner = self._winner(confirmed)
