@@ -12,6 +12,7 @@ import pytest
 
 from app import metrics
 from app.geometry import se3
+from app.filter.status import Reason
 from app.interfaces import DepthFrame, Estimate
 from app.pipeline.frame_core import FrameCore
 from app.pipeline.sinks import EstimateFiles, GroundTruthScoring, ProjectorEstimates, RerunSink, Trajectory
@@ -95,6 +96,9 @@ class FakeLog:
 
     def log_scalar(self, name, value):
         self.scalars[name] = value
+
+    def log_text(self, name, text):
+        self.calls.append(("text", name, text))
 
     def close(self):
         pass
@@ -180,15 +184,23 @@ def test_estimate_files_write_the_rows_of_write_tum_and_write_status_csv(tmp_pat
     stamps = np.cumsum(rng.uniform(0.01, 0.05, 6))
     poses = np.stack([se3.from_rotvec_trans(rng.normal(0, 1, 3), rng.normal(0, 1, 3)) for _ in stamps])
     statuses = ["ok", "uncertain", "lost", "ok", "ok", "lost"]
+    reasons = {"uncertain": (Reason("behind", "slid?"), Reason("moving", "m"), Reason("behind", "again")),
+               "lost": (Reason("no_pose", "no camera pose"),), "ok": ()}
     files = EstimateFiles(tmp_path / "a")
     for s, T, st in zip(stamps, poses, statuses):
-        files.on_estimate(Estimate(s, 0, T, st))
+        files.on_estimate(Estimate(s, 0, T, st, reasons=reasons[st], diagnostics={"state": "tracking"}))
     files.on_estimate(Estimate(stamps[-1] + 1, None, None, "lost"))   # a tick without a pose: a status row only
     files.close()
     tum.write_tum(tmp_path / "b" / "estimate.txt", stamps, poses)
     tum.write_status_csv(tmp_path / "b" / "status.csv", list(stamps) + [stamps[-1] + 1], statuses + ["lost"])
-    for name in ("estimate.txt", "status.csv"):
-        assert (tmp_path / "a" / name).read_text() == (tmp_path / "b" / name).read_text()
+    assert (tmp_path / "a" / "estimate.txt").read_text() == (tmp_path / "b" / "estimate.txt").read_text()
+    ours, plain = ((tmp_path / d / "status.csv").read_text().splitlines() for d in ("a", "b"))
+    assert ours[0] == "stamp,status,state,reasons" and plain[0] == "stamp,status"
+    assert [",".join(r.split(",")[:2]) for r in ours[1:]] == plain[1:]      # the format's two columns first
+    assert ours[2].split(",")[2:] == ["tracking", "behind;moving"]          # the state, each code once
+    assert ours[3].split(",")[2:] == ["tracking", "no_pose"] and ours[1].split(",")[2:] == ["tracking", ""]
+    got_stamps, got = tum.read_status_csv(tmp_path / "a" / "status.csv")   # our reader reads both
+    assert got == statuses + ["lost"] and np.allclose(got_stamps, list(stamps) + [stamps[-1] + 1], atol=1e-8)
 
 
 def test_the_rerun_sink_logs_every_scalar_of_the_result_and_the_errors():
@@ -197,9 +209,14 @@ def test_the_rerun_sink_logs_every_scalar_of_the_result_and_the_errors():
     T = np.eye(4)
     for i, status in enumerate(["ok", "uncertain", "ok"]):
         result = Result(T, status)
-        sink.on_estimate(Estimate(0.1 * i, i, T, status, np.eye(4), 0.02,
+        reasons = (Reason("behind", "1.2 % behind"),) if status != "ok" else ()
+        sink.on_estimate(Estimate(0.1 * i, i, T, status, np.eye(4), 0.02, reasons,
                                   diagnostics={"frame": frame(i), "result": result, "particles": np.zeros((3, 3)),
-                                               "T_base_bone_true": T, "errors": {"add_mm": 0.3}}))
+                                               "T_base_bone_true": T, "errors": {"add_mm": 0.3},
+                                               "state": "tracking" if status == "ok" else "suspect"}))
+    texts = [c[1:] for c in log.calls if c[0] == "text"]
+    assert texts[1] == ("status/reasons", "uncertain (suspect): behind: 1.2 % behind")   # why it is not ok, in the log
+    assert texts[0] == ("status/reasons", "ok (tracking)")
     s = log.scalars
     assert s["spread/position_mm"] == pytest.approx(2.0) and s["spread/rotation_deg"] == pytest.approx(np.degrees(0.01))
     assert s["ess_ratio"] == 0.7 and s["tracker/covered_pixels"] == 120 and s["tracker/refined"] == 1.0

@@ -86,11 +86,16 @@ class NearbySearch:
         self._since = self.config.nearby_every
         self._gap, self._T_kept_competitor, self._age = math.nan, None, 0
         self._T_kept_follow, self._followups = None, 0
+        self._margin = self.config.nearby_margin           # nearby_margin sqrt(f) of the last step's fit
 
-    def step(self, fit: Fit, T_base_bone_kept: np.ndarray, own: float) -> float:
+    def step(self, fit: Fit, T_base_bone_kept: np.ndarray, own: float, correlation: float = 1.0) -> float:
         """One frame of the track (kept pose ``T_base_bone_kept``, its consistent sharp share ``own``):
-        search when due and answer the gap (m) to a fit that explains the image better (NaN: none)."""
+        search when due and answer the gap (m) to a fit that explains the image better (NaN: none).
+        ``correlation``: the kept fit's residual correlation factor f (app/tracking/fit_test.py): two
+        fits' shares on one image differ by chance sqrt(f) times more when n pixels carry the evidence
+        of n / f, so the margin is ``nearby_margin`` sqrt(f) (0.015 was chosen on independent noise)."""
         c = self.config
+        self._margin = c.nearby_margin * math.sqrt(max(float(correlation), 1.0))
         self._since += 1
         if c.nearby_starts <= 0 or c.nearby_every <= 0 or self._since < c.nearby_every:
             return self._gap
@@ -122,7 +127,7 @@ class NearbySearch:
         if self._T_kept_competitor is not None:
             starts.insert(0, T_base_kept @ self._T_kept_competitor)
         self._T_kept_competitor, self._T_kept_follow = None, None
-        T_kept_base, threshold = se3.inverse(T_base_kept), own + c.nearby_margin
+        T_kept_base, threshold = se3.inverse(T_base_kept), own + self._margin
         better, best_score = None, threshold
         for T_start in starts:
             scored = fit(T_start)

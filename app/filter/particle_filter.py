@@ -51,7 +51,7 @@ from app.filter.motion_gate import MotionGate
 from app.filter.observation import Evidence, ObservationModel, finite_log_likelihood
 from app.filter.likelihood_ref import LikelihoodParams
 from app.filter.motion import MotionParams, ParticleState
-from app.filter.status import StatusInputs, StatusThresholds, TrackingStatus, classify
+from app.filter.status import StatusInputs, StatusThresholds, TrackingStatus, verdict
 from app.geometry import quaternion as quat
 from app.geometry import se3
 
@@ -98,7 +98,9 @@ class FilterOutput:
     nearby : m, the template gap to a fit near the track that explains the image better (NaN: none found);
     refine_sharp : the best fit's consistent sharp share, kept or not (NaN when no fit converged).
     Set by the tracker's recovery (app/filter/recovery.py): reinitialised : the particles were
-    re-initialised on this frame (a lost track).
+    re-initialised on this frame (a lost track). reasons : the rules and lifecycle states that kept the
+    status below ok (app/filter/status.py ``Reason``: text with a ``code``; empty when ok); state : the
+    tracker's lifecycle state (app/tracking/lifecycle.py; '' for the filter alone).
     """
 
     T_base_bone: np.ndarray
@@ -122,6 +124,8 @@ class FilterOutput:
     nearby: float = float("nan")
     refine_sharp: float = float("nan")
     reinitialised: bool = False
+    reasons: tuple = ()
+    state: str = ""
 
 
 class ParticleFilter:
@@ -259,13 +263,13 @@ class ParticleFilter:
         pose = update.pose if update.pose is not None else estimate(self.state.p, self.state.q, self.state.lw)
         self._last_estimate = pose
         evidence = self._evidence(pose, depth_meas, T_camera_base) if weighed else NO_EVIDENCE
-        status = self._status(pose, update, evidence, depth_meas, stamp, weighed)
+        status, reasons = self._status(pose, update, evidence, depth_meas, stamp, weighed)
         _tick(timings, "estimate", t)
         return FilterOutput(
             T_base_bone=pose.T_base_bone, position_spread=pose.position_spread, rotation_spread=pose.rotation_spread,
             ess=update.ess, ess_ratio=update.ess / self.state.n, log_likelihood_max=update.ll_max, status=status,
             inlier_fraction=evidence.inlier_fraction, covered_pixels=evidence.covered_pixels, n_nan=update.n_nan,
-            resampled=update.resampled, dt=dt, weighed=weighed, timings=timings,
+            resampled=update.resampled, dt=dt, weighed=weighed, timings=timings, reasons=tuple(reasons),
         )
 
     def _advance_clock(self, stamp: float, T_base_camera: np.ndarray | None) -> float:
@@ -310,11 +314,11 @@ class ParticleFilter:
         return self.model.evidence(T_camera_bone, depth_meas, self.config.status.min_covered_pixels)
 
     def _status(self, pose: PoseEstimate, update: _Update, evidence: Evidence, depth_meas: np.ndarray | None,
-                stamp: float, weighed: bool) -> TrackingStatus:
-        """The status rules (app/filter/status.py) with the motion gate's speeds."""
+                stamp: float, weighed: bool) -> tuple[TrackingStatus, list]:
+        """(status, reasons): the status rules (app/filter/status.py) with the motion gate's speeds."""
         since = self._last_pose_stamp if self._last_pose_stamp is not None else self._first_stamp
         speed, angular_speed, since_motion = self.motion_gate.update(stamp, pose.T_base_bone)
-        return classify(StatusInputs(
+        return verdict(StatusInputs(
             position_spread=pose.position_spread, rotation_spread=pose.rotation_spread,
             ess_ratio=update.ess / self.state.n, inlier_fraction=evidence.inlier_fraction,
             covered_pixels=evidence.covered_pixels,

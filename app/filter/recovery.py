@@ -293,6 +293,7 @@ class RecoveryPolicy:
         self._below_bar = 0                    # weighed frames in a row an unconfirmed pose's fit is below search_bar
         self.last_sharp = math.nan             # the last weighed frame's refined fit's consistent sharp share
         self.period = FramePeriod()            # the processed frames' period: seconds to frames
+        self.capped = ""                       # this frame's cap on ok: '' | 'holding' | 'confirming' (the reason code)
 
     # -- inputs ------------------------------------------------------------------------------
     def set_start(self, T_base_bone: np.ndarray) -> None:
@@ -316,11 +317,15 @@ class RecoveryPolicy:
         rules_ok = status == TrackingStatus.OK
         if status != TrackingStatus.LOST:
             self._track.append(np.array(T_base_bone, float))
+        self.capped = ""
         if self._hold > 0 and status == TrackingStatus.OK:
-            status = TrackingStatus.UNCERTAIN
+            status, self.capped = TrackingStatus.UNCERTAIN, "holding"
         if self._hold > 0 and weighed:
             self._hold -= 1
-        status = self._confirmed(status, weighed, T_base_bone)
+        confirmed = self._confirmed(status, weighed, T_base_bone)
+        if confirmed != status:
+            self.capped = "confirming"
+        status = confirmed
         if status == TrackingStatus.OK:
             self._ever_ok = True
             self.T_base_bone_confident = np.array(T_base_bone, float)

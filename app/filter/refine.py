@@ -57,15 +57,19 @@ float tolerance: tests/test_refine_kernels.py). Per iteration, at the current po
    seen surface elsewhere (measured on crest_left_02, or_deep_tissue, a 3 mm patch: the fit 1.5 mm
    off has 2.8-3.9 % behind, the truth 0.3-0.7 %; static_clear 0.5-0.7 % at 0.42 m, 0.9-1.7 % at
    0.65 m where the sensor's noise is a larger part of σ). Beside it ``behind_allowed``, the share
-   the image's own noise explains (:func:`behind_bound`, with σ_n from :func:`image_noise`): the
-   status compares the two (status.py).
+   the image's own noise explains (:func:`behind_bound`), with σ̂_n the robust scale of the fit's
+   residuals behind the model and the count's variance multiplied by their spatial correlation
+   factor f = n / n_eff (app/tracking/fit_test.py): the status compares the two (status.py).
 8. When the last step was below the stopping rule (``stop_translation`` / ``stop_rotation``) and the
    annealed width no longer mattered, the statistics of step 7 and H are those of that last
    association instead of a new render and association at the final pose (a step under 0.1 mm /
    0.03 deg): one z-buffer and one association per frame fewer while tracking.
 
-Outputs (:class:`RefineResult`): the refined ``T_camera_bone``; H = Σ w_i J_iᵀJ_i / σ_i² (6x6, in
-the bone frame about ``Refiner.center``, order ω then v), the information the image carries about the pose; the fitness
+Outputs (:class:`RefineResult`): the refined ``T_camera_bone``; H = Σ w_i J_iᵀJ_i / σ_i² / f (6x6, in
+the bone frame about ``Refiner.center``, order ω then v), the information the image carries about the
+pose: the sum assumes independent pixels, and n pixels whose noise is correlated carry the information
+of n / f (f the residuals' correlation factor, step 7; ~1 for independent noise, 5-40 for a stereo
+camera's matching window); the fitness
 (the share of the expected visible surface that the image confirms: silhouette pixels, occluders
 left out, whose measurement lies within ``confirm_sigmas`` σ(z) of the model) and the residual
 statistics, and the sharper share within ``sharp_sigmas`` = 1 σ that decides between two fits
@@ -81,7 +85,8 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from app.filter import refine_kernels as kernels
-from app.filter.behind_noise import behind_moments, image_noise, noise_bound
+from app.filter.behind_noise import behind_moments, noise_bound
+from app.tracking import fit_test
 from app.geometry import se3
 from app.geometry.camera import PinholeCamera
 
@@ -146,7 +151,9 @@ class RefineResult:
     through bone, so a right pose leaves only the noise's tail there (module docstring, step 7);
     behind_allowed : the noise bound on it; noise : the image's noise estimate (m); stride : the grid
     step it was refined at (0 when unknown); behind_mean / behind_var : the mean and variance of the
-    count the noise alone puts behind (:func:`app.filter.behind_noise.behind_moments`; NaN: unknown)."""
+    count the noise alone puts behind (:func:`app.filter.behind_noise.behind_moments`, the variance
+    multiplied by ``correlation``; NaN: unknown); correlation : f = n / n_eff of the residuals
+    (app/tracking/fit_test.py)."""
 
     T_camera_bone: np.ndarray
     H: np.ndarray
@@ -163,6 +170,7 @@ class RefineResult:
     stride: int = 0
     behind_mean: float = float("nan")
     behind_var: float = float("nan")
+    correlation: float = 1.0
 
 
 def fill_holes(zbuf: np.ndarray, ring: bool = False) -> np.ndarray:
@@ -441,13 +449,32 @@ class Refiner:
         prm = self.params
         confirmed = int(np.sum(d < prm.confirm_sigmas * sigma))
         sharp = float(np.mean(d < prm.sharp_sigmas * sigma))
+        r = np.einsum("ij,ij->i", n, p - x)
         with np.errstate(invalid="ignore"):
-            behind = float(np.mean(np.einsum("ij,ij->i", n, p - x) < -prm.behind_sigmas * sigma))
-        noise = image_noise(depth, y, self.camera)
-        mean, var = behind_moments(p, n, sigma * prm.behind_sigmas, noise, se3.inverse(T)[:3, 3])
+            behind = float(np.mean(r < -prm.behind_sigmas * sigma))
+        camera_bone = se3.inverse(T)[:3, 3]
+        noise, factor = self._residual_noise(y, p, n, r, camera_bone, stride)
+        mean, var = behind_moments(p, n, sigma * prm.behind_sigmas, noise, camera_bone)
+        var *= factor
+        H = H / factor          # the information of n / f independent measurements (app/tracking/fit_test.py)
         allowed = noise_bound(mean, var, len(p), prm.behind_z)
         return RefineResult(T, H, confirmed / len(p), len(p), confirmed, used, rms, ok, sharp, behind, allowed, noise,
-                            stride, mean, var)
+                            stride, mean, var, factor)
+
+    def _residual_noise(self, y, p, n, r, camera_bone, stride) -> tuple[float, float]:
+        """(σ̂_n, f): the depth noise's scale from the fitted surface's rough residual field and its
+        correlation factor on the refinement's grid (app/tracking/fit_test.py; step 7)."""
+        ray = p - camera_bone
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cos = np.einsum("ij,ij->i", n, ray) / np.linalg.norm(ray, axis=1)
+        u = fit_test.depth_residuals(r, cos)
+        cam = self.camera
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cols = np.rint(y[:, 0] / y[:, 2] * cam.fx + cam.cx) // max(stride, 1)
+            rows = np.rint(y[:, 1] / y[:, 2] * cam.fy + cam.cy) // max(stride, 1)
+        cells = np.column_stack([np.nan_to_num(cols), np.nan_to_num(rows)]).astype(np.int64)
+        field = fit_test.noise_field(cells, u, self.sigma(y[:, 2]), fit_test.window_cells(stride))
+        return fit_test.surface_noise(field), fit_test.correlation_factor(field)
 
 
 def template_std(H: np.ndarray, points_bone: np.ndarray, inflation: float = 1.0) -> float:

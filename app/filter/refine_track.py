@@ -383,7 +383,7 @@ class RefinedTrack:
             competitor_fitness = fits[1][2].fitness
             dist, angle = pose_gap(T_best, fits[1][1])
             apart = dist > c.competitor_distance or angle > c.competitor_angle
-            competitor = apart and fits[1][2].sharp >= best.sharp - c.competitor_margin
+            competitor = apart and fits[1][2].sharp >= best.sharp - c.competitor_margin * np.sqrt(max(best.correlation, 1.0))
         std = template_std(best.H, self.plan_points, self.inflation)
         if self.prior is not None and best.fitness >= c.keep_fitness:
             source, T_best, best, std = self._held(fits, source, T_best, best, std)
@@ -397,6 +397,7 @@ class RefinedTrack:
         if kept is not None:
             pooled = self.behind_pool.add(best.behind, best.behind_mean, best.behind_var, best.expected)
             behind = max(behind, pooled) if np.isfinite(pooled) else behind
-            nearby = self.nearby.step(lambda T_start: self._scored_fit(depth, T_camera_base, T_start), kept, sharp)
+            nearby = self.nearby.step(lambda T_start: self._scored_fit(depth, T_camera_base, T_start), kept, sharp,
+                                      best.correlation)
         return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0,
                              behind, held_chi2, nearby, sharp)

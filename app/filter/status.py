@@ -150,6 +150,8 @@ import enum
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 LOST_NO_POSE_S = 0.5
 LOST_POSITION_SPREAD_M = 0.010
 LOST_ROTATION_SPREAD_RAD = math.radians(10.0)
@@ -177,6 +179,31 @@ class TrackingStatus(enum.StrEnum):
     OK = "ok"
     UNCERTAIN = "uncertain"
     LOST = "lost"
+
+
+class Reason(str):
+    """One rule that lowered a frame's status: its text (a str, for people and logs) and its ``code``
+    (app/tracking/reasons.py's table: the column written to status.csv and the summaries' shares)."""
+
+    code: str
+
+    def __new__(cls, code: str, text: str):
+        obj = super().__new__(cls, text)
+        obj.code = code
+        return obj
+
+    def __getnewargs__(self):
+        return self.code, str(self)
+
+
+def codes(reasons) -> tuple[str, ...]:
+    """The distinct reason codes of ``reasons`` (Reason or plain str: 'other'), in first-seen order."""
+    out: list[str] = []
+    for r in reasons:
+        code = getattr(r, "code", "other")
+        if code not in out:
+            out.append(code)
+    return tuple(out)
 
 
 @dataclass
@@ -238,15 +265,15 @@ def lost_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
     """The LOST rules that fire (empty when none)."""
     reasons = []
     if s.seconds_without_pose > t.lost_no_pose_s:
-        reasons.append(f"no camera pose for {s.seconds_without_pose:.2f} s")
+        reasons.append(Reason("no_pose", f"no camera pose for {s.seconds_without_pose:.2f} s"))
     if not s.position_spread <= t.lost_position_spread:
-        reasons.append(f"position spread {1e3 * s.position_spread:.1f} mm")
+        reasons.append(Reason("spread", f"position spread {1e3 * s.position_spread:.1f} mm"))
     if not s.rotation_spread <= t.lost_rotation_spread:
-        reasons.append(f"rotation spread {math.degrees(s.rotation_spread):.1f} deg")
+        reasons.append(Reason("spread", f"rotation spread {math.degrees(s.rotation_spread):.1f} deg"))
     if s.n_particles > 0 and s.n_nan >= s.n_particles:
-        reasons.append("every log-likelihood was NaN")
+        reasons.append(Reason("nan", "every log-likelihood was NaN"))
     if s.weighed and s.covered_pixels >= t.min_covered_pixels and s.inlier_fraction < t.lost_inlier_fraction:
-        reasons.append(f"inlier fraction {s.inlier_fraction:.2f}")
+        reasons.append(Reason("misfit", f"inlier fraction {s.inlier_fraction:.2f}"))
     return reasons
 
 
@@ -254,25 +281,25 @@ def uncertain_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
     """The UNCERTAIN rules that fire (empty when none)."""
     reasons = []
     if not s.weighed:
-        reasons.append("not weighed (no camera pose, no valid depth, or the bone hidden by an occluder)")
+        reasons.append(Reason("not_weighed", "not weighed (no camera pose, no valid depth, or the bone hidden by an occluder)"))
     if s.position_spread > t.uncertain_position_spread:
-        reasons.append(f"position spread {1e3 * s.position_spread:.1f} mm")
+        reasons.append(Reason("spread", f"position spread {1e3 * s.position_spread:.1f} mm"))
     if s.rotation_spread > t.uncertain_rotation_spread:
-        reasons.append(f"rotation spread {math.degrees(s.rotation_spread):.1f} deg")
+        reasons.append(Reason("spread", f"rotation spread {math.degrees(s.rotation_spread):.1f} deg"))
     if s.weighed and not s.inlier_fraction >= t.uncertain_inlier_fraction:
-        reasons.append(f"inlier fraction {s.inlier_fraction:.2f}")
+        reasons.append(Reason("inliers", f"inlier fraction {s.inlier_fraction:.2f}"))
     if s.weighed and s.covered_pixels < t.min_covered_pixels:
-        reasons.append(f"{s.covered_pixels} covered valid pixels")
+        reasons.append(Reason("unseen", f"{s.covered_pixels} covered valid pixels"))
     elif s.weighed and s.covered_pixels < t.min_ok_fraction * s.image_pixels:
-        reasons.append(f"only {s.covered_pixels} visible pixels of the bone (too little evidence)")
+        reasons.append(Reason("unseen", f"only {s.covered_pixels} visible pixels of the bone (too little evidence)"))
     if s.n_nan > 0:
-        reasons.append(f"{s.n_nan} NaN log-likelihoods")
+        reasons.append(Reason("nan", f"{s.n_nan} NaN log-likelihoods"))
     if s.ess_ratio < t.min_ess_ratio:
-        reasons.append(f"ESS ratio {s.ess_ratio:.3f}")
+        reasons.append(Reason("ess", f"ESS ratio {s.ess_ratio:.3f}"))
     if s.speed > t.uncertain_speed or s.angular_speed > t.uncertain_angular_speed:
-        reasons.append(f"bone moving ({1e3 * s.speed:.0f} mm/s, {math.degrees(s.angular_speed):.0f} deg/s)")
+        reasons.append(Reason("moving", f"bone moving ({1e3 * s.speed:.0f} mm/s, {math.degrees(s.angular_speed):.0f} deg/s)"))
     elif s.seconds_since_motion < t.settle_s:
-        reasons.append(f"bone settling ({s.seconds_since_motion:.2f} s after moving)")
+        reasons.append(Reason("moving", f"bone settling ({s.seconds_since_motion:.2f} s after moving)"))
     return reasons
 
 
@@ -302,20 +329,22 @@ class RefinementEvidence:
 def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
     """The refinement's UNCERTAIN rules that fire (module docstring, "With the refinement")."""
     reasons = []
-    if not r.fitness >= t.min_fitness:
-        reasons.append(f"refined fit {r.fitness:.2f} < {t.min_fitness:.2f} of the visible bone confirmed")
+    if not np.isfinite(r.fitness):
+        reasons.append(Reason("not_refined", "the frame was not refined"))
+    elif not r.fitness >= t.min_fitness:
+        reasons.append(Reason("unconfirmed", f"refined fit {r.fitness:.2f} < {t.min_fitness:.2f} of the visible bone confirmed"))
     if not r.template_std <= t.max_template_std:
-        reasons.append(f"predicted template error {1e3 * r.template_std:.2f} mm")
+        reasons.append(Reason("imprecise", f"predicted template error {1e3 * r.template_std:.2f} mm"))
     if r.competitor:
-        reasons.append("a competing pose explains the image about as well")
+        reasons.append(Reason("ambiguous", "a competing pose explains the image about as well"))
     if r.nearby > 0.0:
-        reasons.append(f"a pose moving the template {1e3 * r.nearby:.1f} mm explains the image better")
+        reasons.append(Reason("ambiguous", f"a pose moving the template {1e3 * r.nearby:.1f} mm explains the image better"))
     if r.behind > t.max_behind_excess:
-        reasons.append(f"{100 * r.behind:.1f} % more of the seen bone lies inside the refined model than the noise "
-                       "explains (slid onto tissue?)")
+        reasons.append(Reason("behind", f"{100 * r.behind:.1f} % more of the seen bone lies inside the refined model "
+                              "than the noise explains (slid onto tissue?)"))
     if r.held_chi2 > t.max_held_chi2:
-        reasons.append(f"the image's own fit contradicts the held pose (Δχ² {r.held_chi2:.1f} > {t.max_held_chi2:g}; "
-                       "the bone starting to move?)")
+        reasons.append(Reason("held", f"the image's own fit contradicts the held pose (Δχ² {r.held_chi2:.1f} > "
+                              f"{t.max_held_chi2:g}; the bone starting to move?)"))
     return reasons
 
 
@@ -328,9 +357,17 @@ def with_refinement(status: TrackingStatus, r: RefinementEvidence, t: StatusThre
 
 def classify(s: StatusInputs, t: StatusThresholds | None = None) -> TrackingStatus:
     """OK / UNCERTAIN / LOST by the rules of the module docstring."""
+    return verdict(s, t)[0]
+
+
+def verdict(s: StatusInputs, t: StatusThresholds | None = None) -> tuple[TrackingStatus, list[Reason]]:
+    """(status, reasons): :func:`classify` with the rules that decided it (the LOST rules when any
+    fires, else the UNCERTAIN ones; none for OK)."""
     t = t or StatusThresholds()
-    if lost_reasons(s, t):
-        return TrackingStatus.LOST
-    if uncertain_reasons(s, t):
-        return TrackingStatus.UNCERTAIN
-    return TrackingStatus.OK
+    lost = lost_reasons(s, t)
+    if lost:
+        return TrackingStatus.LOST, lost
+    uncertain = uncertain_reasons(s, t)
+    if uncertain:
+        return TrackingStatus.UNCERTAIN, uncertain
+    return TrackingStatus.OK, []

@@ -22,6 +22,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from app.interfaces import DepthFrame, Estimate, Tracker
+from app.filter.status import Reason
 from app.metrics import STATUS_CODE
 
 log = logging.getLogger(__name__)
@@ -57,14 +58,15 @@ class FrameCore:
         if self.tracker is None:
             self.t_estimate = None
             return Estimate(frame.stamp, frame.frame_id, None, "lost", T_base_camera, self._latency(frame),
-                            ("not tracking",))
+                            (Reason("not_tracking", "not tracking"),))
         result = self.tracker.process(frame, T_base_camera)
         status = str(result.status)
         if status_floor is not None:
             status = max(status, status_floor, key=STATUS_CODE.get)
         self.t_estimate = self.now() if self.now is not None else None
         latency = self.t_estimate - frame.stamp if self.t_estimate is not None else None
-        diagnostics = {"ess_ratio": getattr(result, "ess_ratio", None),
+        reasons = tuple(reasons) + tuple(getattr(result, "reasons", ()) if status != "ok" else ())
+        diagnostics = {"ess_ratio": getattr(result, "ess_ratio", None), "state": getattr(result, "state", ""),
                        "position_spread": getattr(result, "position_spread", None),
                        "rotation_spread": getattr(result, "rotation_spread", None),
                        "frame": frame, "result": result, "particles": self.tracker.particle_positions(),

@@ -45,6 +45,7 @@ from app.pipeline.engine_tracker import EngineTracker
 from app.pipeline.frame_core import FrameCore
 from app.pipeline.sinks import EstimateFiles, GroundTruthScoring, ProjectorEstimates, RerunSink, Trajectory
 from app.pipeline.tracker import DepthTracker, tracker_report, use_plan
+from app.tracking.reasons import reason_shares
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +94,7 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
         elapsed = _run(core, reader, max_frames, realtime, progress)
     finally:
         reports = core.close()
-    summary = _summary(reader, config, engine, sinks.trajectory.stamps, sinks.trajectory.statuses, sinks.scoring,
+    summary = _summary(reader, config, engine, sinks.trajectory, sinks.scoring,
                        elapsed, np.asarray(mesh.vertices))
     if sinks.projector_skipped is not None:
         summary["projector"] = {"plan": None, "skipped": sinks.projector_skipped}
@@ -228,7 +229,8 @@ def _init_summary(init, reader, points: np.ndarray) -> dict:
     return out
 
 
-def _summary(reader, config, tracker, stamps, statuses, scoring: GroundTruthScoring, elapsed, points) -> dict:
+def _summary(reader, config, tracker, trajectory, scoring: GroundTruthScoring, elapsed, points) -> dict:
+    stamps, statuses = trajectory.stamps, trajectory.statuses
     n = len(stamps)
     summary = {
         "trial": str(reader.path),
@@ -241,6 +243,7 @@ def _summary(reader, config, tracker, stamps, statuses, scoring: GroundTruthScor
         "gl": tracker.gl_description,
         "backend": getattr(tracker, "backend_name", None),   # the likelihood backend that ran (render.backend)
         "status_fraction": {s: statuses.count(s) / n if n else 0.0 for s in ("ok", "uncertain", "lost")},
+        **reason_shares(trajectory.reasons, trajectory.states),
         "timings_ms": tracker.mean_timings_ms(),
         **tracker_report(tracker),     # re-initialisations (count, stamps), template points: plan | mesh_vertices
     }

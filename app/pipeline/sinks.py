@@ -26,6 +26,7 @@ from typing import Protocol
 import numpy as np
 
 from app import metrics
+from app.filter.status import codes
 from app.geometry import se3
 from app.interfaces import Estimate, result_scalars
 from app.trial import tum
@@ -40,17 +41,22 @@ class Sink(Protocol):
 
 
 class Trajectory:
-    """The estimates' stamps, poses (None where there was none) and statuses, in memory."""
+    """The estimates' stamps, poses (None where there was none), statuses, lifecycle states and reason
+    codes, in memory."""
 
     def __init__(self):
         self.stamps: list[float] = []
         self.poses: list[np.ndarray | None] = []
         self.statuses: list[str] = []
+        self.states: list[str] = []
+        self.reasons: list[tuple[str, ...]] = []
 
     def on_estimate(self, est: Estimate) -> None:
         self.stamps.append(est.stamp)
         self.poses.append(est.T_base_bone)
         self.statuses.append(est.status)
+        self.states.append(est.diagnostics.get("state", ""))
+        self.reasons.append(codes(est.reasons))
 
     def close(self) -> dict:
         return {"frames": len(self.stamps)}
@@ -104,6 +110,8 @@ class GroundTruthScoring:
 
 class EstimateFiles:
     """``estimate.txt`` (TUM) and ``status.csv`` in ``out``, one row per estimate, flushed row by row.
+    ``status.csv`` has the format's ``stamp,status`` first, then the tracker's lifecycle ``state`` and
+    its reason ``codes`` (``;``-separated; app/tracking/reasons.py): why the template is not shown.
 
     The rows are :mod:`app.trial.tum`'s (its header, :func:`~app.trial.tum.format_tum_row`, the status
     row of :func:`~app.trial.tum.write_status_csv`), so a killed session leaves every processed frame
@@ -114,12 +122,13 @@ class EstimateFiles:
         self.tum = open(Path(out) / "estimate.txt", "w", buffering=1)
         self.tum.write(tum.TUM_HEADER + "\n")
         self.status = open(Path(out) / "status.csv", "w", buffering=1)
-        self.status.write(tum.STATUS_HEADER + "\n")
+        self.status.write(tum.STATUS_HEADER_REASONS + "\n")
 
     def on_estimate(self, est: Estimate) -> None:
         if est.T_base_bone is not None:
             self.tum.write(tum.format_tum_row(est.stamp, est.T_base_bone))
-        self.status.write(tum.format_status_row(est.stamp, est.status))
+        self.status.write(tum.format_status_row(est.stamp, est.status, est.diagnostics.get("state", ""),
+                                                codes(est.reasons)))
 
     def close(self) -> dict:
         self.tum.close()
@@ -133,6 +142,13 @@ SCALAR_PLOTS = {"position_spread": ("spread/position_mm", 1e3), "rotation_spread
                 "template_std": ("refine/template_std_mm", 1e3), "refine_fitness": ("refine/fitness", 1.0),
                 "nearby": ("refine/nearby_gap_mm", 1e3)}
 SKIPPED_SCALARS = ("ess", "dt")   # ess_ratio says it; dt is the stamps'
+
+
+def _status_text(est: Estimate) -> str:
+    """The frame's status line for the log: status, lifecycle state, and each reason's code and text."""
+    state = est.diagnostics.get("state") or "-"
+    reasons = "; ".join(f"{getattr(r, 'code', 'other')}: {r}" for r in est.reasons)
+    return f"{est.status} ({state})" + (f": {reasons}" if reasons else "")
 
 
 class RerunSink:
@@ -163,6 +179,8 @@ class RerunSink:
         if d.get("particles") is not None:
             self.log.log_particles(d["particles"])
         self.log.log_scalar("status", metrics.STATUS_CODE.get(est.status, 2))
+        if est.status != "ok" or d.get("state"):
+            self.log.log_text("status/reasons", _status_text(est))
         if est.latency_s is not None:
             self.log.log_scalar("latency_ms", 1e3 * est.latency_s)
         self._log_result(d.get("result"))

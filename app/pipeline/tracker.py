@@ -24,7 +24,8 @@ from app.depth_image import downsample_nearest
 from app.filter.particle_filter import FilterOutput, ParticleFilter
 from app.filter.refine import Refiner, RefineParams
 from app.filter.refine_track import RefinedTrack
-from app.filter.status import RefinementEvidence, TrackingStatus, with_refinement
+from app.filter.status import Reason, RefinementEvidence, TrackingStatus, refinement_reasons, with_refinement
+from app.tracking.lifecycle import Lifecycle
 from app.geometry.camera import PinholeCamera
 from app.pipeline.recovery_runner import make_recovery, usable_frame
 
@@ -73,6 +74,7 @@ class DepthTracker:
                                              self.mesh_vertices, self._run_smc)
         self.template_points = "mesh_vertices"
         self._T_base_bone_last: np.ndarray | None = None
+        self.lifecycle = Lifecycle()
 
     @property
     def recovery(self):
@@ -162,12 +164,18 @@ class DepthTracker:
         result = self.filter.step(depth_small, stamp, T_base_camera)
         if self.refined_track is not None:
             result = self._refine(result, depth_m, T_base_camera)
-        if self._started_from_point and result.status == TrackingStatus.OK:
-            result = replace(result, status=TrackingStatus.UNCERTAIN)   # start_from_point: never ok
+        if self._started_from_point:                                  # start_from_point: never ok
+            result = replace(result, status=min(result.status, TrackingStatus.UNCERTAIN, key=STATUS_RANK.get),
+                             reasons=result.reasons + (Reason("point_start", "started from a point: never ok"),))
         if self.recovery is not None:
             status = self.recovery.update(result.status, result.weighed, result.refined, result.refine_fitness,
                                           result.T_base_bone, stamp, sharp=result.refine_sharp)
-            result = replace(result, status=status, reinitialised=reinitialised)
+            cap = (Reason(self.recovery.capped, f"{self.recovery.capped} after a re-initialisation"),) \
+                if self.recovery.capped else ()
+            result = replace(result, status=status, reinitialised=reinitialised, reasons=result.reasons + cap)
+        state = self.lifecycle.update(result, self.recovery, reinitialised)
+        result = replace(result, state=state.value,
+                         reasons=result.reasons if result.status != TrackingStatus.OK else ())
         self._T_base_bone_last = result.T_base_bone
         for stage, seconds in result.timings.items():
             self._timings[stage] += seconds
@@ -196,11 +204,12 @@ class DepthTracker:
         evidence = RefinementEvidence(out.fitness, out.template_std, out.competitor, out.behind, out.held_chi2,
                                       out.nearby)
         status = with_refinement(result.status, evidence, self.config.status)
+        reasons = result.reasons + tuple(refinement_reasons(evidence, self.config.status))
         timings = {**result.timings, "refine": out.seconds}
         T_base_bone = out.T_base_bone if out.T_base_bone is not None else result.T_base_bone
         return replace(result, T_base_bone=T_base_bone, status=status, timings=timings, refine_fitness=out.fitness,
                        template_std=out.template_std, refined=out.T_base_bone is not None, competitor=out.competitor,
-                       nearby=out.nearby, refine_sharp=out.sharp)
+                       nearby=out.nearby, refine_sharp=out.sharp, reasons=reasons)
 
     def report(self) -> dict:
         """For the summaries: the re-initialisations (count, stamps, kinds, reasons) and which points
@@ -217,7 +226,8 @@ class DepthTracker:
         return FilterOutput(T_base_bone=T_base_bone, position_spread=float("inf"),
                             rotation_spread=float("inf"), ess=0.0, ess_ratio=0.0, log_likelihood_max=float("nan"),
                             status=TrackingStatus.LOST, inlier_fraction=float("nan"), covered_pixels=0, n_nan=0,
-                            resampled=False, dt=0.0, weighed=False, timings={})
+                            resampled=False, dt=0.0, weighed=False, timings={}, state="initialising",
+                            reasons=(Reason("initialising", "waiting for a frame to start from the point"),))
 
     def particle_positions(self) -> np.ndarray:
         """(N, 3) particle positions in the base frame (metres)."""
@@ -230,6 +240,7 @@ class DepthTracker:
         self.backend.release()
 
 
+STATUS_RANK = {TrackingStatus.LOST: 0, TrackingStatus.UNCERTAIN: 1, TrackingStatus.OK: 2}   # min() is the worse
 PLAN_POINTS = 300   # mesh vertices standing in for the template's points in the status's error bound
 
 
@@ -276,11 +287,16 @@ def use_projector_plan(tracker, sinks) -> None:
 
 
 def _filter_config(config: TrackerConfig) -> TrackerConfig:
-    """With the refinement on, its fitness and predicted template error replace the filter's share of
-    the image (status.min_ok_fraction, tuned on the synthetic crest; app/filter/status.py)."""
+    """With the refinement on, its tests replace the filter's shares fitted to one simulator
+    (app/filter/status.py): its fitness and predicted template error replace the share of the image
+    (status.min_ok_fraction, tuned on the synthetic crest), and its consistency test on the signed
+    residuals (app/tracking/fit_test.py) replaces the filter's inlier fraction for ok
+    (status.uncertain_inlier_fraction, 0.7 on our simulator: on a held-out stereo sensor 53-70 % of a
+    right pose's pixels were inliers, tissue and silhouette counting against it; issue 32). The lost
+    rule on the inlier fraction stays."""
     if not config.refine.enabled:
         return config
-    return replace(config, status=replace(config.status, min_ok_fraction=0.0))
+    return replace(config, status=replace(config.status, min_ok_fraction=0.0, uncertain_inlier_fraction=0.0))
 
 
 def refine_params(config: TrackerConfig) -> RefineParams:

@@ -16,6 +16,7 @@ from collections import Counter
 import numpy as np
 
 from app import plugins_registry as registry
+from app.filter.status import Reason, codes
 from app.errors import ConfigError
 from app.interfaces import DepthFrame, Estimate, SessionClock
 from app.pipeline.frame_core import FrameCore
@@ -80,6 +81,7 @@ class LiveLoop:
         self.ctx: dict = {}
         self.started: list = []
         self.statuses: Counter = Counter()
+        self.blocked: Counter = Counter()       # reason code -> processed frames it kept from ok
         self.latency = LatencyLog()
         self.estimates: collections.deque = collections.deque(maxlen=ESTIMATE_HISTORY)
         self.rss: dict = {}
@@ -177,7 +179,7 @@ class LiveLoop:
             self.stalled = True
         if now - self.last_lost_tick >= LOST_TICK_S:
             self.last_lost_tick = now
-            est = Estimate(now, None, None, "lost", reasons=("no frames",))
+            est = Estimate(now, None, None, "lost", reasons=(Reason("no_frames", "no frames"),))
             self.statuses["lost (no frames)"] += 1
             for sink in self.sinks:
                 sink.on_estimate(est)
@@ -194,6 +196,7 @@ class LiveLoop:
             floor = "lost" if t_pop - self.last_pose_host > self.lc.robot_lost_s else "uncertain"
         est = self.core.process(frame, T_base_camera, reasons, floor)
         self.statuses[est.status] += 1
+        self.blocked.update(codes(est.reasons))
         self.estimates.append(_light(est))
         if self.core.t_estimate is not None:
             self.latency.add(frame, t_pop, self.core.t_estimate, self.clock.now())
@@ -207,7 +210,7 @@ class LiveLoop:
         q, why = self.bus.joints.at(frame.stamp, self.lc.robot_wait_s)
         if q is None:
             self.events.emit("session", "no_camera_pose", f"frame {frame.frame_id}: {why}")
-            return None, [f"no camera pose: {why}"]
+            return None, [Reason("no_pose", f"no camera pose: {why}")]
         self.last_pose_host = now
         return forward_kinematics(self.ctx["dh"], q) @ self.ctx["T_flange_camera"], []
 
@@ -237,6 +240,8 @@ class LiveLoop:
             "frames_skipped_by_camera": int(getattr(self.camera, "skipped", 0)),
             "processed": sum(v for k, v in self.statuses.items() if "(" not in k),
             "status_counts": dict(self.statuses),
+            "blocked_by": {code: n / max(sum(v for k, v in self.statuses.items() if "(" not in k), 1)
+                           for code, n in self.blocked.most_common()},
             **self.latency.summary(),
             "events": dict(self.events.counts),
             "rss_mb": {**self.rss, "end": rss_mb()},

@@ -22,6 +22,7 @@ from app.geometry import se3
 
 TUM_HEADER = "# stamp tx ty tz qx qy qz qw"
 STATUS_HEADER = "stamp,status"
+STATUS_HEADER_REASONS = "stamp,status,state,reasons"   # the tracker's own columns after the two of the format
 STATUSES = ("ok", "uncertain", "lost")
 QUAT_NORM_ATOL = 1e-4  # files rounded to 6 decimals keep |q| within ~2e-6 of 1
 
@@ -33,9 +34,13 @@ def format_tum_row(stamp: float, T: np.ndarray) -> str:
     return f"{float(stamp):.9f} " + " ".join(f"{v:.9f}" for v in values) + "\n"
 
 
-def format_status_row(stamp: float, status: str) -> str:
-    """One ``status.csv`` line (with its newline): ``stamp,status``."""
-    return f"{float(stamp):.9f},{status}\n"
+def format_status_row(stamp: float, status: str, state: str | None = None, reasons=None) -> str:
+    """One ``status.csv`` line (with its newline): ``stamp,status``, or with the tracker's columns
+    ``stamp,status,state,reasons`` (:data:`STATUS_HEADER_REASONS`: the lifecycle state and the reason
+    codes separated by ``;``) when ``state`` is given."""
+    if state is None:
+        return f"{float(stamp):.9f},{status}\n"
+    return f"{float(stamp):.9f},{status},{state},{';'.join(reasons or ())}\n"
 
 
 def write_tum(path: str | Path, stamps: np.ndarray, T: np.ndarray) -> None:
@@ -109,13 +114,13 @@ def read_status_csv(path: str | Path) -> tuple[np.ndarray, list[str]]:
     if not path.is_file():
         raise TrialFormatError(path, "missing: no such status file")
     lines = path.read_text().splitlines()
-    if not lines or lines[0].strip() != STATUS_HEADER:
+    if not lines or not lines[0].strip().startswith(STATUS_HEADER):
         raise TrialFormatError(path, f"expected the header '{STATUS_HEADER}'", "line 1")
     stamps, statuses = [], []
     for lineno, line in enumerate(lines[1:], start=2):
         if not line.strip():
             continue
-        fields = line.strip().split(",")
+        fields = line.strip().split(",")[:2]
         try:
             stamp = float(fields[0])
         except ValueError:
