@@ -46,12 +46,12 @@ from app.bench.runs import run_bench, run_one
 from app.bench.scoring import (JITTER_SETTLE_S, REST_DELAY_S, after_rest, STATIC_ROTATION_RAD, STATIC_TRANSLATION_M, VSD_RESOLUTION, jitter,
                                static_pairs, vsd_series, in_view_share, refound)
 from app.bench.trials import (DEFAULT_CACHE, PELVIS_DIR, QUICK_CONFIGS, QUICK_SCENARIOS, QUICK_STATIC_S, TrialSpec,
-                              pelvis_crest_meshes, quick_seconds, recorded_trials, standard_trials)
+                              parse_sensors, pelvis_crest_meshes, quick_seconds, recorded_trials, standard_trials)
 from app.metrics import DANGEROUS_ADD_MM, LOST_ADD_MM
 
 __all__ = ["BUILTIN_DIR", "BUILTIN_ORDER", "REPO", "TRACKERS", "BenchConfig", "builtin_configs", "load_bench_config",
            "load_icp_params", "resolve_configs", "pmap", "COLUMNS", "SUMMARY_COLUMNS", "summary", "summary_table", "plot", "table", "write_json", "run_bench",
            "run_one", "JITTER_SETTLE_S", "STATIC_ROTATION_RAD", "STATIC_TRANSLATION_M", "VSD_RESOLUTION", "jitter",
            "static_pairs", "vsd_series", "REST_DELAY_S", "after_rest", "in_view_share", "refound", "DEFAULT_CACHE", "PELVIS_DIR", "QUICK_CONFIGS", "QUICK_SCENARIOS",
-           "QUICK_STATIC_S", "TrialSpec", "pelvis_crest_meshes", "quick_seconds", "recorded_trials",
+           "QUICK_STATIC_S", "TrialSpec", "parse_sensors", "pelvis_crest_meshes", "quick_seconds", "recorded_trials",
            "standard_trials", "DANGEROUS_ADD_MM", "LOST_ADD_MM"]
