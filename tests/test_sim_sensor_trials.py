@@ -64,7 +64,7 @@ def test_bench_simulates_and_caches_each_sensor_model_under_its_own_name(tmp_pat
     again = standard_trials(**kwargs, sensors=["stereo"])
     assert again[0].simulation is None                 # cached: not simulated again
     assert recorded_trials([specs[1].path])[0].sensor == "stereo"
-    with pytest.raises(ValueError, match="'--sensors'.*valid: independent, stereo"):
+    with pytest.raises(ValueError, match="'--sensors'.*valid: independent, stereo, tof"):
         standard_trials(**kwargs, sensors=["kinect"])
 
 

@@ -14,6 +14,7 @@ from app.sim.sensors import (SENSORS, SceneErrors, get_sensor, parse_sensor, sen
 from app.sim.sensors.common import quantise_depth
 from app.sim.sensors.independent import IndependentSensor
 from app.sim.sensors.stereo import StereoSensor, right_image_hidden
+from app.sim.sensors.tof import TofSensor, incidence_cosine
 
 F_PX = 612.4
 DEPTH_SCALE_MM = 0.1
@@ -199,6 +200,87 @@ def test_stereo_out_of_range_is_invalid():
     assert (frames(StereoSensor(), plane(3.5), 1) == 0).all()
 
 
+# ------------------------------------------------------------------ time of flight
+
+def tilted_plane(z0: float, angle_deg: float, width: int = 320, height: int = 120):
+    """Depth of a plane through (0, 0, z0) whose normal is turned ``angle_deg`` about the camera's y axis,
+    and the closed-form |cos| of each pixel's incidence angle."""
+    cam = camera(width, height)
+    a = np.deg2rad(angle_deg)
+    n = np.array([np.sin(a), 0.0, -np.cos(a)])
+    v, u = np.mgrid[0:height, 0:width].astype(float)
+    rays = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u)], axis=-1)
+    depth = (n @ [0.0, 0.0, z0]) / (rays @ n)
+    return depth, np.abs(rays @ n) / np.linalg.norm(rays, axis=-1)
+
+
+def test_incidence_cosine_of_a_tilted_plane_is_exact():
+    depth, cos = tilted_plane(0.5, 60.0)
+    assert np.allclose(incidence_cosine(depth, camera(320, 120)), cos, atol=1e-9)
+
+
+@pytest.mark.parametrize("z, angle", [(0.42, 0.0), (0.65, 0.0), (0.5, 60.0)])
+def test_tof_noise_is_sigma_ref_over_sqrt_amplitude_and_uncorrelated(z, angle):
+    """Per pixel over frames: sigma_z = sigma_ref (z / z_ref) / sqrt(cos theta) (with the depth unit's
+    rounding variance); a tilted plane's noise grows by 1 / sqrt(cos 60 deg) = 1.41."""
+    model = TofSensor(multipath_bias_m=0.0)
+    depth, cos = tilted_plane(z, angle)
+    measured = frames(model, depth, 30)
+    valid = np.all(measured > 0, axis=0)
+    assert valid.mean() > 0.99
+    var = np.var(measured[:, valid], axis=0, ddof=1)
+    expected = model.sigma_z(depth[valid], cos[valid]) ** 2 + (DEPTH_SCALE_MM * 1e-3) ** 2 / 12
+    assert np.sqrt(var.mean()) == pytest.approx(np.sqrt(expected.mean()), rel=0.03)
+    if angle == 0.0:
+        assert model.sigma_z(z) == pytest.approx(0.001 * z / 0.5)
+        assert abs(lag1_correlation(measured[0], z)) < 0.03
+
+
+def test_tof_grazing_surfaces_are_invalid_below_the_amplitude_threshold():
+    model = TofSensor()
+    depth, cos = tilted_plane(0.5, 88.0, width=64, height=32)
+    amp = model.amplitude(depth, cos)
+    measured = frames(model, depth, 1)[0]
+    in_range = (depth > model.z_min + 0.01) & (depth < model.z_max - 0.1)
+    dim, bright = in_range & (amp < 0.8 * model.min_amplitude), in_range & (amp > 1.25 * model.min_amplitude)
+    assert dim.sum() > 100 and bright.sum() > 100
+    assert (measured[dim] == 0).all() and (measured[bright] > 0).all()
+
+
+def test_tof_mixes_the_two_surfaces_at_a_discontinuity_and_casts_no_shadow():
+    """The pixels either side of the bar's edges lie between the two depths (amplitude-weighted mixtures),
+    none is invalid for it; nothing is hidden left of the bar as in stereo."""
+    model = TofSensor(multipath_bias_m=0.0)
+    measured = frames(model, step(), 20)
+    edge = measured[:, :, [199, 200, 259, 260]]
+    assert (edge > 0).mean() > 0.99
+    assert ((edge > 0.4 + 0.003) & (edge < 0.6 - 0.003)).mean() > 0.8
+    assert (edge > 0.4 - 0.005).all() and (edge < 0.6 + 0.005).all()
+    # amplitude weighting: with c ~ U(0, 1), the mean mixture lies nearer the (brighter) foreground
+    assert np.mean(edge) < 0.5
+    assert (measured[:, :, 170:198] > 0).mean() > 0.99
+
+
+def test_tof_multipath_bias_decays_away_from_discontinuities():
+    """Mean error r px from the edge (outside the mixed pixels): multipath_bias_m exp(-r / multipath_px)."""
+    model = TofSensor()
+    measured = frames(model, step(), 20)
+    # right of the bar (background at 0.6 m): column 260 is the first background pixel, 0.5 px from the jump
+    for k in (1, 2, 4, 7):
+        column = measured[:, :, 260 + k]
+        expected = model.multipath_bias_m * np.exp(-(k + 0.5) / model.multipath_px)
+        sem = model.sigma_z(0.6) / np.sqrt(column.size)
+        assert np.mean(column) - 0.6 == pytest.approx(expected, abs=4 * sem + 0.03e-3)
+    assert np.mean(measured[:, :, 300:]) - 0.6 == pytest.approx(0.0, abs=0.1e-3)
+
+
+def test_tof_depth_is_quantised_to_the_depth_unit():
+    measured = frames(TofSensor(), plane(0.5), 1)
+    units = measured[measured > 0] * 1e3 / DEPTH_SCALE_MM
+    assert np.allclose(units, np.rint(units), atol=1e-3)
+    assert np.min(np.diff(np.unique(np.rint(units)))) == 1
+
+
 # ------------------------------------------------------------------ registry
 
 def test_every_registered_model_measures_a_plane_near_its_depth():
@@ -209,7 +291,7 @@ def test_every_registered_model_measures_a_plane_near_its_depth():
 
 
 def test_unknown_model_or_parameter_is_refused_with_the_valid_list():
-    with pytest.raises(ValueError, match="unknown sensor model 'kinect'; valid: independent, stereo"):
+    with pytest.raises(ValueError, match="unknown sensor model 'kinect'; valid: independent, stereo, tof"):
         get_sensor("kinect")
     with pytest.raises(ValueError, match="no parameter 'window'.*window_px"):
         parse_sensor("stereo:window=9")

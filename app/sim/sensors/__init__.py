@@ -17,8 +17,9 @@ from dataclasses import asdict, fields
 from app.sim.sensors.common import SceneErrors
 from app.sim.sensors.independent import IndependentSensor
 from app.sim.sensors.stereo import StereoSensor
+from app.sim.sensors.tof import TofSensor
 
-SENSORS = {cls.name: cls for cls in (IndependentSensor, StereoSensor)}
+SENSORS = {cls.name: cls for cls in (IndependentSensor, StereoSensor, TofSensor)}
 DEFAULT_SENSOR = IndependentSensor.name
 
 __all__ = ["SENSORS", "DEFAULT_SENSOR", "SceneErrors", "get_sensor", "parse_sensor", "sensor_to_dict",
