@@ -82,3 +82,19 @@ def test_bench_cache_made_before_sensor_models_stays_valid_for_the_independent_m
     info_path.write_text(yaml.safe_dump(info))
     assert standard_trials(**kwargs)[0].simulation is None
     assert standard_trials(**kwargs, sensors=["independent:k=0.002"])[0].simulation is not None
+
+
+def test_a_session_simulated_source_takes_a_sensor_model(tmp_path):
+    """``camera: simulated`` / ``robot: simulated`` with ``params: {sensor: ...}``: the trial they play is made
+    by that model; an unknown one is refused when the session file is read, naming the key."""
+    from app.errors import ConfigError
+    from app.plugins_registry import create
+    from plugins.trial_player import simulated_trial
+
+    with pytest.raises(ConfigError, match=r"'camera.params.sensor'.*valid: independent, stereo, tof"):
+        create("camera", "simulated", {"sensor": "kinect"})
+    with pytest.raises(ConfigError, match=r"'robot.params.sensor'.*no parameter 'sigma'"):
+        create("robot", "simulated", {"sensor": "tof:sigma=1"})
+    assert create("camera", "simulated", {"sensor": "tof"})._sim[-1] == "tof"
+    out = simulated_trial("static_clear", 0.03, 1, None, str(tmp_path / "t"), sensor="tof")
+    assert open_trial(out).meta.extra["sensor"]["model"] == "tof"

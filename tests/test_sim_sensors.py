@@ -301,6 +301,10 @@ def test_unknown_model_or_parameter_is_refused_with_the_valid_list():
         parse_sensor("stereo:window_px=wide")
     with pytest.raises(ValueError, match="window_px=2.5"):
         parse_sensor("stereo:window_px=2.5")
+    with pytest.raises(ValueError, match="edge_dilation=-1"):
+        parse_sensor("independent:edge_dilation=-1")
+    with pytest.raises(ValueError, match="z_min=0.5"):
+        parse_sensor("tof:z_min=0.5,z_max=0.4")
 
 
 def test_a_model_round_trips_through_its_trial_yaml_block_and_is_labelled():

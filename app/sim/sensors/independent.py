@@ -39,6 +39,15 @@ class IndependentSensor:
     edge_jump: float = 0.006       # m, neighbour depth jump that invalidates a pixel
     edge_dilation: int = 1         # px
 
+    def __post_init__(self):
+        checks = {"k": self.k >= 0, "sigma_base": self.sigma_base >= 0, "z_min": 0 <= self.z_min < self.z_max,
+                  "edge_jump": self.edge_jump > 0,
+                  "edge_dilation": int(self.edge_dilation) == self.edge_dilation and self.edge_dilation >= 0}
+        bad = [k for k, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError(f"independent sensor: invalid {', '.join(f'{k}={getattr(self, k)!r}' for k in bad)} "
+                             "(k >= 0, sigma_base >= 0, 0 <= z_min < z_max, edge_jump > 0, edge_dilation integer >= 0)")
+
     def sigma(self, z: np.ndarray) -> np.ndarray:
         """Per-pixel noise standard deviation (m) at depth ``z`` (m)."""
         return self.k * z * z + self.sigma_base
