@@ -17,7 +17,9 @@ section with the fields of :class:`app.baselines.icp.ICPParams` (:func:`load_icp
 default, the standard scenarios (:data:`app.sim.scenarios.STANDARD`) simulated for the default
 mesh and for each ``crest_*.ply`` of ``../shared/data/pelvis`` (skipped when absent), cached in
 ``recordings/bench/<mesh>/<scenario>`` and re-simulated only when the scenario, its duration, the
-seed or the mesh changed.
+seed, the mesh or the depth sensor model changed. ``sensors`` (``--sensors``) simulates each trial with
+each model of :mod:`app.sim.sensors`; a model other than ``independent`` is cached in
+``<scenario>[_seedN]@<model>`` and named ``<scenario>@<model>`` in the tables (rows carry ``sensor``).
 
 **Columns** (per configuration x trial; errors are of the estimate in the robot base frame
 against ``groundtruth.txt``, on every processed frame, whatever the status):
