@@ -98,3 +98,12 @@ def test_a_session_simulated_source_takes_a_sensor_model(tmp_path):
     assert create("camera", "simulated", {"sensor": "tof"})._sim[-1] == "tof"
     out = simulated_trial("static_clear", 0.03, 1, None, str(tmp_path / "t"), sensor="tof")
     assert open_trial(out).meta.extra["sensor"]["model"] == "tof"
+
+
+def test_bench_refuses_an_unknown_sensor_or_sensors_with_recorded_trials_before_writing(tmp_path, capsys, trials):
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--sensors", "stereo", "kinect", "--quick", "--json", str(out)]) == 2
+    assert "'--sensors': unknown sensor model 'kinect'; valid: independent, stereo, tof" in capsys.readouterr().err
+    assert main(["bench", "--sensors", "stereo", "--trials", str(trials / "stereo"), "--json", str(out)]) == 2
+    assert "give --sensors or --trials, not both" in capsys.readouterr().err
+    assert not out.exists() and list(tmp_path.iterdir()) == []

@@ -39,7 +39,10 @@ Parameter sources:
 - ``f`` from the trial's camera (fx; 612 px for the D415 at 640x480);
 - assumptions (not from a datasheet): ``window_px = 7`` (the correlation length of the noise),
   ``subpixel_levels = 32`` (1/32 px disparity resolution), ``edge_jump_px = 1``, ``edge_band_px =
-  2``, ``edge_invalid_fraction = 0.6``, ``z_min = 0.28`` m as in the ``independent`` model.
+  2``, ``edge_invalid_fraction = 0.6``, ``z_min = 0.28`` m as in the ``independent`` model;
+- not modelled: texture (the emitter's dot pattern is taken to texture every surface alike, so
+  ``sigma_d`` does not depend on the surface), the emitter's own shadow, and the matcher's
+  left-right check beyond the shadows above.
 """
 from __future__ import annotations
 
