@@ -13,7 +13,9 @@ host), it pushes the newest frame due and skips the older ones (``skipped``, in 
 cache directory named by scenario, seed and duration (reused when already there), then play it the
 same way: the simplest honest live source without hardware. Both plugins of a session given the
 same parameters play the same trial. ``streams: depth,ir,color`` simulates the infrared and colour
-images too (:mod:`app.sim.appearance`); the camera then delivers them with each frame.
+images too (:mod:`app.sim.appearance`); the camera then delivers them with each frame. ``sensor:``
+names the depth sensor model (:mod:`app.sim.sensors`: ``independent``, the default, ``stereo``,
+``tof``, or ``NAME:KEY=VALUE,...``).
 
 A trial also knows its calibration, robot model, mesh and initial pose: ``session_defaults``
 offers them to the session, which uses them for any key its file leaves out.
@@ -63,20 +65,24 @@ def _trial_origin(reader) -> float:
 
 
 def simulated_trial(scenario: str, seconds: float | None, seed: int, mesh: str | None, trial_dir: str | None,
-                    streams: str = "depth") -> Path:
-    """Simulate once per (scenario, seconds, seed, mesh, streams) into ``trial_dir`` (or a cache dir); return it."""
+                    streams: str = "depth", sensor: str = "independent") -> Path:
+    """Simulate once per (scenario, seconds, seed, mesh, streams, sensor) into ``trial_dir`` (or a cache dir);
+    return it."""
+    from app.sim.sensors import parse_sensor, sensor_label
     from app.sim.simulator import simulate
 
+    model = parse_sensor(sensor)
     if trial_dir is None:
         tag = f"{scenario}-s{seed}-{seconds or 'default'}s" + (f"-{Path(mesh).stem}" if mesh else "")
         tag += "" if streams == "depth" else "-" + streams.replace(",", "-")
+        tag += "" if sensor_label(model) == "independent" else "-" + sensor_label(model)
         trial_dir = Path(tempfile.gettempdir()) / "osteonav-sim" / tag
     out = Path(trial_dir)
     with _SIM_LOCK:
         if not (out / "trial.yaml").is_file() or not (out / "simulation.yaml").is_file():
             log.info("simulating %s (%s s, seed %d) into %s", scenario, seconds, seed, out)
             simulate(out, mesh_path=mesh, scenario_name=scenario, seconds=seconds, seed=seed, overwrite=True,
-                     streams=streams)
+                     streams=streams, sensor=model)
     return out
 
 
@@ -189,14 +195,27 @@ class RecordedRobot(ThreadedSource):
         self.finished.set()
 
 
+def _check_sensor(sensor: str, kind: str) -> None:
+    """A ConfigError naming ``<kind>.params.sensor`` for a sensor model :func:`app.sim.sensors.parse_sensor` refuses."""
+    from app.errors import ConfigError
+    from app.sim.sensors import parse_sensor
+
+    try:
+        parse_sensor(sensor)
+    except ValueError as exc:
+        raise ConfigError(f"{kind}.params.sensor", str(exc)) from None
+
+
 class SimulatedCamera(RecordedCamera):
     """A simulated trial (``app.sim``) played as a live camera; see the module docstring."""
 
     name = "simulated"
 
     def __init__(self, scenario: str = "static_clear", seconds: float | None = None, seed: int = 0,
-                 mesh: str | None = None, trial_dir: str | None = None, loop: bool = False, streams: str = "depth"):
-        self._sim = (scenario, seconds, seed, mesh, trial_dir, streams)
+                 mesh: str | None = None, trial_dir: str | None = None, loop: bool = False, streams: str = "depth",
+                 sensor: str = "independent"):
+        _check_sensor(sensor, "camera")
+        self._sim = (scenario, seconds, seed, mesh, trial_dir, streams, sensor)
         super().__init__(trial="", loop=loop)
 
     def open(self, clock: SessionClock, event):
@@ -210,8 +229,10 @@ class SimulatedRobot(RecordedRobot):
     name = "simulated"
 
     def __init__(self, scenario: str = "static_clear", seconds: float | None = None, seed: int = 0,
-                 mesh: str | None = None, trial_dir: str | None = None, loop: bool = False, streams: str = "depth"):
-        self._sim = (scenario, seconds, seed, mesh, trial_dir, streams)
+                 mesh: str | None = None, trial_dir: str | None = None, loop: bool = False, streams: str = "depth",
+                 sensor: str = "independent"):
+        _check_sensor(sensor, "robot")
+        self._sim = (scenario, seconds, seed, mesh, trial_dir, streams, sensor)
         super().__init__(trial="", loop=loop)
 
     def open(self, clock: SessionClock, event) -> None:

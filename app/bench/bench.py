@@ -17,7 +17,9 @@ section with the fields of :class:`app.baselines.icp.ICPParams` (:func:`load_icp
 default, the standard scenarios (:data:`app.sim.scenarios.STANDARD`) simulated for the default
 mesh and for each ``crest_*.ply`` of ``../shared/data/pelvis`` (skipped when absent), cached in
 ``recordings/bench/<mesh>/<scenario>`` and re-simulated only when the scenario, its duration, the
-seed or the mesh changed.
+seed, the mesh or the depth sensor model changed. ``sensors`` (``--sensors``) simulates each trial with
+each model of :mod:`app.sim.sensors`; a model other than ``independent`` is cached in
+``<scenario>[_seedN]@<model>`` and named ``<scenario>@<model>`` in the tables (rows carry ``sensor``).
 
 **Columns** (per configuration x trial; errors are of the estimate in the robot base frame
 against ``groundtruth.txt``, on every processed frame, whatever the status):
@@ -46,12 +48,12 @@ from app.bench.runs import run_bench, run_one
 from app.bench.scoring import (JITTER_SETTLE_S, REST_DELAY_S, after_rest, STATIC_ROTATION_RAD, STATIC_TRANSLATION_M, VSD_RESOLUTION, jitter,
                                static_pairs, vsd_series, in_view_share, refound)
 from app.bench.trials import (DEFAULT_CACHE, PELVIS_DIR, QUICK_CONFIGS, QUICK_SCENARIOS, QUICK_STATIC_S, TrialSpec,
-                              pelvis_crest_meshes, quick_seconds, recorded_trials, standard_trials)
+                              parse_sensors, pelvis_crest_meshes, quick_seconds, recorded_trials, standard_trials)
 from app.metrics import DANGEROUS_ADD_MM, LOST_ADD_MM
 
 __all__ = ["BUILTIN_DIR", "BUILTIN_ORDER", "REPO", "TRACKERS", "BenchConfig", "builtin_configs", "load_bench_config",
            "load_icp_params", "resolve_configs", "pmap", "COLUMNS", "SUMMARY_COLUMNS", "summary", "summary_table", "plot", "table", "write_json", "run_bench",
            "run_one", "JITTER_SETTLE_S", "STATIC_ROTATION_RAD", "STATIC_TRANSLATION_M", "VSD_RESOLUTION", "jitter",
            "static_pairs", "vsd_series", "REST_DELAY_S", "after_rest", "in_view_share", "refound", "DEFAULT_CACHE", "PELVIS_DIR", "QUICK_CONFIGS", "QUICK_SCENARIOS",
-           "QUICK_STATIC_S", "TrialSpec", "pelvis_crest_meshes", "quick_seconds", "recorded_trials",
+           "QUICK_STATIC_S", "TrialSpec", "parse_sensors", "pelvis_crest_meshes", "quick_seconds", "recorded_trials",
            "standard_trials", "DANGEROUS_ADD_MM", "LOST_ADD_MM"]

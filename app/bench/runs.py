@@ -51,7 +51,7 @@ def run_one(config: BenchConfig, trial: TrialSpec, out_dir: str | Path | None = 
     row = {
         "config": config.name, "config_description": config.describe(), "config_source": config.source,
         "tracker": config.kind, "trial": trial.name, "trial_path": trial.path, "mesh": trial.mesh,
-        "scenario": trial.scenario, "seed": trial.seed, "frames": n,
+        "scenario": trial.scenario, "seed": trial.seed, "sensor": trial.sensor, "frames": n,
         "fps": result.summary["processing_rate_hz"], "wall_s": wall, "gl": result.summary.get("gl"),
         "timings_ms": result.summary.get("timings_ms", {}),
         "add_mm": metrics.summarise(add_mm), "add_s_mm": metrics.summarise(1e3 * add_s),

@@ -1,4 +1,4 @@
-"""Bench trials: the standard scenarios simulated per mesh (cached), or recorded trial directories."""
+"""Bench trials: the standard scenarios simulated per mesh and sensor model (cached), or recorded trial directories."""
 from __future__ import annotations
 
 import logging
@@ -16,6 +16,8 @@ log = logging.getLogger("app.bench.bench")
 
 PELVIS_DIR = REPO.parent / "shared" / "data" / "pelvis"
 DEFAULT_CACHE = Path("recordings") / "bench"
+_DEFAULT_SENSOR_DICT = {"model": "independent", "k": 0.0015, "sigma_base": 0.0003, "z_min": 0.28, "z_max": 3.0,
+                        "edge_jump": 0.006, "edge_dilation": 1}   # what the simulator used before sensors were named
 QUICK_SCENARIOS = ("static_clear", "bone_moves")
 QUICK_CONFIGS = ("osteonav_default", "A_cpu", "icp")   # ours, publication A's, the ICP baseline
 QUICK_STATIC_S = 1.5
@@ -51,6 +53,7 @@ class TrialSpec:
     max_frames: int | None = None
     seed: int = 0
     simulation: dict | None = None   # set by standard_trials(lazy=True): simulated just before its first run
+    sensor: str = "independent"      # the depth sensor model's label (app.sim.sensors.sensor_label)
 
     @property
     def name(self) -> str:
@@ -74,7 +77,9 @@ def pelvis_crest_meshes(folder: Path = PELVIS_DIR) -> list[Path]:
     return sorted(folder.glob("crest_*.ply"))
 
 
-def _cache_valid(trial: Path, scenario: str, seconds: float, seed: int, mesh_path: Path) -> bool:
+def _cache_valid(trial: Path, scenario: str, seconds: float, seed: int, mesh_path: Path, sensor: dict) -> bool:
+    """Whether ``trial`` holds a complete simulation of these parameters (a simulation.yaml without a
+    ``sensor`` entry was made by the ``independent`` model with its defaults, before sensors were named)."""
     info_path = trial / "simulation.yaml"
     if not (trial / "trial.yaml").is_file() or not info_path.is_file() or not (trial / "groundtruth.txt").is_file():
         return False
@@ -88,26 +93,46 @@ def _cache_valid(trial: Path, scenario: str, seconds: float, seed: int, mesh_pat
     return (not reader.interrupted and info.get("seed") == seed
             and info.get("scenario", {}).get("name") == scenario
             and abs(float(info.get("scenario", {}).get("seconds", -1)) - seconds) < 1e-9
-            and Path(info.get("mesh_source", "")).resolve() == mesh_path.resolve())
+            and Path(info.get("mesh_source", "")).resolve() == mesh_path.resolve()
+            and info.get("sensor", _DEFAULT_SENSOR_DICT) == sensor)
 
 
 def _simulate_task(task: dict) -> dict:
     from app.sim.simulator import simulate
 
+    from app.sim.sensors import sensor_from_dict
+
+    sensor = sensor_from_dict(task["sensor"]) if task.get("sensor") else "independent"
     summary = simulate(task["out"], mesh_path=task["mesh"], scenario_name=task["scenario"], seconds=task["seconds"],
-                       seed=task["seed"], overwrite=True)
+                       seed=task["seed"], overwrite=True, sensor=sensor)
     return {"out": task["out"], "frames": summary.frames}
 
 
-def trial_dir(cache: str | Path, mesh: Path, scenario: str, seed: int) -> Path:
-    """``<cache>/<mesh stem>/<scenario>`` for seed 0, ``.../<scenario>_seed<N>`` for another seed."""
-    return Path(cache) / mesh.stem / (scenario if seed == 0 else f"{scenario}_seed{seed}")
+def trial_dir(cache: str | Path, mesh: Path, scenario: str, seed: int, sensor: str = "independent") -> Path:
+    """``<cache>/<mesh stem>/<scenario>`` for seed 0, ``.../<scenario>_seed<N>`` for another seed; another
+    sensor model than ``independent`` (its label, :func:`app.sim.sensors.sensor_label`) adds ``@<label>``."""
+    name = scenario if seed == 0 else f"{scenario}_seed{seed}"
+    return Path(cache) / mesh.stem / (name if sensor == "independent" else f"{name}@{sensor}")
+
+
+def parse_sensors(sensors) -> list:
+    """Sensor models from names or ``NAME:KEY=VALUE,...`` texts (or models); default ``[independent]``;
+    ConfigError naming ``--sensors``."""
+    from app.sim.sensors import DEFAULT_SENSOR, parse_sensor
+
+    out = []
+    for item in sensors or [DEFAULT_SENSOR]:
+        try:
+            out.append(parse_sensor(item) if isinstance(item, str) else item)
+        except ValueError as exc:
+            raise ConfigError("--sensors", str(exc)) from None
+    return out
 
 
 def standard_trials(cache: str | Path = DEFAULT_CACHE, scenarios=None, seconds: float | dict | None = None,
                     meshes=None, seed: int = 0, jobs: int = 1, progress: bool = True, seeds=None,
-                    lazy: bool = False) -> list[TrialSpec]:
-    """Simulate (or reuse from ``cache``) the standard scenarios for each mesh (and seed).
+                    lazy: bool = False, sensors=None) -> list[TrialSpec]:
+    """Simulate (or reuse from ``cache``) the standard scenarios for each mesh (and seed, and sensor model).
 
     Parameters
     ----------
@@ -115,14 +140,19 @@ def standard_trials(cache: str | Path = DEFAULT_CACHE, scenarios=None, seconds: 
     scenarios : scenario names, default :data:`app.sim.scenarios.STANDARD`
     seconds : duration of each trial (or a mapping scenario -> duration), default each scenario's own
     meshes : mesh paths, default the project's mesh and the pelvis crest meshes found
-    seeds : simulation seeds (default ``[seed]``); the specs are ordered seed, scenario, mesh, so that
-        the first runs of a long matrix cover every scenario once
+    seeds : simulation seeds (default ``[seed]``); the specs are ordered seed, scenario, sensor, mesh, so
+        that the first runs of a long matrix cover every scenario once
+    sensors : depth sensor models (names, ``NAME:KEY=VALUE,...`` or models of :mod:`app.sim.sensors`),
+        default ``['independent']``; a trial of another model is cached in ``<scenario>[_seedN]@<label>``
+        and named ``<scenario>@<label>`` in the tables
     lazy : do not simulate now; each spec simulates itself on :meth:`TrialSpec.ensure` (a long
         matrix then starts running at once and a partial run leaves no unused simulations)
     """
     from app.sim.scenarios import STANDARD, get_scenario
+    from app.sim.sensors import sensor_label, sensor_to_dict
     from app.sim.simulator import DEFAULT_MESH
 
+    models = parse_sensors(sensors)
     scenarios = list(scenarios or STANDARD)
     for name in scenarios:
         try:
@@ -137,16 +167,20 @@ def standard_trials(cache: str | Path = DEFAULT_CACHE, scenarios=None, seconds: 
     for s in (seeds if seeds is not None else [seed]):
         for name in scenarios:
             duration = _seconds_for(seconds, name) or get_scenario(name).seconds
-            for mesh in meshes:
-                out = trial_dir(cache, mesh, name, s)
-                spec = TrialSpec(str(out), mesh.stem, name, seed=int(s))
-                specs.append(spec)
-                if not _cache_valid(out, name, duration, s, mesh):
-                    task = {"out": str(out), "mesh": str(mesh), "scenario": name, "seconds": duration, "seed": int(s)}
-                    if lazy:
-                        spec.simulation, spec.frames = task, int(round(duration * 90))
-                    else:
-                        todo.append(task)
+            for model in models:
+                label, block = sensor_label(model), sensor_to_dict(model)
+                for mesh in meshes:
+                    out = trial_dir(cache, mesh, name, s, label)
+                    spec = TrialSpec(str(out), mesh.stem, name if label == "independent" else f"{name}@{label}",
+                                     seed=int(s), sensor=label)
+                    specs.append(spec)
+                    if not _cache_valid(out, name, duration, s, mesh, block):
+                        task = {"out": str(out), "mesh": str(mesh), "scenario": name, "seconds": duration,
+                                "seed": int(s), "sensor": block}
+                        if lazy:
+                            spec.simulation, spec.frames = task, int(round(duration * 90))
+                        else:
+                            todo.append(task)
     if todo:
         log.info("simulating %d trials into %s", len(todo), cache)
         for _ in pmap(_simulate_task, todo, jobs, desc="simulating", unit="trial", progress=progress):
@@ -182,9 +216,19 @@ def recorded_trials(dirs, seconds: float | dict | None = None) -> list[TrialSpec
         if length:
             n = int(np.searchsorted(reader.stamps, reader.stamps[0] + length, side="left"))
         specs.append(TrialSpec(str(d), Path(reader.meta.mesh).stem, scenario, frames=n,
-                               max_frames=n if n < len(reader) else None))
+                               max_frames=n if n < len(reader) else None, sensor=_recorded_sensor(reader.meta)))
     names = [s.name for s in specs]
     for spec in specs:   # two trials of one mesh and scenario: name them by their folder
         if names.count(spec.name) > 1:
             spec.scenario = f"{spec.scenario}@{Path(spec.path).name}"
     return specs
+
+
+def _recorded_sensor(meta) -> str:
+    """The label of the sensor model named in a trial's ``sensor`` block; ``unknown`` without a valid one."""
+    from app.sim.sensors import sensor_from_dict, sensor_label
+
+    try:
+        return sensor_label(sensor_from_dict(meta.extra.get("sensor")))
+    except ValueError:
+        return "unknown"

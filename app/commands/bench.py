@@ -32,6 +32,12 @@ def register(subparsers) -> None:
     p.add_argument("--scenarios", nargs="+", metavar="NAME", help=f"simulated scenarios (default: the standard four, "
                    f"{' '.join(STANDARD)}); all: {' '.join(SCENARIOS)}")
     p.add_argument("--meshes", nargs="+", help="meshes to simulate (default: the project's and the pelvis crests)")
+    from app.sim.sensors import SENSORS
+
+    p.add_argument("--sensors", nargs="+", metavar="NAME[:KEY=VALUE,...]", help="depth sensor models to simulate each "
+                   f"trial with (default: independent); any of {' '.join(SENSORS)}, e.g. --sensors independent stereo "
+                   "stereo:window_px=9; another model than independent is cached in <scenario>[_seedN]@<model> and "
+                   "tabled as <scenario>@<model>")
     p.add_argument("--cache", default="recordings/bench", help="where simulated trials are cached (default: %(default)s)")
     p.add_argument("--out", help="keep each run's estimate.txt / status.csv under OUT/<config>/<mesh>/<scenario>")
     p.add_argument("--no-vsd", action="store_true", help="skip VSD (saves two renderings per frame)")
@@ -79,6 +85,10 @@ def run(args) -> int:
     if args.jobs < 1:
         raise ConfigError("--jobs", f"expected an integer >= 1, got {args.jobs}")
     args.seconds = parse_seconds(args.seconds)
+    if args.sensors and args.trials:
+        raise ConfigError("--sensors", "applies to simulated trials only: give --sensors or --trials, not both "
+                          "(a recorded trial's model is in its trial.yaml)")
+    bench.parse_sensors(args.sensors)   # an unknown model is refused before any output is touched
     args.json = str(results_file(args.json, DEFAULT_JSON, args.overwrite))
     configs = bench.resolve_configs(args.configs or (bench.QUICK_CONFIGS if args.quick else None))
     if args.plots:
@@ -96,7 +106,7 @@ def run(args) -> int:
         if not args.meshes and not args.quick and not bench.pelvis_crest_meshes():
             logging.getLogger(__name__).warning("no pelvis crest meshes at %s: the default mesh only", bench.PELVIS_DIR)
         trials = bench.standard_trials(args.cache, scenarios, seconds, meshes, jobs=args.jobs, seeds=args.seeds,
-                                       lazy=bool(args.seeds))
+                                       lazy=bool(args.seeds), sensors=args.sensors)
     print(f"{len(configs)} configurations x {len(trials)} trials "
           f"({sum(t.max_frames or t.frames for t in trials)} frames each configuration), {args.jobs} process(es)")
     for c in configs:

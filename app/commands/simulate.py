@@ -6,6 +6,7 @@ from app.commands.outdir import TRIAL, add_overwrite_argument, prepare_dir
 
 def register(subparsers) -> None:
     from app.sim.scenarios import DEFAULT_SCENARIO, SCENARIOS
+    from app.sim.sensors import DEFAULT_SENSOR, SENSORS
 
     p = subparsers.add_parser(
         "simulate", help="simulate a trial (robot, depth camera, bone, occluders) in the recorded-trial format",
@@ -19,6 +20,9 @@ def register(subparsers) -> None:
     add_overwrite_argument(p, "the trial in --out")
     p.add_argument("--streams", default="depth", help="images per frame: depth (default) or e.g. depth,ir,color "
                    "(infrared and colour: trial format 1.1)")
+    p.add_argument("--sensor", default=DEFAULT_SENSOR, metavar="NAME[:KEY=VALUE,...]",
+                   help=f"depth sensor model, one of: {', '.join(SENSORS)} (default %(default)s); parameters as e.g. "
+                   "stereo:window_px=9,sigma_d_px=0.1 (app/sim/sensors/); written into trial.yaml's 'sensor'")
     p.add_argument("--emitter", choices=("on", "off"), default="on", help="IR dot projector in the ir images (default on)")
     p.set_defaults(func=run)
 
@@ -29,6 +33,7 @@ def run(args) -> int:
     from app.errors import OsteonavError
     from app.sim.scenarios import SCENARIOS
     from app.sim.images import parse_streams
+    from app.sim.sensors import parse_sensor
     from app.sim.simulator import simulate
 
     if args.scenario not in SCENARIOS:
@@ -37,6 +42,10 @@ def run(args) -> int:
         streams = ",".join(parse_streams(args.streams))
     except ValueError as exc:
         raise OsteonavError(f"--streams: {exc}") from None
+    try:
+        sensor = parse_sensor(args.sensor)
+    except ValueError as exc:
+        raise OsteonavError(f"--sensor: {exc}") from None
     if args.mesh:
         from app.mesh import load_mesh
 
@@ -49,8 +58,8 @@ def run(args) -> int:
         bar.update(done - bar.n)
 
     summary = simulate(args.out, args.mesh, args.scenario, args.seconds, args.seed, overwrite=True, progress=progress,
-                       streams=streams, emitter=args.emitter == "on")
+                       streams=streams, emitter=args.emitter == "on", sensor=sensor)
     bar.close()
-    print(f"wrote {summary.frames} frames ({summary.seconds:.1f} s, scenario {summary.scenario}, "
+    print(f"wrote {summary.frames} frames ({summary.seconds:.1f} s, scenario {summary.scenario}, sensor {sensor.name}, "
           f"occlusion mean {100 * summary.mean_occlusion:.0f} % max {100 * summary.max_occlusion:.0f} %) to {summary.out}")
     return 0

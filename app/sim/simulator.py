@@ -4,7 +4,8 @@ A UR5e moves a flange-mounted depth camera (640x480 at 90 Hz, RealSense D415-lik
 joint samples at 500 Hz) over a bone lying on a table inside soft tissue so that only the crest
 protrudes. Moving occluders (a hand whose edge is placed to cover a target fraction of the bone's
 visible pixels, an instrument) cross the view; the bone may be repositioned; frames drop; the
-depth image gets the stereo sensor's errors (:mod:`app.sim.sensor`). Rendering uses the project's
+depth image gets the errors of the chosen depth sensor model (:mod:`app.sim.sensors`: ``independent`` by
+default, ``stereo``, ``tof``; named in trial.yaml's ``sensor`` block). Rendering uses the project's
 own :class:`app.render.scene.SceneRenderer`, so simulated and tracked depth share one camera model.
 
 With ``streams`` including ``ir`` and/or ``color`` it also writes the left imager's infrared image
@@ -32,7 +33,7 @@ from app.geometry.camera import PinholeCamera
 from app.geometry.ur import UR_MODELS, forward_kinematics
 from app.sim import world
 from app.sim.scenarios import Scenario, get_scenario
-from app.sim.sensor import SensorModel, apply_sensor
+from app.sim.sensors import DEFAULT_SENSOR, SceneErrors, parse_sensor, sensor_to_dict
 from app.sim.truth import CAMERA_TRUTH_FILE
 from app.trial.tum import write_tum
 
@@ -126,15 +127,18 @@ class _GraftCut:
 def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name: str | Scenario = "static_occluded",
              seconds: float | None = None, seed: int = 0, overwrite: bool = False,
              camera: PinholeCamera = D415_640x480, progress=None, streams: str = "depth",
-             emitter: bool = True) -> SimulationSummary:
+             emitter: bool = True, sensor=DEFAULT_SENSOR) -> SimulationSummary:
     """Simulate ``scenario_name`` and write the trial to ``out`` (see the module docstring).
 
     streams : 'depth' or e.g. 'depth,ir,color' (:func:`app.sim.images.parse_streams`)
     emitter : whether the infrared image shows the dot projector's pattern
+    sensor : the depth sensor model: a model of :mod:`app.sim.sensors`, or its name or
+        ``NAME:KEY=VALUE,...`` text (:func:`app.sim.sensors.parse_sensor`); default ``independent``
     """
     from app.sim.images import parse_streams
 
     stream_names = parse_streams(streams)
+    sensor = parse_sensor(sensor) if isinstance(sensor, str) else sensor
     from app.mesh import check_units, load_mesh
     from app.render.context import shared_context
     from app.render.scene import SceneRenderer
@@ -169,7 +173,7 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
     for name, mesh, label in objects:
         renderer.add_mesh(name, mesh.vertices, mesh.faces, label)
     images = _image_simulator(stream_names, emitter, bone, T_base_bone0, camera, image_rng, objects)
-    sensor = SensorModel(invalid_probability=scenario.invalid_probability, scale_error=scenario.depth_scale_error,
+    errors = SceneErrors(invalid_probability=scenario.invalid_probability, scale_error=scenario.depth_scale_error,
                          bias=scenario.depth_bias_m, specular_fraction=scenario.specular_fraction)
     graft = _GraftCut(bone)
 
@@ -180,7 +184,7 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
     meta = TrialMeta(
         camera=camera, depth_scale=DEPTH_SCALE_MM, robot={"model": "ur5e"}, dh=dh,
         T_flange_camera=hand_eye_in_file, mesh=mesh_path.name, initial_pose=initial_pose,
-        point_prior=point_prior, extra={}, streams=images.streams if images else None,
+        point_prior=point_prior, extra={"sensor": sensor_to_dict(sensor)}, streams=images.streams if images else None,
     )
     out = Path(out)
     occlusions = []
@@ -200,7 +204,8 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
                     depth = graft.apply(depth, labels, T_camera_bone, camera)
                 if scenario.tissue_patch_m:
                     depth = _tissue_patch(depth, labels, camera, scenario.tissue_patch_m)
-                measured = apply_sensor(depth, sensor, rng, bone_mask=labels == LABEL_BONE)
+                measured = sensor.measure(depth, rng, camera=camera, depth_scale_mm=DEPTH_SCALE_MM, errors=errors,
+                                          bone_mask=labels == LABEL_BONE)
                 n_bone = int(bone_mask.sum())
                 occlusion = 1.0 - float((bone_mask & (labels == LABEL_BONE)).sum()) / n_bone if n_bone else 1.0
                 occlusions.append(occlusion)
@@ -213,7 +218,7 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
                 if progress:
                     progress(k + 1, len(stamps))
         write_tum(out / CAMERA_TRUTH_FILE, stamps, T_base_camera)
-        _write_simulation_yaml(out, scenario, seed, T_flange_camera, mesh_path)
+        _write_simulation_yaml(out, scenario, seed, T_flange_camera, mesh_path, sensor)
     renderer.release()
     if images is not None:
         images.release()
@@ -297,12 +302,14 @@ def _tissue_patch(depth: np.ndarray, labels: np.ndarray, camera: PinholeCamera, 
     return out
 
 
-def _write_simulation_yaml(out: Path, scenario: Scenario, seed: int, T_flange_camera_true: np.ndarray, mesh_path: Path) -> None:
+def _write_simulation_yaml(out: Path, scenario: Scenario, seed: int, T_flange_camera_true: np.ndarray, mesh_path: Path,
+                           sensor) -> None:
     info = {
         "generator": "osteonav simulate",
         "scenario": _plain(asdict(scenario)),
         "seed": int(seed),
         "mesh_source": str(mesh_path),
+        "sensor": _plain(sensor_to_dict(sensor)),
         "true_hand_eye": T_flange_camera_true.tolist(),
     }
     (out / "simulation.yaml").write_text(yaml.safe_dump(info, sort_keys=False))
