@@ -43,7 +43,7 @@ def frames_of(trial: Path, settle_s: float) -> dict:
     inflation = track.inflation
     T_base_camera, valid = reader.camera_poses()
     points = np.asarray(mesh.vertices)
-    out = {"std1_m": [], "error_m": [], "add_mm": [], "status": [], "t": []}
+    out = {"std1_m": [], "error_m": [], "add_mm": [], "status": [], "t": [], "f": [], "noise_m": [], "sigma_model_m": []}
     t0 = reader.stamps[0]
     for frame in reader.iter_frames():
         i = frame.index
@@ -57,6 +57,10 @@ def frames_of(trial: Path, settle_s: float) -> dict:
         out["add_mm"].append(float(1e3 * metrics.add(r.T_base_bone, T_gt, points)))
         out["status"].append(str(r.status))
         out["t"].append(float(frame.stamp - t0))
+        out["f"].append(float(track.last_info.get("correlation", np.nan)))
+        out["noise_m"].append(1e-3 * float(track.last_info.get("noise_mm", np.nan)))
+        z = (np.linalg.inv(T_base_camera[i]) @ r.T_base_bone)[2, 3]
+        out["sigma_model_m"].append(float(track.refiner.sigma(np.array([z]))[0]))
     tracker.release()
     return out
 

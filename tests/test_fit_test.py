@@ -86,3 +86,19 @@ def test_behind_count_of_correlated_noise_stays_within_the_inflated_bound(rng):
         inflated += count > mean + 3 * np.sqrt(f * var)
     assert plain > 0.1 * n_frames
     assert inflated <= 0.02 * n_frames
+
+
+@pytest.mark.parametrize("s, window", [(0.0, 7), (1.3, 7), (2.6, 15)])
+def test_the_local_means_share_is_given_back(rng, s, window):
+    """Detrended over the window (7 cells at stride 2, 15 at stride 1: WINDOW_PX), correlated noise loses
+    part of its variance and of its correlation to the local mean; noise_and_factor returns the field's
+    own σ and f. s: a 9 px matching window's correlation at stride 2 and 1 (a box of 9 px has the
+    Gaussian's std 9 / sqrt(12) px)."""
+    shape, sigma = (120, 160), 0.0006
+    u = sigma * _field(rng, shape, s)
+    field = fit_test.noise_field(_cells(shape), u.ravel(), np.full(u.size, 0.0012), window)
+    noise, f = fit_test.noise_and_factor(field, window)
+    expected_f = fit_test.gaussian_sum(np.exp(-1.0 / (4 * s * s))) ** 2 if s else 1.0
+    assert noise == pytest.approx(sigma, rel=0.12)
+    assert f == pytest.approx(expected_f, rel=0.2)
+    assert fit_test.surface_noise(field) < noise or s == 0.0      # uncorrected, correlated noise looks smaller

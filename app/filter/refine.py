@@ -65,11 +65,12 @@ float tolerance: tests/test_refine_kernels.py). Per iteration, at the current po
    association instead of a new render and association at the final pose (a step under 0.1 mm /
    0.03 deg): one z-buffer and one association per frame fewer while tracking.
 
-Outputs (:class:`RefineResult`): the refined ``T_camera_bone``; H = Σ w_i J_iᵀJ_i / σ_i² / f (6x6, in
+Outputs (:class:`RefineResult`): the refined ``T_camera_bone``; H = Σ w_i J_iᵀJ_i / σ_i² (6x6, in
 the bone frame about ``Refiner.center``, order ω then v), the information the image carries about the
-pose: the sum assumes independent pixels, and n pixels whose noise is correlated carry the information
-of n / f (f the residuals' correlation factor, step 7; ~1 for independent noise, 5-40 for a stereo
-camera's matching window); the fitness
+pose were its pixels independent (the status's ``covariance_inflation`` covers their correlation and
+the model's error: measured against the template's error on the independent and the stereo sensor
+models, BENCHMARKS.md "Status"; dividing by the measured correlation factor f instead over-covered
+a near stereo view tenfold); the fitness
 (the share of the expected visible surface that the image confirms: silhouette pixels, occluders
 left out, whose measurement lies within ``confirm_sigmas`` σ(z) of the model) and the residual
 statistics, and the sharper share within ``sharp_sigmas`` = 1 σ that decides between two fits
@@ -456,7 +457,6 @@ class Refiner:
         noise, factor = self._residual_noise(y, p, n, r, camera_bone, stride)
         mean, var = behind_moments(p, n, sigma * prm.behind_sigmas, noise, camera_bone)
         var *= factor
-        H = H / factor          # the information of n / f independent measurements (app/tracking/fit_test.py)
         allowed = noise_bound(mean, var, len(p), prm.behind_z)
         return RefineResult(T, H, confirmed / len(p), len(p), confirmed, used, rms, ok, sharp, behind, allowed, noise,
                             stride, mean, var, factor)
@@ -473,8 +473,8 @@ class Refiner:
             cols = np.rint(y[:, 0] / y[:, 2] * cam.fx + cam.cx) // max(stride, 1)
             rows = np.rint(y[:, 1] / y[:, 2] * cam.fy + cam.cy) // max(stride, 1)
         cells = np.column_stack([np.nan_to_num(cols), np.nan_to_num(rows)]).astype(np.int64)
-        field = fit_test.noise_field(cells, u, self.sigma(y[:, 2]), fit_test.window_cells(stride))
-        return fit_test.surface_noise(field), fit_test.correlation_factor(field)
+        window = fit_test.window_cells(stride)
+        return fit_test.noise_and_factor(fit_test.noise_field(cells, u, self.sigma(y[:, 2]), window), window)
 
 
 def template_std(H: np.ndarray, points_bone: np.ndarray, inflation: float = 1.0) -> float:

@@ -140,7 +140,9 @@ class RefineOutcome:
     fit's share of measurements inside the model in excess of the noise's bound (:func:`behind_excess`;
     <= 0 when the noise explains it), or that of the track's last ``behind_frames`` fits pooled
     (app/filter/behind_pool.py) when larger; held_chi2 : the static prior's Δχ² from the pose it kept to the
-    kept fit when it did not release onto it (0 when it did, NaN without the prior; status.py); nearby :
+    kept fit, divided by the fit's residual correlation factor f (app/tracking/fit_test.py: H counts n
+    pixels whose noise carries the evidence of n / f, so a fit's Δχ² under H is f times its own), when
+    it did not release onto it (0 when it did, NaN without the prior; status.py); nearby :
     the template gap (m) to a fit near the track that explains the image better, found by the
     last nearby search (:class:`app.filter.nearby_search.NearbySearch`; NaN when none was found);
     sharp : the frame's best fit's consistent sharp share (:func:`consistent_sharp`), kept or not (NaN
@@ -392,7 +394,8 @@ class RefinedTrack:
         else:
             self.reset()
         kept = T_best if best.fitness >= c.keep_fitness else None
-        held_chi2 = self.last_info.get("held_chi2", float("nan"))
+        held_chi2 = self.last_info.get("held_chi2", float("nan")) / max(best.correlation, 1.0)
+        self.last_info.update(correlation=best.correlation, noise_mm=1e3 * best.noise)
         behind, nearby, sharp = behind_excess(best), float("nan"), consistent_sharp(best)
         if kept is not None:
             pooled = self.behind_pool.add(best.behind, best.behind_mean, best.behind_var, best.expected)
