@@ -35,7 +35,7 @@ class _Landscape:
     center = np.zeros(3)
 
     def __init__(self, minima):
-        self.minima, self.starts = list(minima), []
+        self.minima, self.starts, self.scored, self.unrefined = list(minima), [], [], None
         self.capture = 0.0        # m: > 0, a refinement with the default first width ends in the best minimum this near its start
 
     def refine(self, depth, T_camera_bone, start_width=None):
@@ -47,6 +47,16 @@ class _Landscape:
         else:
             T, sharp = self.minima[int(np.argmin(apart))]
         return RefineResult(T.copy(), 1e8 * np.eye(6), 0.9, 1300, 1170, 1200, 1e-3, True, sharp,
+                            0.0, 0.01, 6e-4, 2, 2.6, 2.6)
+
+    def score(self, depth, T_camera_bone):
+        """The pose as it is: the share of the minimum it sits on (``unrefined``, when set, overrides it:
+        a later frame's image on which the minima score otherwise)."""
+        self.scored.append(np.array(T_camera_bone))
+        apart = [np.linalg.norm(m[0][:3, 3] - T_camera_bone[:3, 3]) for m in self.minima]
+        k = int(np.argmin(apart))
+        sharp = self.unrefined[k] if self.unrefined is not None else self.minima[k][1]
+        return RefineResult(np.array(T_camera_bone), np.zeros((6, 6)), 0.9, 1300, 1170, 0, float("nan"), False, sharp,
                             0.0, 0.01, 6e-4, 2, 2.6, 2.6)
 
 
@@ -173,3 +183,27 @@ def test_the_follow_up_searches_end_after_nearby_followups_frames():
     assert gaps[22] == pytest.approx(0.0008)                         # frame 24: the next search, 10 frames on
     # 23 frames of the track's own refinement + 4 searches (frames 11, 12, 13, 14) + the one at 24
     assert len(refiner.starts) - n_before == 23 + 5 * 4
+
+
+def test_a_competitor_that_chased_one_frames_noise_is_withdrawn_on_the_next_frame():
+    """Out-of-sample validation (``nearby_validate``): the competitor and the kept pose, unrefined, scored on
+    the next frame. There the competitor explains the image no better (its share came from the first
+    frame's noise): withdrawn after one frame instead of held for nearby_hold searches. Where it still
+    explains the image better, it stays (each validation scores the two poses once)."""
+    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10)
+    first = _run(track, 1)[0]
+    assert first.nearby == pytest.approx(0.0015)
+    refiner.unrefined = [0.70, 0.69]                   # the next frame: the competitor's pose scores below the kept one
+    second = _run(track, 9)
+    assert all(np.isnan(out.nearby) for out in second)
+    assert track.nearby.validations == [(0.69, 0.70)] and len(refiner.scored) == 2
+    assert np.allclose(refiner.scored[0], _pose(0.0015)) and np.allclose(refiner.scored[1], _pose())
+
+    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10)
+    _run(track, 1)
+    refiner.unrefined = [0.70, 0.72]                   # still better out of sample: a real competitor stays
+    assert all(out.nearby == pytest.approx(0.0015) for out in _run(track, 9))
+    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10, nearby_validate=False)
+    _run(track, 1)
+    refiner.unrefined = [0.70, 0.69]
+    assert all(out.nearby == pytest.approx(0.0015) for out in _run(track, 9))   # without validation: held

@@ -62,6 +62,8 @@ NEARBY_RNG = 20261125          # the search's own generator seed: a replay repea
 
 # fit(T_start) -> (T_base_bone of the refined fit, its consistent sharp share), None when it did not converge
 Fit = Callable[[np.ndarray], "tuple[np.ndarray, float] | None"]
+# score(T_base_bone) -> the consistent sharp share of that pose on this frame, not refined (NaN: no fit)
+Score = Callable[[np.ndarray], float]
 # draws(T_base_bone, n, sigma_p, sigma_r, rng) -> (n, 4, 4) poses about T_base_bone, turned about the bone's centroid
 Draws = Callable[..., np.ndarray]
 
@@ -86,16 +88,23 @@ class NearbySearch:
         self._since = self.config.nearby_every
         self._gap, self._T_kept_competitor, self._age = math.nan, None, 0
         self._T_kept_follow, self._followups = None, 0
+        self.validations: list[tuple[float, float]] = []   # (competitor, kept) shares of each validation
         self._margin = self.config.nearby_margin           # nearby_margin sqrt(f) of the last step's fit
+        self._unchecked: tuple[np.ndarray, np.ndarray] | None = None   # (T_base competitor, T_base kept) to validate
 
-    def step(self, fit: Fit, T_base_bone_kept: np.ndarray, own: float, correlation: float = 1.0) -> float:
+    def step(self, fit: Fit, T_base_bone_kept: np.ndarray, own: float, correlation: float = 1.0,
+             score: Score | None = None) -> float:
         """One frame of the track (kept pose ``T_base_bone_kept``, its consistent sharp share ``own``):
         search when due and answer the gap (m) to a fit that explains the image better (NaN: none).
         ``correlation``: the kept fit's residual correlation factor f (app/tracking/fit_test.py): two
         fits' shares on one image differ by chance sqrt(f) times more when n pixels carry the evidence
-        of n / f, so the margin is ``nearby_margin`` sqrt(f) (0.015 was chosen on independent noise)."""
+        of n / f, so the margin is ``nearby_margin`` sqrt(f) (0.015 was chosen on independent noise).
+        ``score``: the consistent sharp share of a pose on this frame without refining it; with it, a
+        competitor found on the last frame is validated here (:meth:`_validate`)."""
         c = self.config
         self._margin = c.nearby_margin * math.sqrt(max(float(correlation), 1.0))
+        if self._unchecked is not None and score is not None:
+            self._validate(score)
         self._since += 1
         if c.nearby_starts <= 0 or c.nearby_every <= 0 or self._since < c.nearby_every:
             return self._gap
@@ -108,6 +117,8 @@ class NearbySearch:
         if found is not None:
             self._gap, self._T_kept_competitor = found
             self._age, self._followups = 0, 0
+            if c.nearby_validate:
+                self._unchecked = (T_base_bone_kept @ self._T_kept_competitor, np.array(T_base_bone_kept, float))
             return self._gap
         if better is not None and self._followups < c.nearby_followups:
             gap, self._T_kept_follow = better
@@ -115,6 +126,19 @@ class NearbySearch:
             return gap if math.isnan(self._gap) else self._gap
         self._followups = 0
         return self._gap
+
+    def _validate(self, score: Score) -> None:
+        """Out of sample: the competitor and the kept pose of the frame it was found on, both as they
+        were (not refined again), scored on this frame's image. A competitor refined on one frame can
+        chase that frame's noise: a stereo camera's, correlated over its matching window, leaves
+        blobs a fit 1-4 mm away explains better by chance (static_far at 0.65 m: the kept pose's share
+        varied 0.54-0.72 between frames). A competitor that does not explain the new frame better
+        than the kept pose is withdrawn (the status's answer is NaN again); one that does stays."""
+        (T_base_competitor, T_base_kept), self._unchecked = self._unchecked, None
+        competitor, kept = score(T_base_competitor), score(T_base_kept)
+        if not (competitor > kept):
+            self._gap, self._T_kept_competitor = math.nan, None
+        self.validations.append((float(competitor), float(kept)))
 
     def _search(self, fit: Fit, T_base_kept: np.ndarray, own: float):
         """Refine from the retried competitor's pose, then from ``nearby_starts`` draws about the kept pose

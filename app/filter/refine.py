@@ -427,6 +427,13 @@ class Refiner:
             return self._result(depth, T, H, used, rms, ok, *last, stride=stride)
         return self._finish(depth, T if ok else np.array(T_camera_bone, float), H, used, rms, ok, stride)
 
+    def score(self, depth: np.ndarray, T_camera_bone: np.ndarray) -> RefineResult:
+        """The statistics of step 7 at ``T_camera_bone`` as it is (no Gauss-Newton step; H is zero):
+        fitness, sharp and behind shares of this pose on this image."""
+        T = np.array(T_camera_bone, dtype=float)
+        stride, _ = self.choose_stride(T)
+        return self._finish(depth, T, np.zeros((6, 6)), 0, float("nan"), False, stride)
+
     def _increment(self, delta: np.ndarray) -> np.ndarray:
         """exp(δ) about the model's centre c (the Jacobian's origin): p ↦ c + R (p − c) + v."""
         M = exp_se3(delta)

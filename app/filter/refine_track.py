@@ -130,6 +130,7 @@ class RefineConfig:
     nearby_margin: float = 0.015
     nearby_hold: int = 2
     nearby_followups: int = 3
+    nearby_validate: bool = True
 
 
 @dataclass
@@ -242,6 +243,12 @@ class RefinedTrack:
         if not (result.converged and np.isfinite(result.fitness)):
             return None
         return T_fit, consistent_sharp(result)
+
+    def _scored_pose(self, depth, T_camera_base, T_base_bone: np.ndarray) -> float:
+        """The consistent sharp share of ``T_base_bone`` on this frame as it is, not refined (the nearby
+        search's out-of-sample validation); NaN when nothing is seen."""
+        result = self.refiner.score(depth, T_camera_base @ T_base_bone)
+        return consistent_sharp(result) if np.isfinite(result.fitness) else float("nan")
 
     def _refine(self, depth, T_camera_base, T_base_bone, start_width=None) -> tuple[np.ndarray, RefineResult]:
         result = self.refiner.refine(depth, T_camera_base @ T_base_bone, start_width)
@@ -401,6 +408,6 @@ class RefinedTrack:
             pooled = self.behind_pool.add(best.behind, best.behind_mean, best.behind_var, best.expected)
             behind = max(behind, pooled) if np.isfinite(pooled) else behind
             nearby = self.nearby.step(lambda T_start: self._scored_fit(depth, T_camera_base, T_start), kept, sharp,
-                                      best.correlation)
+                                      best.correlation, lambda T: self._scored_pose(depth, T_camera_base, T))
         return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0,
                              behind, held_chi2, nearby, sharp)
