@@ -145,9 +145,9 @@ def test_capture_solves_the_session_trials_hand_eye_and_writes_truth(tmp_path, c
     assert np.rad2deg(se3.rotation_angle(solved, world.T_FLANGE_CAMERA)) < 0.05
 
 
-# ---------------------------------------------------------------- view without --save
+# ---------------------------------------------------------------- view without --rrd
 
-def test_view_without_display_says_to_use_save(tmp_path, monkeypatch, capsys):
+def test_view_without_display_says_to_use_rrd(tmp_path, monkeypatch, capsys):
     trial = tmp_path / "trial"
     assert main(["simulate", "--out", str(trial), "--seconds", "0.05"]) == 0
     monkeypatch.delenv("DISPLAY", raising=False)
@@ -155,7 +155,7 @@ def test_view_without_display_says_to_use_save(tmp_path, monkeypatch, capsys):
     capsys.readouterr()
     assert main(["view", str(trial)]) == 2
     err = capsys.readouterr().err
-    assert len(err.strip().splitlines()) == 1 and "--save" in err and "display" in err
+    assert len(err.strip().splitlines()) == 1 and "--rrd" in err and "display" in err
 
 
 def test_view_finds_the_viewer_beside_python_and_names_it_when_missing(tmp_path, monkeypatch):

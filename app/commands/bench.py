@@ -1,6 +1,8 @@
 """``osteonav bench``: every configuration on every trial, one table (see :mod:`app.bench.bench`)."""
 from __future__ import annotations
 
+from app.cli_types import positive_int, seed
+
 from app.commands.outdir import PLOTS, add_overwrite_argument, prepare_dir, results_file
 
 DEFAULT_JSON = "recordings/bench/bench.json"
@@ -19,12 +21,13 @@ def register(subparsers) -> None:
     p.add_argument("--json", metavar="OUT", help=f"results JSON (an existing one needs --overwrite; default: {DEFAULT_JSON}, "
                    "or a dated name beside it when that exists)")
     p.add_argument("--plots", metavar="DIR", help="write PNG plots (error over time per trial, rate per configuration)")
-    p.add_argument("--seconds", nargs="+", metavar="S|NAME=S", help="seconds per trial (simulated: duration; recorded: "
-                   "the first S seconds); NAME=S for one scenario, e.g. --seconds 3 bone_moves=4.5")
-    p.add_argument("--seeds", nargs="+", type=int, metavar="N", help="simulation seeds (default: 0); several seeds: "
+    p.add_argument("--seconds", nargs="+", metavar="S|NAME=S", help="seconds per trial, S > 0 (simulated: duration; "
+                   "recorded: the first S seconds; default: the scenario's, the whole trial); NAME=S for one scenario, e.g. --seconds 3 bone_moves=4.5")
+    p.add_argument("--seeds", nargs="+", type=seed, metavar="N", help="simulation seeds, integers >= 0 (default: 0); several seeds: "
                    "trials of seed N are cached in <cache>/<mesh>/<scenario>_seedN, each simulated just before its "
                    "first run, and the JSON is rewritten after every run (a partial matrix stays usable)")
-    p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1: frames/s are then not shared)")
+    p.add_argument("--jobs", type=positive_int, default=1,
+                   help="parallel processes, >= 1 (default 1: frames/s are then not shared)")
     p.add_argument("--quick", action="store_true", help="a short run (minutes): 3 configurations (osteonav_default, A_cpu, "
                    "icp) on static_clear (1.5 s) and bone_moves (3.5 s, until its move ends), the default mesh only")
     from app.sim.scenarios import SCENARIOS, STANDARD
@@ -55,7 +58,7 @@ def parse_seconds(items) -> float | dict | None:
             s = float(value)
         except ValueError:
             s = -1.0
-        if s <= 0:
+        if not 0 < s < float("inf"):
             raise ConfigError("--seconds", f"expected S or NAME=S with a duration > 0 s, got '{item}'")
         if not name:
             default = s
@@ -74,10 +77,7 @@ def run(args) -> int:
     import time
 
     from app.bench import bench
-    from app.errors import ConfigError
 
-    if args.jobs < 1:
-        raise ConfigError("--jobs", f"expected an integer >= 1, got {args.jobs}")
     args.seconds = parse_seconds(args.seconds)
     args.json = str(results_file(args.json, DEFAULT_JSON, args.overwrite))
     configs = bench.resolve_configs(args.configs or (bench.QUICK_CONFIGS if args.quick else None))

@@ -8,18 +8,24 @@ and at the best other pose (``--out``/diagnosis.rrd).
 """
 from __future__ import annotations
 
+from app.cli_types import finite_positive_float, non_negative_int, positive_int, seed
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("diagnose-likelihood", help="log-likelihood and refinement fit at the ground truth "
                               "against the best poses > 5 mm / 5 deg away, per frame")
     p.add_argument("trial", help="trial directory with groundtruth.txt")
-    p.add_argument("--frames", type=int, nargs="+", default=None, help="frame indices (default: 5 spread over the trial)")
-    p.add_argument("--config", help="tracker YAML (default: the defaults)")
-    p.add_argument("--candidates", type=int, default=2000, help="poses of the wide search per frame")
-    p.add_argument("--search-mm", type=float, default=40.0, help="translation range of the search (mm)")
-    p.add_argument("--search-deg", type=float, default=40.0, help="rotation range of the search (deg)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default=None, help="folder for diagnosis.md / .json / .rrd")
+    p.add_argument("--frames", type=non_negative_int, nargs="+", default=None,
+                   help="frame indices, integers >= 0 (default: 5 spread over the trial)")
+    p.add_argument("--config", help="tracker YAML (default: configs/default.yaml's values)")
+    p.add_argument("--candidates", type=positive_int, default=2000,
+                   help="poses of the wide search per frame, >= 1 (default %(default)s)")
+    p.add_argument("--search-mm", type=finite_positive_float, default=40.0,
+                   help="translation range of the search, mm > 0 (default %(default)s)")
+    p.add_argument("--search-deg", type=finite_positive_float, default=40.0,
+                   help="rotation range of the search, deg > 0 (default %(default)s)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the search, an integer >= 0 (default 0)")
+    p.add_argument("--out", default=None, help="folder for diagnosis.md / .json / .rrd (default: print only)")
     p.set_defaults(func=run)
 
 

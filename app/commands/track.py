@@ -6,6 +6,7 @@ Ctrl-C ends it cleanly: sources stop, the recording and logs are flushed, and th
 """
 from __future__ import annotations
 
+from app.cli_types import deprecated_alias, positive_seconds
 from app.commands.outdir import SESSION, TRIAL, add_overwrite_argument, prepare_dir, prepare_file
 
 
@@ -21,8 +22,16 @@ def register(subparsers) -> None:
 def add_session_arguments(p) -> None:
     p.add_argument("--config", required=True, help="session YAML (see configs/sessions/)")
     p.add_argument("--out", help="directory for estimate.txt, status.csv, events.csv, summary.json (overrides out:)")
-    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    add_seconds_argument(p)
     add_overwrite_argument(p, "the outputs (out, record) of an earlier session")
+
+
+def add_seconds_argument(p) -> None:
+    """``--seconds S`` (deprecated: ``--duration``): stop after S > 0 seconds; left out, the session
+    file's ``loop.duration_s``, else until Ctrl-C."""
+    p.add_argument("--seconds", type=positive_seconds, help="stop after this many seconds, s > 0 (default: the "
+                   "session file's loop.duration_s, else run until Ctrl-C)")
+    deprecated_alias(p, "--duration", "--seconds")
 
 
 def overrides_from(args) -> dict:
@@ -40,8 +49,8 @@ def run(args) -> int:
     from app.session import load_session, run_session
 
     config = load_session(args.config, overrides_from(args))
-    if args.duration:
-        config.loop.duration_s = args.duration
+    if args.seconds is not None:
+        config.loop.duration_s = args.seconds
     if getattr(args, "soak", False):
         config.outputs, config.record = [], None
         for spec in (config.camera, config.robot):
