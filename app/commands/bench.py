@@ -16,11 +16,14 @@ def register(subparsers) -> None:
                     "is static. Without --trials, the standard scenarios are simulated (cached) for the default mesh "
                     "and each ../shared/data/pelvis crest mesh.")
     p.add_argument("--trials", nargs="+", metavar="DIR", help="trial directories with groundtruth.txt (default: simulate)")
-    p.add_argument("--configs", nargs="+", metavar="NAME", help="built-in names (A_cpu A_cadaver thesis_blockwise "
-                   "thesis_joint thesis_complex icp) or YAML files; default: all built-ins")
+    from app.bench.configs import builtin_configs
+
+    p.add_argument("--configs", nargs="+", metavar="NAME", help=f"built-in names ({' '.join(builtin_configs())}: "
+                   "configs/bench/) or YAML files (default: all built-ins)")
     p.add_argument("--json", metavar="OUT", help=f"results JSON (an existing one needs --overwrite; default: {DEFAULT_JSON}, "
                    "or a dated name beside it when that exists)")
-    p.add_argument("--plots", metavar="DIR", help="write PNG plots (error over time per trial, rate per configuration)")
+    p.add_argument("--plots", metavar="DIR", help="write PNG plots (error over time per trial, rate per configuration; "
+                   "default: none)")
     p.add_argument("--seconds", nargs="+", metavar="S|NAME=S", help="seconds per trial, S > 0 (simulated: duration; "
                    "recorded: the first S seconds; default: the scenario's, the whole trial); NAME=S for one scenario, e.g. --seconds 3 bone_moves=4.5")
     p.add_argument("--seeds", nargs="+", type=seed, metavar="N", help="simulation seeds, integers >= 0 (default: 0); several seeds: "
@@ -34,9 +37,11 @@ def register(subparsers) -> None:
 
     p.add_argument("--scenarios", nargs="+", metavar="NAME", help=f"simulated scenarios (default: the standard four, "
                    f"{' '.join(STANDARD)}); all: {' '.join(SCENARIOS)}")
-    p.add_argument("--meshes", nargs="+", help="meshes to simulate (default: the project's and the pelvis crests)")
+    p.add_argument("--meshes", nargs="+", metavar="MESH", help="meshes to simulate, in metres (default: the project's and "
+                   "the pelvis crests)")
     p.add_argument("--cache", default="recordings/bench", help="where simulated trials are cached (default: %(default)s)")
-    p.add_argument("--out", help="keep each run's estimate.txt / status.csv under OUT/<config>/<mesh>/<scenario>")
+    p.add_argument("--out", help="keep each run's estimate.txt / status.csv under OUT/<config>/<mesh>/<scenario> "
+                   "(default: not kept)")
     p.add_argument("--no-vsd", action="store_true", help="skip VSD (saves two renderings per frame)")
     p.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     add_overwrite_argument(p, "the --json file and the --plots and --out folders' earlier contents")

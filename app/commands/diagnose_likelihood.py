@@ -30,12 +30,12 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    import json
     from dataclasses import asdict
     from pathlib import Path
 
     import numpy as np
 
+    from app import strict_json
     from app.bench import ambiguity
     from app.config import load_config
     from app.errors import OsteonavError
@@ -77,7 +77,7 @@ def run(args) -> int:
     if args.out:
         Path(args.out).mkdir(parents=True, exist_ok=True)
         (Path(args.out) / "diagnosis.md").write_text(text + "\n")
-        (Path(args.out) / "diagnosis.json").write_text(json.dumps([asdict(r) for r in rows], indent=1))
+        (Path(args.out) / "diagnosis.json").write_text(strict_json.dumps([asdict(r) for r in rows], indent=1))
         print(f"\nwrote {args.out}/diagnosis.md, .json, .rrd")
     return 0
 
