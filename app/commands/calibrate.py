@@ -68,7 +68,7 @@ def register(subparsers) -> None:
     s.add_argument("--robot", help="robot model, e.g. ur5e (default: capture.yaml's robot block)")
     s.add_argument("--method", default="auto",
                    choices=["auto", "tsai", "park", "horaud", "andreff", "daniilidis"],
-                   help="method whose result is written (auto: lowest reprojection error)")
+                   help="method whose result is written (default auto: the lowest reprojection error)")
     s.add_argument("--out", type=Path, help="hand-eye YAML to write (default CAPTURES/hand_eye.yaml)")
     s.add_argument("--rrd", type=Path, metavar="FILE.rrd",
                    help="also log captures, frusta and board to this rerun file (default: none)")
@@ -102,7 +102,7 @@ def register(subparsers) -> None:
     s.add_argument("--noise", action="store_true", help="blur, image noise and encoder noise")
     s.add_argument("--seed", type=seed, default=0, help="simulation seed, an integer >= 0 (default 0)")
     s.add_argument("--corrupt", default="",
-                   help="captures to spoil, e.g. '3:blank,7:missing' (blank, noise, missing, garbage)")
+                   help="captures to spoil, e.g. '3:blank,7:missing' (blank, noise, missing, garbage; default: none)")
     add_overwrite_argument(s, "the captures in --out")
     s.set_defaults(func=run_simulate)
 
@@ -117,12 +117,12 @@ def register(subparsers) -> None:
                    help="projector lens distortion to estimate (default none: with few poses k1/k2 trade off "
                         "against the focal length and T_camera_projector; see calibration/projector.py)")
     s.add_argument("--simulate", type=non_negative_int, default=0, metavar="N",
-                   help="first write N simulated board poses into CAPTURES (no hardware needed)")
+                   help="first write N >= 3 simulated board poses into CAPTURES (no hardware needed; default 0: none)")
     s.add_argument("--noise", action="store_true", help="with --simulate: image noise and blur")
     s.add_argument("--seed", type=seed, default=0, help="with --simulate: simulation seed, an integer >= 0 (default 0)")
     s.add_argument("--live", action="store_true", help="first capture live: the Gray-code sequence in the projector "
                    "window, the session camera's images (--config), Enter per board pose")
-    s.add_argument("--config", type=Path, help="with --live: session YAML naming the camera plugin")
+    s.add_argument("--config", type=Path, help="with --live: session YAML naming the camera plugin (required with --live)")
     s.add_argument("--poses", type=positive_int, default=8, help="with --live: board poses to capture, >= 1 (default 8)")
     s.add_argument("--screen", type=int, default=-1, help="with --live: the projector's screen (default the last)")
     s.add_argument("--image", choices=("ir", "color"), default="ir", help="with --live: camera stream (default ir)")

@@ -18,7 +18,7 @@ def register(subparsers) -> None:
     p.add_argument("--config", required=True, help="session YAML (see configs/sessions/)")
     p.add_argument("--out", required=True, help="trial directory to write")
     p.add_argument("--track", action="store_true", help="also run the tracker (estimates in --track-out)")
-    p.add_argument("--track-out", help="directory for the tracker's outputs (with --track)")
+    p.add_argument("--track-out", help="directory for the tracker's outputs (with --track; default: the session file's out)")
     add_seconds_argument(p)
     add_overwrite_argument(p, "the trial in --out (and --track-out's outputs)")
     p.set_defaults(func=run)

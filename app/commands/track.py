@@ -13,7 +13,7 @@ from app.commands.outdir import SESSION, TRIAL, add_overwrite_argument, prepare_
 def register(subparsers) -> None:
     p = subparsers.add_parser("track", help="run a tracking session (camera + robot + tracker) until stopped")
     add_session_arguments(p)
-    p.add_argument("--record", metavar="DIR", help="also record the sensors as a trial in DIR")
+    p.add_argument("--record", metavar="DIR", help="also record the sensors as a trial in DIR (default: the session file's record, else none)")
     p.add_argument("--soak", action="store_true", help="a soak run of the loop itself: no outputs and no recording "
                    "(disk), recorded/simulated sources loop; the summary gives memory (RSS) and rate at start and end")
     p.set_defaults(func=run)
@@ -21,7 +21,7 @@ def register(subparsers) -> None:
 
 def add_session_arguments(p) -> None:
     p.add_argument("--config", required=True, help="session YAML (see configs/sessions/)")
-    p.add_argument("--out", help="directory for estimate.txt, status.csv, events.csv, summary.json (overrides out:)")
+    p.add_argument("--out", help="directory for estimate.txt, status.csv, events.csv, summary.json (default: the session file's out)")
     add_seconds_argument(p)
     add_overwrite_argument(p, "the outputs (out, record) of an earlier session")
 
