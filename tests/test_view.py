@@ -1,4 +1,4 @@
-"""``osteonav simulate`` then ``osteonav view --save`` on the default mesh and on a real CT crest."""
+"""``osteonav simulate`` then ``osteonav view --rrd`` on the default mesh and on a real CT crest."""
 from __future__ import annotations
 
 import shutil
