@@ -83,6 +83,12 @@ def test_the_error_names_the_option_and_the_command(capsys):
     assert line == "osteonav simulate: error: argument --seconds: expected seconds > 0 (a finite number), got '0'"
 
 
+def test_main_returns_the_parser_s_exit_codes(capsys):
+    """In-process callers get an exit code, never SystemExit: 2 for a refused option, 0 for --help."""
+    assert main(["simulate", "--out", "x", "--seed", "-1"]) == 2
+    assert main(["simulate", "--help"]) == 0
+
+
 # ---------------------------------------------------------------- names, aliases, help
 
 DEPRECATED = [  # (command, old argv, new argv, dest)

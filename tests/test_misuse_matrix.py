@@ -40,10 +40,7 @@ def run_cli(argv: list[str], roots: "Path | list[Path]", capsys) -> tuple[int, s
     """(exit code, stdout + stderr) of ``osteonav argv``; asserts nothing under ``roots`` changed."""
     root = roots if isinstance(roots, list) else [roots]
     before = tree_hashes(*root)
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exc:   # argparse refused an option's value: usage and one error line, exit 2
-        code = exc.code
+    code = main([str(a) for a in argv])
     out = capsys.readouterr()
     text = out.out + out.err
     after = tree_hashes(*root)

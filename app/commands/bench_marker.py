@@ -12,7 +12,7 @@ def register(subparsers) -> None:
                                                    "IMU-only and fused tracking on simulated sequences")
     p.add_argument("--seconds", type=seconds_over(5.0, "registration and transfer take the first 3 s"), default=60.0,
                    help="length of each simulated sequence, s; must exceed 5 (registration and transfer take the "
-                        "first 3 s) (default %(default)s)")
+                        "first 3 s; default %(default)s)")
     p.add_argument("--seeds", type=seed, nargs="+", default=[0],
                    help="one sequence per seed, integers >= 0; the table averages them (default 0)")
     p.add_argument("--camera-fps", type=finite_positive_float, default=10.0,
