@@ -26,6 +26,10 @@ traced back onto the bone at its true pose, lands from the plan (mean / p95 / ma
 frames where the template was shown; app/projector/accuracy.py). The true pose is taken as the
 trial's calibrated camera sees it when the trial records the true camera (a simulated calibration
 error: the projector draws with the calibrated camera pose; app/sim/truth.py).
+
+The plan is built from that configuration whether or not the projector is an output: the tracker's
+status bounds the predicted error of the plan's points (:func:`known_plan`), so the estimates and
+statuses never depend on the outputs (``projector``, ``projector_images``, ``rrd``, ``out_dir``).
 """
 from __future__ import annotations
 
