@@ -166,7 +166,7 @@ def test_view_finds_the_viewer_beside_python_and_names_it_when_missing(tmp_path,
     bindir = tmp_path / "venv" / "bin"
     bindir.mkdir(parents=True)
     monkeypatch.setattr(sys, "executable", str(bindir / "python"))
-    with pytest.raises(OsteonavError, match="rerun viewer was not found.*--save"):
+    with pytest.raises(OsteonavError, match="rerun viewer was not found.*--rrd"):
         trial_view.viewer_executable()
     (bindir / "rerun").write_text("#!/bin/sh\n")
     assert trial_view.viewer_executable() == bindir / "rerun"
@@ -179,7 +179,7 @@ def test_view_reports_a_viewer_that_exits_at_once_instead_of_hanging(tmp_path, m
     fake.write_text("#!/bin/sh\necho 'Failed to open connection to X server' >&2\nexit 1\n")
     fake.chmod(0o755)
     monkeypatch.setattr(trial_view, "viewer_executable", lambda: fake)
-    with pytest.raises(OsteonavError, match="exited at once.*X server.*--save"):
+    with pytest.raises(OsteonavError, match="exited at once.*X server.*--rrd"):
         trial_view._spawn(port=9, start_s=120.0)   # the fake exits at once; 120 s is only a safety net
 
 
