@@ -354,7 +354,9 @@ def test_the_matrix_covers_every_broken_trial_of_the_reader_tests():
     ["prepare-mesh", "meshes/iliac_crest.ply", "--out", "{tmp}/x.xyz"],
     ["replay", "{tmp}", "--out", "{tmp}/r"],
     ["view", "{tmp}/nothing"],
-], ids=["prepare-mesh-xyz", "replay-not-a-trial", "view-not-a-trial"])
+    ["simulate", "--out", "{tmp}/s", "--seconds", "nan"],
+    ["prepare-mesh", "meshes/iliac_crest.ply", "--out", "{tmp}/x.ply", "--scale", "inf"],
+], ids=["prepare-mesh-xyz", "replay-not-a-trial", "view-not-a-trial", "simulate-seconds-nan", "prepare-mesh-scale-inf"])
 def test_subprocess_rows_print_no_traceback(tmp_path, args):
     argv = [a.format(tmp=tmp_path) for a in args]
     before = tree_hashes(tmp_path)
