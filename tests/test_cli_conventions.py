@@ -212,3 +212,13 @@ def test_strict_json_writes_null_for_non_finite_numbers():
     assert loaded[0]["fit_best_refined"] is None and loaded[0]["refined_mm"] is None
     assert loaded[0]["ll_best"] == 0.5 and loaded[0]["frame"] == 3
     assert strict_json.finite_or_none({"a": np.array([1.0, np.nan])}) == {"a": [1.0, None]}
+
+
+@pytest.mark.parametrize("seconds", [0, -1.0, float("nan"), float("inf")])
+def test_simulate_refuses_a_duration_that_is_not_a_positive_number(tmp_path, seconds):
+    """0 used to mean the scenario's 10 s; the function refuses it like the command line does."""
+    from app.sim.simulator import simulate
+
+    with pytest.raises(ValueError, match="seconds must be a finite duration > 0"):
+        simulate(tmp_path / "t", scenario_name="static_clear", seconds=seconds)
+    assert not (tmp_path / "t").exists()
