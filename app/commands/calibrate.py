@@ -340,8 +340,6 @@ def run_capture(args) -> int:
         return run_command(args)   # a live session: its camera and robot plugins
     _source_kind(config, "camera", str(args.config))
     _source_kind(config, "robot", str(args.config))
-    if args.count < 1:
-        raise ConfigError("--count", f"must be at least 1, got {args.count}")
     sim, rig_source = _session_rig(args.config, config)
     prepare_dir(args.out, args.overwrite, CAPTURES)
     rng = np.random.default_rng(args.seed)
