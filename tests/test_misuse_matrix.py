@@ -70,13 +70,26 @@ def sim_trial(tmp_path_factory) -> Path:
 def captures(tmp_path_factory) -> Path:
     """A hand-eye capture folder (6 captures), and beside it ``projector/``: 3 projector board poses."""
     out = tmp_path_factory.mktemp("matrix") / "captures"
-    assert main(["calibrate", "simulate", "--out", str(out), "--captures", "6", "--seed", "2"]) == 0
+    assert main(["calibrate", "simulate", "--out", str(out), "--count", "6", "--seed", "2"]) == 0
     assert main(["calibrate", "projector", "--simulate", "3", "--captures", str(out.parent / "projector")]) == 0
     return out
 
 
 def mm_mesh(path: Path) -> Path:
     trimesh.creation.box(extents=(120.0, 30.0, 40.0)).export(path)
+    return path
+
+
+def cm_mesh(path: Path) -> Path:
+    """An 11.8 cm bone in centimetres: as millimetres it would be an 11.8 mm one."""
+    trimesh.creation.box(extents=(11.8, 3.0, 4.0)).export(path)
+    return path
+
+
+def flat_mesh(path: Path) -> Path:
+    """A mesh of zero-area triangles only (collinear or repeated vertices), bone-sized."""
+    v = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.02, 0.0]])
+    trimesh.Trimesh(v, np.array([[0, 1, 2], [0, 1, 2], [1, 2, 1], [3, 3, 0]]), process=False).export(path)
     return path
 
 
@@ -110,6 +123,12 @@ def _mm_trial(tmp: Path, trial: Path) -> Path:
     return t
 
 
+def _flat_trial(tmp: Path, trial: Path) -> Path:
+    t = copy_trial(trial, tmp / "flat_trial")
+    flat_mesh(t / yaml.safe_load((t / "trial.yaml").read_text())["mesh"])
+    return t
+
+
 def _session(tmp: Path, text: str) -> Path:
     p = tmp / "session.yaml"
     p.write_text(text)
@@ -139,7 +158,7 @@ ROWS = [
     ("simulate-mm-mesh", lambda t, tr, c: ["simulate", "--out", t / "s", "--mesh", mm_mesh(t / "mm.ply"),
                                            "--seconds", "0.05"], "simulate", 2, ["looks like millimetres", "prepare-mesh"]),
     ("calibrate-simulate-not-empty", lambda t, tr, c: ["calibrate", "simulate", "--out", copy_trial(c, t / "c"),
-                                                       "--captures", "3"], "calibrate", 2, ["--overwrite"]),
+                                                       "--count", "3"], "calibrate", 2, ["--overwrite"]),
     ("calibrate-capture-not-empty", lambda t, tr, c: ["calibrate", "capture", "--config",
                                                       _session(t, "camera: simulated\nrobot: simulated\n"),
                                                       "--out", copy_trial(c, t / "c"), "--count", "3"],
@@ -158,8 +177,8 @@ ROWS = [
     ("calibrate-projector-simulate-into-poses", lambda t, tr, c: ["calibrate", "projector", "--simulate", "3",
                                                                   "--captures", c.parent / "projector"], "calibrate", 2,
      ["--captures", "not empty", "--overwrite"]),
-    ("view-save-exists", lambda t, tr, c: ["view", tr, "--save", _file(t, "x.rrd")], "view", 2, ["already exists"]),
-    ("view-save-not-rrd", lambda t, tr, c: ["view", tr, "--save", t / "x.txt"], "view", 2, [".rrd"]),
+    ("view-rrd-exists", lambda t, tr, c: ["view", tr, "--rrd", _file(t, "x.rrd")], "view", 2, ["already exists"]),
+    ("view-rrd-not-rrd", lambda t, tr, c: ["view", tr, "--rrd", t / "x.txt"], "view", 2, [".rrd"]),
     ("prepare-mesh-out-xyz", lambda t, tr, c: ["prepare-mesh", REPO / "meshes" / "iliac_crest.ply", "--out",
                                                t / "x.xyz"], "prepare-mesh", 2, [".xyz", ".ply"]),
     ("prepare-mesh-out-exists", lambda t, tr, c: ["prepare-mesh", REPO / "meshes" / "iliac_crest.ply", "--out",
@@ -171,7 +190,7 @@ ROWS = [
     ("bench-out-is-a-file", lambda t, tr, c: ["bench", "--trials", tr, "--configs", "icp", "--out", _file(t),
                                               "--json", t / "b.json"], "bench", 2, ["--out", "is a file"]),
     ("bench-marker-short", lambda t, tr, c: ["bench-marker", "--seconds", "3", "--json", t / "m.json"], "bench-marker", 2,
-     ["must exceed 5"]),
+     ["--seconds", "> 5"]),
     ("record-out-not-empty", lambda t, tr, c: ["record", "--config", SIM_SESSION, "--out", _nonempty(t)], "record", 2,
      ["--overwrite"]),
     ("track-out-not-empty", lambda t, tr, c: ["track", "--config", SIM_SESSION, "--out", _nonempty(t)], "track", 2,
@@ -184,6 +203,55 @@ ROWS = [
     ("session-unknown-camera-param", lambda t, tr, c: ["track", "--config", _session(t, "camera: {plugin: simulated, "
                                                        "param: {}}\nrobot: {plugin: simulated}\n")], "track", 2,
      ["session.yaml", "camera.param"]),
+    # ---- issue 34: numeric options at parse time, the range in the message
+    *[(f"simulate-seconds-{v}", (lambda v: lambda t, tr, c: ["simulate", "--out", t / "s", "--seconds", v])(v),
+       "simulate", 2, ["--seconds", "> 0"]) for v in ("0", "-1", "nan", "inf")],
+    ("simulate-seed-negative", lambda t, tr, c: ["simulate", "--out", t / "s", "--seed", "-1"], "simulate", 2,
+     ["--seed", ">= 0"]),
+    ("demo-unknown-scenario", lambda t, tr, c: ["demo", "--scenario", "nope", "--dir", t / "d"], "demo", 2,
+     ["--scenario", "nope", "static_clear"]),
+    # the old code ran track/record --duration 0 until Ctrl-C and stopped --duration -1 at once with exit 0
+    *[(f"{cmd}-{opt.strip('-')}-{v}", (lambda cmd, opt, v: lambda t, tr, c: [
+        cmd, "--config", SIM_SESSION, "--out", t / "o", opt, v])(cmd, opt, v), cmd, 2, [opt, "> 0"])
+      for cmd in ("track", "record") for opt, v in (("--duration", "0"), ("--duration", "-1"), ("--seconds", "nan"))],
+    ("prepare-mesh-scale-inf", lambda t, tr, c: ["prepare-mesh", REPO / "meshes" / "iliac_crest.ply", "--out",
+                                                 t / "x.ply", "--scale", "inf"], "prepare-mesh", 2, ["--scale", "> 0"]),
+    ("prepare-mesh-scale-0", lambda t, tr, c: ["prepare-mesh", REPO / "meshes" / "iliac_crest.ply", "--out",
+                                               t / "x.ply", "--scale", "0"], "prepare-mesh", 2, ["--scale", "> 0"]),
+    ("prepare-mesh-cm-mesh", lambda t, tr, c: ["prepare-mesh", cm_mesh(t / "cm.ply"), "--out", t / "x.ply"],
+     "prepare-mesh", 2, ["looks like centimetres", "--scale 0.01", "11.8 cm"]),
+    ("simulate-cm-mesh", lambda t, tr, c: ["simulate", "--out", t / "s", "--mesh", cm_mesh(t / "cm.ply"),
+                                           "--seconds", "0.05"], "simulate", 2, ["looks like centimetres", "--scale 0.01"]),
+    ("prepare-mesh-degenerate", lambda t, tr, c: ["prepare-mesh", flat_mesh(t / "flat.ply"), "--out", t / "x.ply"],
+     "prepare-mesh", 2, ["degenerate", "zero area"]),
+    ("simulate-degenerate-mesh", lambda t, tr, c: ["simulate", "--out", t / "s", "--mesh", flat_mesh(t / "flat.ply"),
+                                                   "--seconds", "0.05"], "simulate", 2, ["degenerate"]),
+    ("replay-degenerate-mesh", lambda t, tr, c: ["replay", _flat_trial(t, tr), "--out", t / "r"], "replay", 2,
+     ["degenerate"]),
+    ("bench-rate-frames-0", lambda t, tr, c: ["bench-rate", "--frames", "0", "--json", t / "r.json"], "bench-rate", 2,
+     ["--frames", ">= 1"]),
+    ("bench-seeds-negative", lambda t, tr, c: ["bench", "--seeds", "-1", "--json", t / "b.json"], "bench", 2,
+     ["--seeds", ">= 0"]),
+    ("bench-seconds-nan", lambda t, tr, c: ["bench", "--trials", tr, "--seconds", "nan", "--json", t / "b.json"],
+     "bench", 2, ["--seconds", "> 0"]),
+    ("bench-marker-seconds-nan", lambda t, tr, c: ["bench-marker", "--seconds", "nan", "--json", t / "m.json"],
+     "bench-marker", 2, ["--seconds", "> 5"]),
+    ("bench-marker-camera-fps-0", lambda t, tr, c: ["bench-marker", "--camera-fps", "0", "--json", t / "m.json"],
+     "bench-marker", 2, ["--camera-fps", "> 0"]),
+    ("calibrate-simulate-count-2", lambda t, tr, c: ["calibrate", "simulate", "--out", t / "c", "--count", "2"],
+     "calibrate simulate", 2, ["--count", ">= 3"]),
+    ("session-unknown-scenario", lambda t, tr, c: ["track", "--config", _session(t, "camera: {plugin: simulated, "
+                                                   "params: {scenario: nope}}\nrobot: {plugin: simulated}\n")],
+     "track", 2, ["session.yaml", "camera.params.scenario", "static_clear"]),
+    ("session-negative-seconds", lambda t, tr, c: ["track", "--config", _session(t, "camera: {plugin: simulated}\n"
+                                                   "robot: {plugin: simulated, params: {seconds: -3}}\n")],
+     "track", 2, ["session.yaml", "robot.params.seconds", "> 0"]),
+    ("session-negative-seed", lambda t, tr, c: ["track", "--config", _session(t, "camera: {plugin: simulated, "
+                                                "params: {seed: -1}}\nrobot: {plugin: simulated}\n")],
+     "track", 2, ["session.yaml", "camera.params.seed", ">= 0"]),
+    ("session-loop-duration-nan", lambda t, tr, c: ["track", "--config", _session(t, "camera: {plugin: simulated}\n"
+                                                    "robot: {plugin: simulated}\nloop: {duration_s: .nan}\n")],
+     "track", 2, ["session.yaml", "loop.duration_s"]),
     ("session-unknown-loop-key", lambda t, tr, c: ["track", "--config", _session(t, "camera: {plugin: simulated}\n"
                                                    "robot: {plugin: simulated}\nloop: {speed: 2}\n")], "track", 2,
      ["session.yaml", "loop.speed"]),
@@ -286,7 +354,9 @@ def test_the_matrix_covers_every_broken_trial_of_the_reader_tests():
     ["prepare-mesh", "meshes/iliac_crest.ply", "--out", "{tmp}/x.xyz"],
     ["replay", "{tmp}", "--out", "{tmp}/r"],
     ["view", "{tmp}/nothing"],
-], ids=["prepare-mesh-xyz", "replay-not-a-trial", "view-not-a-trial"])
+    ["simulate", "--out", "{tmp}/s", "--seconds", "nan"],
+    ["prepare-mesh", "meshes/iliac_crest.ply", "--out", "{tmp}/x.ply", "--scale", "inf"],
+], ids=["prepare-mesh-xyz", "replay-not-a-trial", "view-not-a-trial", "simulate-seconds-nan", "prepare-mesh-scale-inf"])
 def test_subprocess_rows_print_no_traceback(tmp_path, args):
     argv = [a.format(tmp=tmp_path) for a in args]
     before = tree_hashes(tmp_path)

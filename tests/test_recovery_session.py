@@ -74,8 +74,9 @@ def test_session_start_uses_the_pose_and_keeps_the_point_for_recovery():
 
 
 def test_replay_with_a_plan_bounds_the_template_points(tmp_path):
-    """With the projector's plan the status's template error is over the plan's points (the summary
-    says which), without it over the mesh's vertices; the recovery's report is in the summary."""
+    """The status's template error is over the plan's points (the summary says which) whether or not the
+    projector is an output: the estimates never depend on the outputs (issue 34); the recovery's report
+    is in the summary."""
     from app.config import load_config
     from app.pipeline.replay import replay
     from app.sim.simulator import simulate
@@ -85,7 +86,8 @@ def test_replay_with_a_plan_bounds_the_template_points(tmp_path):
     assert with_plan.summary["template_points"] == "plan"
     assert with_plan.summary["recovery"]["enabled"] and with_plan.summary["recovery"]["reinitialisations"] == 0
     without = replay(tmp_path / "trial", None, load_config(None), rrd=False, projector=False)
-    assert without.summary["template_points"] == "mesh_vertices"
+    assert without.summary["template_points"] == "plan"
+    assert np.array_equal(without.T_base_bone, with_plan.T_base_bone) and without.statuses == with_plan.statuses
 
 
 def test_plan_points_replace_the_vertices_in_the_bound(rng):

@@ -1,4 +1,4 @@
-"""``osteonav simulate`` then ``osteonav view --save`` on the default mesh and on a real CT crest."""
+"""``osteonav simulate`` then ``osteonav view --rrd`` on the default mesh and on a real CT crest."""
 from __future__ import annotations
 
 import shutil
@@ -29,7 +29,7 @@ def test_simulate_then_view_writes_a_recording_with_the_trial_entities(tmp_path,
         args += ["--mesh", str(mesh)]
     assert main(args) == 0
     rrd = tmp_path / "trial.rrd"
-    assert main(["view", str(trial), "--save", str(rrd)]) == 0
+    assert main(["view", str(trial), "--rrd", str(rrd)]) == 0
     assert rrd.read_bytes()[:4] == b"RRF2"
     text = subprocess.run([str(rerun_cli()), "rrd", "print", str(rrd)], capture_output=True, text=True, timeout=120).stdout
     for entity in ("world/camera/image/depth", "world/bone/groundtruth", "world/robot/flange_path", "plots/occlusion"):

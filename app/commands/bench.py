@@ -1,6 +1,8 @@
 """``osteonav bench``: every configuration on every trial, one table (see :mod:`app.bench.bench`)."""
 from __future__ import annotations
 
+from app.cli_types import positive_int, seed
+
 from app.commands.outdir import PLOTS, add_overwrite_argument, prepare_dir, results_file
 
 DEFAULT_JSON = "recordings/bench/bench.json"
@@ -14,24 +16,29 @@ def register(subparsers) -> None:
                     "is static. Without --trials, the standard scenarios are simulated (cached) for the default mesh "
                     "and each ../shared/data/pelvis crest mesh.")
     p.add_argument("--trials", nargs="+", metavar="DIR", help="trial directories with groundtruth.txt (default: simulate)")
-    p.add_argument("--configs", nargs="+", metavar="NAME", help="built-in names (A_cpu A_cadaver thesis_blockwise "
-                   "thesis_joint thesis_complex icp) or YAML files; default: all built-ins")
+    from app.bench.configs import builtin_configs
+
+    p.add_argument("--configs", nargs="+", metavar="NAME", help=f"built-in names ({' '.join(builtin_configs())}: "
+                   "configs/bench/) or YAML files (default: all built-ins)")
     p.add_argument("--json", metavar="OUT", help=f"results JSON (an existing one needs --overwrite; default: {DEFAULT_JSON}, "
                    "or a dated name beside it when that exists)")
-    p.add_argument("--plots", metavar="DIR", help="write PNG plots (error over time per trial, rate per configuration)")
-    p.add_argument("--seconds", nargs="+", metavar="S|NAME=S", help="seconds per trial (simulated: duration; recorded: "
-                   "the first S seconds); NAME=S for one scenario, e.g. --seconds 3 bone_moves=4.5")
-    p.add_argument("--seeds", nargs="+", type=int, metavar="N", help="simulation seeds (default: 0); several seeds: "
+    p.add_argument("--plots", metavar="DIR", help="write PNG plots (error over time per trial, rate per configuration; "
+                   "default: none)")
+    p.add_argument("--seconds", nargs="+", metavar="S|NAME=S", help="seconds per trial, S > 0 (simulated: duration; "
+                   "recorded: the first S seconds; default: the scenario's, the whole trial); NAME=S for one scenario, e.g. --seconds 3 bone_moves=4.5")
+    p.add_argument("--seeds", nargs="+", type=seed, metavar="N", help="simulation seeds, integers >= 0 (default: 0); several seeds: "
                    "trials of seed N are cached in <cache>/<mesh>/<scenario>_seedN, each simulated just before its "
                    "first run, and the JSON is rewritten after every run (a partial matrix stays usable)")
-    p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1: frames/s are then not shared)")
+    p.add_argument("--jobs", type=positive_int, default=1,
+                   help="parallel processes, >= 1 (default 1: frames/s are then not shared)")
     p.add_argument("--quick", action="store_true", help="a short run (minutes): 3 configurations (osteonav_default, A_cpu, "
                    "icp) on static_clear (1.5 s) and bone_moves (3.5 s, until its move ends), the default mesh only")
     from app.sim.scenarios import SCENARIOS, STANDARD
 
     p.add_argument("--scenarios", nargs="+", metavar="NAME", help=f"simulated scenarios (default: the standard four, "
                    f"{' '.join(STANDARD)}); all: {' '.join(SCENARIOS)}")
-    p.add_argument("--meshes", nargs="+", help="meshes to simulate (default: the project's and the pelvis crests)")
+    p.add_argument("--meshes", nargs="+", metavar="MESH", help="meshes to simulate, in metres (default: the project's and "
+                   "the pelvis crests)")
     from app.sim.sensors import SENSORS
 
     p.add_argument("--sensors", nargs="+", metavar="NAME[:KEY=VALUE,...]", help="depth sensor models to simulate each "
@@ -39,7 +46,8 @@ def register(subparsers) -> None:
                    "stereo:window_px=9; another model than independent is cached in <scenario>[_seedN]@<model> and "
                    "tabled as <scenario>@<model>")
     p.add_argument("--cache", default="recordings/bench", help="where simulated trials are cached (default: %(default)s)")
-    p.add_argument("--out", help="keep each run's estimate.txt / status.csv under OUT/<config>/<mesh>/<scenario>")
+    p.add_argument("--out", help="keep each run's estimate.txt / status.csv under OUT/<config>/<mesh>/<scenario> "
+                   "(default: not kept)")
     p.add_argument("--no-vsd", action="store_true", help="skip VSD (saves two renderings per frame)")
     p.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     add_overwrite_argument(p, "the --json file and the --plots and --out folders' earlier contents")
@@ -61,7 +69,7 @@ def parse_seconds(items) -> float | dict | None:
             s = float(value)
         except ValueError:
             s = -1.0
-        if s <= 0:
+        if not 0 < s < float("inf"):
             raise ConfigError("--seconds", f"expected S or NAME=S with a duration > 0 s, got '{item}'")
         if not name:
             default = s
@@ -80,10 +88,9 @@ def run(args) -> int:
     import time
 
     from app.bench import bench
+
     from app.errors import ConfigError
 
-    if args.jobs < 1:
-        raise ConfigError("--jobs", f"expected an integer >= 1, got {args.jobs}")
     args.seconds = parse_seconds(args.seconds)
     if args.sensors and args.trials:
         raise ConfigError("--sensors", "applies to simulated trials only: give --sensors or --trials, not both "

@@ -2,19 +2,23 @@
 :mod:`app.marker.bench`): mean absolute inclination / anteversion errors and update rates."""
 from __future__ import annotations
 
+from app.cli_types import finite_float, finite_positive_float, seconds_over, seed
+
 from app.commands.outdir import add_overwrite_argument, results_file
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("bench-marker", help="marker + IMU (publication C): errors and rates of marker-only, "
                                                    "IMU-only and fused tracking on simulated sequences")
-    p.add_argument("--seconds", type=float, default=60.0,
+    p.add_argument("--seconds", type=seconds_over(5.0, "registration and transfer take the first 3 s"), default=60.0,
                    help="length of each simulated sequence, s; must exceed 5 (registration and transfer take the "
-                        "first 3 s) (default %(default)s)")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="one sequence per seed; the table averages them")
-    p.add_argument("--camera-fps", type=float, default=10.0, help="camera (marker) rate, Hz")
-    p.add_argument("--imu-rate", type=float, default=100.0, help="IMU rate, Hz")
-    p.add_argument("--yaw-drift", type=float, default=None, help="IMU yaw drift, deg/s (default: the simulator's)")
+                        "first 3 s; default %(default)s)")
+    p.add_argument("--seeds", type=seed, nargs="+", default=[0],
+                   help="one sequence per seed, integers >= 0; the table averages them (default 0)")
+    p.add_argument("--camera-fps", type=finite_positive_float, default=10.0,
+                   help="camera (marker) rate, Hz > 0 (default %(default)s)")
+    p.add_argument("--imu-rate", type=finite_positive_float, default=100.0, help="IMU rate, Hz > 0 (default %(default)s)")
+    p.add_argument("--yaw-drift", type=finite_float, default=None, help="IMU yaw drift, deg/s (default: the simulator's)")
     p.add_argument("--json", help="where to write the results (an existing file needs --overwrite; default: "
                    "recordings/bench_marker.json, or a dated name beside it when that exists)")
     add_overwrite_argument(p, "the --json file")
@@ -28,12 +32,8 @@ def run(args) -> int:
 
     import numpy as np
 
-    from app.errors import OsteonavError
     from app.marker import bench
 
-    if args.seconds <= 5.0:
-        raise OsteonavError(f"--seconds must exceed 5 (registration and transfer take the first 3 s), got "
-                            f"{args.seconds:g}; try --seconds 10")
     extra = {} if args.yaw_drift is None else {"yaw_drift_deg_s": args.yaw_drift}
     runs = []
     for seed in args.seeds:

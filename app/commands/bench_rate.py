@@ -1,16 +1,19 @@
 """``osteonav bench-rate``: the filter's frame rate and stage split per likelihood backend (see :mod:`app.bench.rate`)."""
 from __future__ import annotations
 
+from app.cli_types import positive_int
+
 from app.commands.outdir import add_overwrite_argument, results_file
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("bench-rate", help="frames/s of the particle filter per backend, particle count and resolution")
     p.add_argument("--backends", nargs="+", default=None, help="likelihood backends side by side: cpu gl (default: both)")
-    p.add_argument("--particles", type=int, nargs="+", default=None, help="default: 200 700 1500")
-    p.add_argument("--resolutions", nargs="+", default=None, help="WxH, default: 80x60 100x75 160x120")
-    p.add_argument("--frames", type=int, default=30, help="frames timed per configuration")
-    p.add_argument("--config", help="tracker YAML whose other settings to use")
+    p.add_argument("--particles", type=positive_int, nargs="+", default=None,
+                   help="particle counts, integers >= 1 (default: 200 700 1500)")
+    p.add_argument("--resolutions", nargs="+", default=None, help="filter image sizes WxH in pixels, each >= 8 (default: 80x60 100x75 160x120)")
+    p.add_argument("--frames", type=positive_int, default=30, help="frames timed per configuration, >= 1 (default 30)")
+    p.add_argument("--config", help="tracker YAML whose other settings to use (default: configs/default.yaml's values)")
     p.add_argument("--json", help="where to write the results (an existing file needs --overwrite; default: "
                    "recordings/bench_rate.json, or a dated name beside it when that exists)")
     add_overwrite_argument(p, "the --json file")
@@ -34,8 +37,6 @@ def _parse(args):
         raise OsteonavError(f"--backends: {', '.join(bad)} unknown; valid: {' '.join(rate.BACKENDS)} "
                             "(auto is not measured: it picks one of them)")
     particles = args.particles or rate.PARTICLES
-    if min(particles) < 1:
-        raise OsteonavError("--particles takes positive integers like 200 700 1500")
     return backends, particles, resolutions
 
 

@@ -2,7 +2,7 @@
 
 Subcommands::
 
-    osteonav calibrate simulate  --out DIR [--captures 20] [--noise] [--seed N] [--corrupt 3:blank]
+    osteonav calibrate simulate  --out DIR [--count 20] [--noise] [--seed N] [--corrupt 3:blank]
     osteonav calibrate intrinsics --images DIR [--board SPEC] [--out camera.yaml]
     osteonav calibrate hand-eye  --captures DIR [--camera camera.yaml] [--method auto] [--out FILE]
                                  [--rrd FILE]
@@ -32,6 +32,7 @@ import re
 import sys
 from pathlib import Path
 
+from app.cli_types import deprecated_alias, int_at_least, non_negative_int, positive_int, seed
 from app.commands.outdir import CAPTURES, PROJECTOR_CAPTURES, add_overwrite_argument, prepare_dir, prepare_file
 
 log = logging.getLogger(__name__)
@@ -67,9 +68,10 @@ def register(subparsers) -> None:
     s.add_argument("--robot", help="robot model, e.g. ur5e (default: capture.yaml's robot block)")
     s.add_argument("--method", default="auto",
                    choices=["auto", "tsai", "park", "horaud", "andreff", "daniilidis"],
-                   help="method whose result is written (auto: lowest reprojection error)")
+                   help="method whose result is written (default auto: the lowest reprojection error)")
     s.add_argument("--out", type=Path, help="hand-eye YAML to write (default CAPTURES/hand_eye.yaml)")
-    s.add_argument("--rrd", type=Path, help="also log captures, frusta and board to this rerun file")
+    s.add_argument("--rrd", type=Path, metavar="FILE.rrd",
+                   help="also log captures, frusta and board to this rerun file (default: none)")
     add_overwrite_argument(s, "existing --out / --rrd files")
     s.set_defaults(func=run_hand_eye)
 
@@ -80,24 +82,27 @@ def register(subparsers) -> None:
                                    "calibration simulator instead.")
     s.add_argument("--config", required=True, type=Path, help="session YAML (camera and robot plugins)")
     s.add_argument("--out", required=True, type=Path, help="capture folder to create")
-    s.add_argument("--count", type=int, default=15, help="captures to take (default 15)")
-    s.add_argument("--seed", type=int, default=0, help="seed of the simulated source")
+    s.add_argument("--count", type=positive_int, default=15, help="captures to take, >= 1 (default 15)")
+    s.add_argument("--seed", type=seed, default=0, help="seed of the simulated source, an integer >= 0 (default 0)")
     s.add_argument("--image", choices=("ir", "color"), default="ir",
                    help="the camera stream the board is detected in (default ir: the depth camera's own K)")
     s.add_argument("--manual", action="store_true", help="capture only on Enter (no automatic capture at rest)")
     s.add_argument("--board", default=DEFAULT_BOARD, help=f"board SPEC (default {DEFAULT_BOARD})")
-    s.add_argument("--rrd", type=Path, help="log the live detection to this rerun file (default: spawn the viewer)")
+    s.add_argument("--rrd", type=Path, metavar="FILE.rrd",
+                   help="log the live detection to this rerun file (default: spawn the viewer)")
     s.add_argument("--no-viewer", action="store_true", help="no rerun logging")
     add_overwrite_argument(s, "the captures in --out")
     s.set_defaults(func=run_capture)
 
     s = sub.add_parser("simulate", help="write a folder of simulated captures (no hardware needed)")
     s.add_argument("--out", required=True, type=Path, help="capture folder to create")
-    s.add_argument("--captures", type=int, default=20, help="number of captures (default 20)")
+    s.add_argument("--count", type=int_at_least(3, "a capture count"), default=20,
+                   help="number of captures, >= 3 (default 20)")
+    deprecated_alias(s, "--captures", "--count")   # --captures is a folder in hand-eye and projector
     s.add_argument("--noise", action="store_true", help="blur, image noise and encoder noise")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=seed, default=0, help="simulation seed, an integer >= 0 (default 0)")
     s.add_argument("--corrupt", default="",
-                   help="captures to spoil, e.g. '3:blank,7:missing' (blank, noise, missing, garbage)")
+                   help="captures to spoil, e.g. '3:blank,7:missing' (blank, noise, missing, garbage; default: none)")
     add_overwrite_argument(s, "the captures in --out")
     s.set_defaults(func=run_simulate)
 
@@ -111,14 +116,14 @@ def register(subparsers) -> None:
     s.add_argument("--distortion", choices=("none", "k1k2"), default="none",
                    help="projector lens distortion to estimate (default none: with few poses k1/k2 trade off "
                         "against the focal length and T_camera_projector; see calibration/projector.py)")
-    s.add_argument("--simulate", type=int, default=0, metavar="N",
-                   help="first write N simulated board poses into CAPTURES (no hardware needed)")
+    s.add_argument("--simulate", type=non_negative_int, default=0, metavar="N",
+                   help="first write N >= 3 simulated board poses into CAPTURES (no hardware needed; default 0: none)")
     s.add_argument("--noise", action="store_true", help="with --simulate: image noise and blur")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=seed, default=0, help="with --simulate: simulation seed, an integer >= 0 (default 0)")
     s.add_argument("--live", action="store_true", help="first capture live: the Gray-code sequence in the projector "
                    "window, the session camera's images (--config), Enter per board pose")
-    s.add_argument("--config", type=Path, help="with --live: session YAML naming the camera plugin")
-    s.add_argument("--poses", type=int, default=8, help="with --live: board poses to capture (default 8)")
+    s.add_argument("--config", type=Path, help="with --live: session YAML naming the camera plugin (required with --live)")
+    s.add_argument("--poses", type=positive_int, default=8, help="with --live: board poses to capture, >= 1 (default 8)")
     s.add_argument("--screen", type=int, default=-1, help="with --live: the projector's screen (default the last)")
     s.add_argument("--image", choices=("ir", "color"), default="ir", help="with --live: camera stream (default ir)")
     add_overwrite_argument(s, "the poses in --captures (with --simulate) and an existing --out file")
@@ -335,8 +340,6 @@ def run_capture(args) -> int:
         return run_command(args)   # a live session: its camera and robot plugins
     _source_kind(config, "camera", str(args.config))
     _source_kind(config, "robot", str(args.config))
-    if args.count < 1:
-        raise ConfigError("--count", f"must be at least 1, got {args.count}")
     sim, rig_source = _session_rig(args.config, config)
     prepare_dir(args.out, args.overwrite, CAPTURES)
     rng = np.random.default_rng(args.seed)
@@ -376,19 +379,17 @@ def run_simulate(args) -> int:
     from calibration.simulator import SimulationConfig, noisy, simulate_captures
 
     corrupt = _parse_corrupt(args.corrupt)
-    if args.captures < 3:
-        raise ConfigError("--captures", f"at least 3 needed, got {args.captures}")
-    bad = [k for k in corrupt if not 0 <= k < args.captures]
+    bad = [k for k in corrupt if not 0 <= k < args.count]
     if bad:
-        raise ConfigError("--corrupt", f"capture indices {bad} outside 0..{args.captures - 1}")
+        raise ConfigError("--corrupt", f"capture indices {bad} outside 0..{args.count - 1}")
     prepare_dir(args.out, args.overwrite, CAPTURES)
     config = noisy() if args.noise else SimulationConfig()
     try:
-        truth = simulate_captures(args.out, args.captures, np.random.default_rng(args.seed), config,
+        truth = simulate_captures(args.out, args.count, np.random.default_rng(args.seed), config,
                                   corrupt=corrupt)
     except RuntimeError as exc:
-        raise ConfigError("--captures", str(exc)) from None
-    print(f"wrote {args.captures} simulated captures to {args.out} "
+        raise ConfigError("--count", str(exc)) from None
+    print(f"wrote {args.count} simulated captures to {args.out} "
           f"({'noisy' if args.noise else 'noise-free'}; truth in truth.yaml)")
     print("true hand_eye (T_flange_camera):")
     print(np.array2string(truth.T_flange_camera, precision=5, suppress_small=True))

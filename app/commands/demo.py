@@ -12,10 +12,15 @@ DEMO_DIR = REPO / "recordings" / "demo"
 
 
 def register(subparsers) -> None:
+    from app.cli_types import positive_seconds
+    from app.sim.scenarios import DEFAULT_SCENARIO, SCENARIOS
+
     p = subparsers.add_parser("demo", help="simulate the default trial (cached), track it, summarise")
-    p.add_argument("--scenario", default=None, help="simulation scenario (default: the demo's)")
-    p.add_argument("--seconds", type=float, default=None)
-    p.add_argument("--config", help="tracker YAML")
+    p.add_argument("--scenario", default=None, choices=list(SCENARIOS), metavar="NAME",
+                   help=f"simulation scenario, one of: {', '.join(SCENARIOS)} (default {DEFAULT_SCENARIO})")
+    p.add_argument("--seconds", type=positive_seconds, default=None,
+                   help="duration of the simulated trial, s > 0 (default: the scenario's)")
+    p.add_argument("--config", help="tracker YAML (default: configs/default.yaml's values)")
     p.add_argument("--dir", default=str(DEMO_DIR), help=f"demo folder (default {DEMO_DIR})")
     p.set_defaults(func=run)
 

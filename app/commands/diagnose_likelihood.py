@@ -8,28 +8,34 @@ and at the best other pose (``--out``/diagnosis.rrd).
 """
 from __future__ import annotations
 
+from app.cli_types import finite_positive_float, non_negative_int, positive_int, seed
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("diagnose-likelihood", help="log-likelihood and refinement fit at the ground truth "
                               "against the best poses > 5 mm / 5 deg away, per frame")
     p.add_argument("trial", help="trial directory with groundtruth.txt")
-    p.add_argument("--frames", type=int, nargs="+", default=None, help="frame indices (default: 5 spread over the trial)")
-    p.add_argument("--config", help="tracker YAML (default: the defaults)")
-    p.add_argument("--candidates", type=int, default=2000, help="poses of the wide search per frame")
-    p.add_argument("--search-mm", type=float, default=40.0, help="translation range of the search (mm)")
-    p.add_argument("--search-deg", type=float, default=40.0, help="rotation range of the search (deg)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default=None, help="folder for diagnosis.md / .json / .rrd")
+    p.add_argument("--frames", type=non_negative_int, nargs="+", default=None,
+                   help="frame indices, integers >= 0 (default: 5 spread over the trial)")
+    p.add_argument("--config", help="tracker YAML (default: configs/default.yaml's values)")
+    p.add_argument("--candidates", type=positive_int, default=2000,
+                   help="poses of the wide search per frame, >= 1 (default %(default)s)")
+    p.add_argument("--search-mm", type=finite_positive_float, default=40.0,
+                   help="translation range of the search, mm > 0 (default %(default)s)")
+    p.add_argument("--search-deg", type=finite_positive_float, default=40.0,
+                   help="rotation range of the search, deg > 0 (default %(default)s)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of the search, an integer >= 0 (default 0)")
+    p.add_argument("--out", default=None, help="folder for diagnosis.md / .json / .rrd (default: print only)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    import json
     from dataclasses import asdict
     from pathlib import Path
 
     import numpy as np
 
+    from app import strict_json
     from app.bench import ambiguity
     from app.config import load_config
     from app.errors import OsteonavError
@@ -71,7 +77,7 @@ def run(args) -> int:
     if args.out:
         Path(args.out).mkdir(parents=True, exist_ok=True)
         (Path(args.out) / "diagnosis.md").write_text(text + "\n")
-        (Path(args.out) / "diagnosis.json").write_text(json.dumps([asdict(r) for r in rows], indent=1))
+        (Path(args.out) / "diagnosis.json").write_text(strict_json.dumps([asdict(r) for r in rows], indent=1))
         print(f"\nwrote {args.out}/diagnosis.md, .json, .rrd")
     return 0
 

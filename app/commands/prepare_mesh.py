@@ -8,6 +8,7 @@ moved the same way, p_out = scale * p_in - offset.
 """
 from __future__ import annotations
 
+from app.cli_types import finite_positive_float, int_at_least
 from app.commands.outdir import add_overwrite_argument, prepare_file
 
 
@@ -19,8 +20,10 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("prepare-mesh", help="scale, centre and decimate a bone mesh for tracking")
     p.add_argument("input", help="mesh file (PLY, STL, OBJ, ...)")
     p.add_argument("--out", required=True, help="output mesh file (format from its suffix)")
-    p.add_argument("--triangles", type=int, default=1000, help="triangle budget (default 1000)")
-    p.add_argument("--scale", type=float, default=1.0, help="scale factor to metres, e.g. 0.001 for millimetres")
+    p.add_argument("--triangles", type=int_at_least(4), default=1000, help="triangle budget, >= 4 (default 1000)")
+    p.add_argument("--scale", type=finite_positive_float, default=1.0,
+                   help="scale factor from file units to metres, > 0: 0.001 for millimetres, 0.01 for centimetres "
+                        "(default 1: the file is in metres)")
     p.add_argument("--no-center", action="store_true", help="keep the mesh's own origin (no centring)")
     add_overwrite_argument(p, "an existing --out file")
     p.set_defaults(func=run)
@@ -32,12 +35,8 @@ def run(args) -> int:
     import numpy as np
 
     from app.errors import MeshError
-    from app.mesh import check_units, load_mesh, outward_wound, prepare_mesh
+    from app.mesh import check_triangles, check_units, load_mesh, outward_wound, prepare_mesh
 
-    if args.triangles < 4:
-        raise MeshError(f"--triangles must be at least 4, got {args.triangles}")
-    if not args.scale > 0:
-        raise MeshError(f"--scale must be positive, got {args.scale}")
     suffix = Path(args.out).suffix.lower().lstrip(".")
     if suffix not in EXPORT_FORMATS:
         raise MeshError(f"--out {args.out}: cannot write a mesh as {suffix or 'a file without a suffix'!r}; "
@@ -47,7 +46,9 @@ def run(args) -> int:
     if args.scale != 1.0:
         mesh.apply_scale(args.scale)
     check_units(mesh, args.input)
+    check_triangles(mesh, args.input)   # a scale can underflow every triangle's area
     out = prepare_mesh(mesh, max_triangles=args.triangles, center=not args.no_center)
+    check_triangles(out, args.out)
     prepare_file(args.out, args.overwrite)
     out.export(args.out)
     offset = np.asarray(out.metadata["centering_offset"])
@@ -57,6 +58,9 @@ def run(args) -> int:
         print(f"scale:  {args.scale:g} (file units -> metres)")
     print(f"output: {args.out}: {len(out.faces)} triangles, extents {fmt(out.extents)} m")
     print(f"centring offset: {fmt(offset)} m (p_out = {args.scale:g} * p_in - offset; move the plan the same way)")
+    if len(out.faces) > args.triangles:
+        print(f"warning: the simplifier stopped at {len(out.faces)} triangles, above --triangles {args.triangles}; "
+              "the tracker decimates again to its render.mesh_triangles budget")
     if not outward_wound(out):
         print("warning: triangles are not consistently wound outwards; the tracker's back-face handling may suffer")
     return 0

@@ -12,12 +12,14 @@ from app.commands.outdir import add_overwrite_argument
 
 
 def register(subparsers) -> None:
+    from app.commands.track import add_seconds_argument
+
     p = subparsers.add_parser("record", help="record a session's camera and robot streams as a trial")
     p.add_argument("--config", required=True, help="session YAML (see configs/sessions/)")
     p.add_argument("--out", required=True, help="trial directory to write")
     p.add_argument("--track", action="store_true", help="also run the tracker (estimates in --track-out)")
-    p.add_argument("--track-out", help="directory for the tracker's outputs (with --track)")
-    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument("--track-out", help="directory for the tracker's outputs (with --track; default: the session file's out)")
+    add_seconds_argument(p)
     add_overwrite_argument(p, "the trial in --out (and --track-out's outputs)")
     p.set_defaults(func=run)
 
@@ -35,8 +37,8 @@ def run(args) -> int:
     elif args.track_out:
         overrides["out"] = str(Path(args.track_out).resolve())
     config = load_session(args.config, overrides)
-    if args.duration:
-        config.loop.duration_s = args.duration
+    if args.seconds is not None:
+        config.loop.duration_s = args.seconds
     prepare_session_dirs(config, args.overwrite)
     with naming_the_session_file(args.config):
         result = run_session(config)

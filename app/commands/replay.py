@@ -17,7 +17,8 @@ def register(subparsers) -> None:
     p.add_argument("--realtime", action="store_true", help="pace frames at their recorded stamps")
     p.add_argument("--no-rrd", action="store_true", help="do not write log.rrd")
     p.add_argument("--projector", help="projector and plan YAML (default: configs/projector.yaml)")
-    p.add_argument("--no-projector", action="store_true", help="do not render the projector's template")
+    p.add_argument("--no-projector", action="store_true", help="do not render the projector's template (the "
+                   "tracking is the same: the plan's points still bound the status)")
     p.add_argument("--projector-images", action="store_true", help="also write the projector images to OUT/projector/")
     add_overwrite_argument(p, "OUT's replay outputs")
     p.set_defaults(func=run)

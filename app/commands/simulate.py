@@ -1,6 +1,7 @@
 """``osteonav simulate``: write a simulated recorded trial (see :mod:`app.sim.simulator`)."""
 from __future__ import annotations
 
+from app.cli_types import positive_seconds, seed
 from app.commands.outdir import TRIAL, add_overwrite_argument, prepare_dir
 
 
@@ -14,9 +15,10 @@ def register(subparsers) -> None:
     )
     p.add_argument("--out", required=True, help="trial directory to write")
     p.add_argument("--mesh", help="bone mesh in metres (default: meshes/iliac_crest.ply)")
-    p.add_argument("--scenario", default=DEFAULT_SCENARIO, help=f"one of: {', '.join(SCENARIOS)}")
-    p.add_argument("--seconds", type=float, help="duration (default: the scenario's)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--scenario", default=DEFAULT_SCENARIO, choices=list(SCENARIOS), metavar="NAME",
+                   help=f"one of: {', '.join(SCENARIOS)} (default {DEFAULT_SCENARIO})")
+    p.add_argument("--seconds", type=positive_seconds, help="duration, s > 0 (default: the scenario's)")
+    p.add_argument("--seed", type=seed, default=0, help="simulation seed, an integer >= 0 (default 0)")
     add_overwrite_argument(p, "the trial in --out")
     p.add_argument("--streams", default="depth", help="images per frame: depth (default) or e.g. depth,ir,color "
                    "(infrared and colour: trial format 1.1)")
@@ -31,13 +33,10 @@ def run(args) -> int:
     from tqdm import tqdm
 
     from app.errors import OsteonavError
-    from app.sim.scenarios import SCENARIOS
     from app.sim.images import parse_streams
     from app.sim.sensors import parse_sensor
     from app.sim.simulator import simulate
 
-    if args.scenario not in SCENARIOS:
-        raise OsteonavError(f"unknown scenario '{args.scenario}'; valid: {', '.join(SCENARIOS)}")
     try:
         streams = ",".join(parse_streams(args.streams))
     except ValueError as exc:

@@ -6,13 +6,14 @@ Ctrl-C ends it cleanly: sources stop, the recording and logs are flushed, and th
 """
 from __future__ import annotations
 
+from app.cli_types import deprecated_alias, positive_seconds
 from app.commands.outdir import SESSION, TRIAL, add_overwrite_argument, prepare_dir, prepare_file
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("track", help="run a tracking session (camera + robot + tracker) until stopped")
     add_session_arguments(p)
-    p.add_argument("--record", metavar="DIR", help="also record the sensors as a trial in DIR")
+    p.add_argument("--record", metavar="DIR", help="also record the sensors as a trial in DIR (default: the session file's record, else none)")
     p.add_argument("--soak", action="store_true", help="a soak run of the loop itself: no outputs and no recording "
                    "(disk), recorded/simulated sources loop; the summary gives memory (RSS) and rate at start and end")
     p.set_defaults(func=run)
@@ -20,9 +21,17 @@ def register(subparsers) -> None:
 
 def add_session_arguments(p) -> None:
     p.add_argument("--config", required=True, help="session YAML (see configs/sessions/)")
-    p.add_argument("--out", help="directory for estimate.txt, status.csv, events.csv, summary.json (overrides out:)")
-    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument("--out", help="directory for estimate.txt, status.csv, events.csv, summary.json (default: the session file's out)")
+    add_seconds_argument(p)
     add_overwrite_argument(p, "the outputs (out, record) of an earlier session")
+
+
+def add_seconds_argument(p) -> None:
+    """``--seconds S`` (deprecated: ``--duration``): stop after S > 0 seconds; left out, the session
+    file's ``loop.duration_s``, else until Ctrl-C."""
+    p.add_argument("--seconds", type=positive_seconds, help="stop after this many seconds, s > 0 (default: the "
+                   "session file's loop.duration_s, else run until Ctrl-C)")
+    deprecated_alias(p, "--duration", "--seconds")
 
 
 def overrides_from(args) -> dict:
@@ -40,8 +49,8 @@ def run(args) -> int:
     from app.session import load_session, run_session
 
     config = load_session(args.config, overrides_from(args))
-    if args.duration:
-        config.loop.duration_s = args.duration
+    if args.seconds is not None:
+        config.loop.duration_s = args.seconds
     if getattr(args, "soak", False):
         config.outputs, config.record = [], None
         for spec in (config.camera, config.robot):

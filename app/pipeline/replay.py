@@ -26,6 +26,10 @@ traced back onto the bone at its true pose, lands from the plan (mean / p95 / ma
 frames where the template was shown; app/projector/accuracy.py). The true pose is taken as the
 trial's calibrated camera sees it when the trial records the true camera (a simulated calibration
 error: the projector draws with the calibrated camera pose; app/sim/truth.py).
+
+The plan is built from that configuration whether or not the projector is an output: the tracker's
+status bounds the predicted error of the plan's points (:func:`known_plan`), so the estimates and
+statuses never depend on the outputs (``projector``, ``projector_images``, ``rrd``, ``out_dir``).
 """
 from __future__ import annotations
 
@@ -86,9 +90,10 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
         tracker.start(reader.meta.initial_pose)
     getattr(engine, "set_point_prior", lambda p: None)(reader.meta.point_prior)   # the recovery's point
     out = Path(out_dir) if out_dir else None
+    plan, plan_error = known_plan(projector_config, mesh)
+    use_plan(engine, plan)   # the status's template points: the plan's whatever the outputs (issue 34)
     sinks = ReplaySinks.open(reader, tracker, mesh, out, rrd, projector and out is not None,
-                             ProjectorOptions(projector_config, projector_every, projector_images))
-    use_plan(engine, sinks.plan)   # the status's template points
+                             ProjectorOptions(projector_config, projector_every, projector_images), plan, plan_error)
     core = FrameCore(tracker, sinks.all)
     try:
         elapsed = _run(core, reader, max_frames, realtime, progress)
@@ -143,6 +148,21 @@ def _bone_seen(reader, T_base_camera: np.ndarray, truth: np.ndarray | None) -> n
     return None if source == FROM_TRIAL else bone_seen(T_base_camera, T_true, truth)
 
 
+def known_plan(projector_config: str | Path | None, mesh):
+    """(plan, None) for the projector configuration (None: configs/projector.yaml) on this mesh, the
+    configured plan or one derived on the mesh's ridge; (None, reason) when no plan fits.
+
+    The tracker's status bounds the predicted error of the plan's points (``use_plan``), so the plan is
+    built whether or not the projector is an output: the estimates never depend on the outputs."""
+    from app.projector.config import DEFAULT_CONFIG, build_plan, load_projector_config
+
+    cfg = load_projector_config(projector_config or DEFAULT_CONFIG)
+    try:
+        return build_plan(cfg, np.asarray(mesh.vertices), np.asarray(mesh.faces), derive=True), None
+    except MeshError as exc:
+        return None, str(exc)
+
+
 @dataclass
 class ProjectorOptions:
     config: str | Path | None = None
@@ -159,14 +179,9 @@ class ReplaySinks:
     all: list
     projector_skipped: str | None = None
 
-    @property
-    def plan(self):
-        """The projector's plan (None without a projector)."""
-        return next((s.plan for s in self.all if isinstance(s, ProjectorEstimates)), None)
-
     @classmethod
     def open(cls, reader, tracker: EngineTracker, mesh, out: Path | None, rrd: bool, projector: bool,
-             options: ProjectorOptions) -> "ReplaySinks":
+             options: ProjectorOptions, plan=None, plan_error: str | None = None) -> "ReplaySinks":
         sinks = cls(Trajectory(), GroundTruthScoring(np.asarray(mesh.vertices)), [])
         sinks.all = [sinks.scoring, sinks.trajectory]
         if out is None:
@@ -183,23 +198,21 @@ class ReplaySinks:
             log_.log_text("backend", tracker.description)
             rerun = RerunSink(log_, reader.meta.T_flange_camera, depth_every=3, bone_when=("ok", "uncertain"))
             sinks.all.append(rerun)
-        if projector:
-            sinks._open_projector(mesh, out, rerun, options)
+        if projector and plan is None:
+            log.warning("projector skipped: no plan fits this trial's mesh (%s)", plan_error)
+            sinks.projector_skipped = plan_error
+        elif projector:
+            sinks._open_projector(mesh, out, rerun, options, plan)
         sinks.all.append(EstimateFiles(out))
         return sinks
 
-    def _open_projector(self, mesh, out: Path, rerun: RerunSink | None, options: ProjectorOptions) -> None:
+    def _open_projector(self, mesh, out: Path, rerun: RerunSink | None, options: ProjectorOptions, plan) -> None:
         from app.projector.sink import ProjectorSink
 
-        try:   # a plan that does not fit this trial's mesh is replaced by one derived from it (never a failed replay)
-            projector = ProjectorSink.from_config(options.config, np.asarray(mesh.vertices), np.asarray(mesh.faces),
-                                                  rec=rerun.log.rec if rerun is not None else None,
-                                                  png_dir=out / "projector" if options.images else None,
-                                                  error_every=2, derive_plan=True)
-        except MeshError as exc:
-            log.warning("projector skipped: no plan fits this trial's mesh (%s)", exc)
-            self.projector_skipped = str(exc)
-            return
+        projector = ProjectorSink.from_config(options.config, np.asarray(mesh.vertices), np.asarray(mesh.faces),
+                                              rec=rerun.log.rec if rerun is not None else None,
+                                              png_dir=out / "projector" if options.images else None,
+                                              error_every=2, plan=plan)
         self.all.append(ProjectorEstimates(projector, every=options.every, age_s=0.0))
 
 

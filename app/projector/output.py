@@ -46,8 +46,9 @@ def _import_pyglet():
     try:
         import pyglet
     except ImportError as exc:
-        raise GLError("the projector window needs pyglet: pip install 'pyglet>=2,<3' "
-                      "(or write the images headless with --projector-out DIR)") from exc
+        raise GLError("the projector window needs pyglet: pip install 'pyglet>=2,<3' (or write the images "
+                      "headless: 'window: false' with 'png_dir: DIR' in the session's projector output, or "
+                      "osteonav replay TRIAL --out DIR --projector-images)") from exc
     return pyglet
 
 

@@ -65,12 +65,14 @@ class ProjectorSink:
 
     @classmethod
     def from_config(cls, config_path: "str | Path | None", vertices: np.ndarray, faces: np.ndarray, rec=None,
-                    png_dir=None, ctx=None, error_every: int = 1, derive_plan: bool = False) -> "ProjectorSink":
-        """Build from configs/projector.yaml (None: that default file); ``derive_plan``: see ``build_plan``."""
+                    png_dir=None, ctx=None, error_every: int = 1, derive_plan: bool = False,
+                    plan=None) -> "ProjectorSink":
+        """Build from configs/projector.yaml (None: that default file); ``derive_plan``: see ``build_plan``;
+        ``plan``: one already built from the same file (not built again)."""
         from app.projector.config import DEFAULT_CONFIG, build_plan, load_projector_config
 
         cfg = load_projector_config(config_path or DEFAULT_CONFIG)
-        plan = build_plan(cfg, vertices, faces, derive=derive_plan)
+        plan = plan if plan is not None else build_plan(cfg, vertices, faces, derive=derive_plan)
         view = ProjectorView.create(cfg.projector, vertices, faces, plan, ctx=ctx, line_width=cfg.line_width_m,
                                     color=cfg.color, max_age_s=cfg.max_age_s)
         return cls(view, vertices, faces, rec, png_dir, error_every)

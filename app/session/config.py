@@ -146,6 +146,26 @@ def _plugin(kind: str, value: Any, base: Path, src: str, default: str | None = N
     return PluginSpec(kind, name, params, key)
 
 
+def _simulation_params(spec: PluginSpec, src: str) -> None:
+    """A simulated source's ``scenario``, ``seconds`` and ``seed``, checked before anything is simulated."""
+    from app.sim.scenarios import SCENARIOS
+
+    params, key = spec.params, f"{spec.key}.params"
+    if "scenario" in params:
+        _allowed(f"{key}.scenario", params["scenario"], tuple(SCENARIOS), src)
+    seconds = params.get("seconds")
+    if seconds is not None and (not _is_number(seconds) or not 0 < seconds < float("inf")):
+        raise ConfigError(f"{key}.seconds", f"expected a duration in seconds > 0 (or null: the scenario's), got "
+                          f"{seconds!r}", src)
+    seed = params.get("seed", 0)
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        raise ConfigError(f"{key}.seed", f"expected an integer >= 0, got {seed!r}", src)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def load_session(path: str | Path, overrides: dict | None = None) -> SessionConfig:
     """Read and validate a session file; ``overrides`` (top-level keys) replace the file's values."""
     path = Path(path)
@@ -172,6 +192,9 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
             raise ConfigError(k, f"missing; a session names its {k} plugin ({', '.join(registry.available(k))})", src)
     camera = _plugin("camera", raw["camera"], base, src)
     robot = _plugin("robot", raw["robot"], base, src)
+    for spec in (camera, robot):
+        if spec.name == "simulated":
+            _simulation_params(spec, src)
     robot_block = raw["robot"] or {}
     robot_model = None
     if "model" in robot_block or "dh" in robot_block:
@@ -229,12 +252,12 @@ def _intrinsics(value: Any, base: Path, src: str) -> PinholeCamera | None:
 
 
 def _loop_config(loop_raw: dict, src: str) -> LoopConfig:
-    """``loop``: LoopConfig's fields, each a positive number (or null)."""
+    """``loop``: LoopConfig's fields, each a finite positive number (or null)."""
     loop = LoopConfig()
     for k, v in loop_raw.items():
         _allowed(f"loop.{k}", k, tuple(LoopConfig.__dataclass_fields__), src)
-        if v is not None and (not isinstance(v, (int, float)) or isinstance(v, bool) or v <= 0):
-            raise ConfigError(f"loop.{k}", f"expected a positive number, got {v!r}", src)
+        if v is not None and (not _is_number(v) or not 0 < v < float("inf")):
+            raise ConfigError(f"loop.{k}", f"expected a finite number > 0 (or null), got {v!r}", src)
         setattr(loop, k, v)
     return loop
 

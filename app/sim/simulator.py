@@ -145,6 +145,8 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
     from app.trial.meta import TrialMeta
     from app.trial.writer import TrialWriter
 
+    if seconds is not None and not 0 < seconds < float("inf"):   # 0 never means "the scenario's default"
+        raise ValueError(f"seconds must be a finite duration > 0 (None: the scenario's), got {seconds!r}")
     if isinstance(scenario_name, Scenario):
         scenario = replace(scenario_name, seconds=seconds) if seconds else scenario_name
     else:

@@ -24,7 +24,7 @@ def read_occlusion(trial_dir: Path) -> dict[int, float]:
 
 def viewer_executable() -> Path:
     """The rerun viewer to spawn: on PATH, else beside this Python (a venv's bin). OsteonavError when
-    there is none, or no display to show it on (no DISPLAY / WAYLAND_DISPLAY on Linux), naming --save."""
+    there is none, or no display to show it on (no DISPLAY / WAYLAND_DISPLAY on Linux), naming --rrd."""
     import os
     import shutil
     import sys
@@ -33,12 +33,12 @@ def viewer_executable() -> Path:
 
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise OsteonavError("no display (DISPLAY and WAYLAND_DISPLAY are unset), so the viewer cannot open here; "
-                            "write a recording instead: osteonav view TRIAL --save trial.rrd")
+                            "write a recording instead: osteonav view TRIAL --rrd trial.rrd")
     found = shutil.which("rerun")
     beside = Path(sys.executable).parent / "rerun"
     if found is None and not beside.is_file():
         raise OsteonavError(f"the rerun viewer was not found (not on PATH, not in {beside.parent}); install rerun-sdk "
-                            f"or write a recording instead: osteonav view TRIAL --save trial.rrd")
+                            f"or write a recording instead: osteonav view TRIAL --rrd trial.rrd")
     return Path(found) if found else beside
 
 
@@ -80,7 +80,7 @@ def _spawn(port: int = 9876, start_s: float = VIEWER_START_S) -> RerunLog:
             lines = log_file.read().decode(errors="replace").strip().splitlines() or ["(no message)"]
             reason = lines[-1].rsplit(": ", 1)[-1][:160]   # the viewer's last message, without its source path
             raise OsteonavError(f"the rerun viewer exited at once (code {proc.returncode}: {reason}); "
-                                f"without a usable display write a recording instead: osteonav view TRIAL --save "
+                                f"without a usable display write a recording instead: osteonav view TRIAL --rrd "
                                 f"trial.rrd")
     rec = rr.RecordingStream("osteonav")
     rec.connect_grpc(url, default_blueprint=blueprint())
