@@ -13,6 +13,7 @@ projector), else over ``PLAN_POINTS`` of the mesh's vertices (a conservative bou
 from __future__ import annotations
 
 import logging
+import math
 from collections import defaultdict
 from dataclasses import replace
 
@@ -21,6 +22,7 @@ import trimesh
 
 from app.config import TrackerConfig
 from app.depth_image import downsample_nearest
+from app.filter.motion_gate import MotionGate
 from app.filter.particle_filter import FilterOutput, ParticleFilter
 from app.filter.refine import Refiner, RefineParams
 from app.filter.refine_track import RefinedTrack
@@ -75,6 +77,8 @@ class DepthTracker:
         self.template_points = "mesh_vertices"
         self._T_base_bone_last: np.ndarray | None = None
         self.lifecycle = Lifecycle()
+        st = config.status
+        self.motion_gate = MotionGate(st.motion_window_s, st.uncertain_speed, st.uncertain_angular_speed)
 
     @property
     def recovery(self):
@@ -89,6 +93,7 @@ class DepthTracker:
     def start(self, T_base_bone: np.ndarray) -> None:
         """Spread the particles around a coarse initial pose (the surgeon's alignment)."""
         self.filter.initialise(T_base_bone)
+        self.motion_gate.reset()
         if self.refined_track is not None:
             self.refined_track.seed(T_base_bone, (self.config.init_sigma_p, self.config.init_sigma_r))
         if self.recovery is not None:
@@ -163,7 +168,9 @@ class DepthTracker:
             self._timings["recovery_search"] += seconds
         result = self.filter.step(depth_small, stamp, T_base_camera)
         if self.refined_track is not None:
-            result = self._refine(result, depth_m, T_base_camera)
+            if reinitialised:
+                self.motion_gate.reset()
+            result = self._steady(self._refine(result, depth_m, T_base_camera), stamp)
         if self._started_from_point:                                  # start_from_point: never ok
             result = replace(result, status=min(result.status, TrackingStatus.UNCERTAIN, key=STATUS_RANK.get),
                              reasons=result.reasons + (Reason("point_start", "started from a point: never ok"),))
@@ -210,6 +217,23 @@ class DepthTracker:
         return replace(result, T_base_bone=T_base_bone, status=status, timings=timings, refine_fitness=out.fitness,
                        template_std=out.template_std, refined=out.T_base_bone is not None, competitor=out.competitor,
                        nearby=out.nearby, refine_sharp=out.sharp, reasons=reasons)
+
+    def _steady(self, result: FilterOutput, stamp: float) -> FilterOutput:
+        """The motion test on the tracker's output pose (the refined one; app/filter/motion_gate.py): the
+        bone moving faster than ``status.uncertain_speed`` / ``uncertain_angular_speed``, or less than
+        ``status.settle_s`` since it did or since the start, keeps the status below ok. With the
+        refinement this replaces the filter's gate on its particle mean, which read the cloud's
+        convergence from the coarse start as motion (0.2-0.5 s more not ok on every clean start)."""
+        speed, angular, since = self.motion_gate.update(stamp, result.T_base_bone)
+        st = self.config.status
+        if speed > st.uncertain_speed or angular > st.uncertain_angular_speed:
+            reason = Reason("moving", f"bone moving ({1e3 * speed:.0f} mm/s, {np.degrees(angular):.0f} deg/s)")
+        elif since < st.settle_s:
+            reason = Reason("moving", f"bone settling ({since:.2f} s after moving or the start)")
+        else:
+            return result
+        status = min(result.status, TrackingStatus.UNCERTAIN, key=STATUS_RANK.get)
+        return replace(result, status=status, reasons=result.reasons + (reason,))
 
     def report(self) -> dict:
         """For the summaries: the re-initialisations (count, stamps, kinds, reasons) and which points
@@ -293,10 +317,12 @@ def _filter_config(config: TrackerConfig) -> TrackerConfig:
     residuals (app/tracking/fit_test.py) replaces the filter's inlier fraction for ok
     (status.uncertain_inlier_fraction, 0.7 on our simulator: on a held-out stereo sensor 53-70 % of a
     right pose's pixels were inliers, tissue and silhouette counting against it; issue 32). The lost
-    rule on the inlier fraction stays."""
+    rule on the inlier fraction stays. The motion test moves to the tracker's output pose
+    (:meth:`DepthTracker._steady`)."""
     if not config.refine.enabled:
         return config
-    return replace(config, status=replace(config.status, min_ok_fraction=0.0, uncertain_inlier_fraction=0.0))
+    return replace(config, status=replace(config.status, min_ok_fraction=0.0, uncertain_inlier_fraction=0.0,
+                                          uncertain_speed=math.inf, uncertain_angular_speed=math.inf, settle_s=0.0))
 
 
 def refine_params(config: TrackerConfig) -> RefineParams:
