@@ -1,4 +1,14 @@
-"""Shared fixtures: one EGL context for the run (llvmpipe without a GPU), paths to test data."""
+"""Shared fixtures: one EGL context for the run (llvmpipe without a GPU), paths to test data.
+
+Parallel runs (``make test``: pytest-xdist, ``-n auto --dist loadfile``): each worker is its own
+process with its own EGL context (``gl_ctx``) and its own ``tmp_path_factory`` base, and a test
+file runs whole on one worker, so module-scoped fixtures (simulated trials, replays) are made once.
+Numba's ``cache=True`` kernels (app/render/cpu_raster.py) may be compiled by two workers at once
+into the same ``__pycache__``: numba writes each index and data file to a unique temporary name
+and renames it into place (``numba.core.caching._CacheFile._open_for_write``), so a worker reads a
+whole file or none, and the two write the same contents. Tests use no fixed port (the RTDE server
+takes a free loopback address) and write only under their tmp paths.
+"""
 from __future__ import annotations
 
 from pathlib import Path
