@@ -18,7 +18,7 @@ demo: $(STAMP)
 	$(VENV)/bin/osteonav demo
 
 test: $(STAMP)
-	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 bench: $(STAMP)
 	$(VENV)/bin/osteonav bench --quick
