@@ -2,6 +2,9 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.osteonav-installed
+# test workers (pytest-xdist): one per CPU; each test file runs whole on one worker, so a module's
+# fixtures (simulated trials, replays) are made once
+TEST_WORKERS ?= auto
 
 .PHONY: demo test bench bench-rate bench-marker setup clean
 
@@ -15,7 +18,7 @@ demo: $(STAMP)
 	$(VENV)/bin/osteonav demo
 
 test: $(STAMP)
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 
 bench: $(STAMP)
 	$(VENV)/bin/osteonav bench --quick

@@ -6,10 +6,27 @@ VENV=${1:-.venv}
 PYTHON=${PYTHON:-python3}
 SYS_PKGS="libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri libgbm1 libusb-1.0-0"
 
-have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
+REQUIRED_LIBS="libEGL.so.1 libGL.so.1 libEGL_mesa.so.0 libusb-1.0.so.0"
+
+# The linker cache is read once into a variable and searched there: piping `ldconfig -p` into
+# `grep -q` under pipefail fails at random (grep exits at its first match, ldconfig dies of SIGPIPE
+# and the pipeline reports the library missing). tests/test_setup_script.py runs this many times.
+missing_libs() {
+    local cache lib
+    cache=$(ldconfig -p 2>/dev/null || true)
+    for lib in "$@"; do
+        case "$cache" in
+            *"$lib "*) ;;
+            *) echo "$lib" ;;
+        esac
+    done
+}
+
+# sourced (tests/test_setup_script.py): the functions only
+if [ "${BASH_SOURCE[0]}" != "$0" ]; then return 0; fi
 missing=0
-for lib in libEGL.so.1 libGL.so.1 libEGL_mesa.so.0 libusb-1.0.so.0; do
-    have_lib "$lib" || { echo "setup: $lib not found"; missing=1; }
+for lib in $(missing_libs $REQUIRED_LIBS); do
+    echo "setup: $lib not found"; missing=1
 done
 if [ "$missing" = 1 ]; then
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then

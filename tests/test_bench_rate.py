@@ -35,8 +35,13 @@ def test_the_table_shows_the_refine_column_only_when_a_row_refines():
     assert gl_line.split()[-2:] == ["nan", "-"]
 
 
-def test_the_refinement_cpu_wrapper_passes_calls_through_and_adds_up_their_cpu_time():
-    import numpy as np
+def test_the_refinement_cpu_wrapper_passes_calls_through_and_adds_up_only_their_cpu_time(monkeypatch):
+    """On a manual process clock: each refinement call costs 3 ms, the work between calls 50 ms; the
+    total is the calls' 6 ms (a failing call's time included), never the work around them."""
+    import types
+
+    cpu = types.SimpleNamespace(t=10.0)
+    monkeypatch.setattr(rate, "time", types.SimpleNamespace(process_time=lambda: cpu.t))
 
     class Track:
         def __init__(self):
@@ -44,7 +49,9 @@ def test_the_refinement_cpu_wrapper_passes_calls_through_and_adds_up_their_cpu_t
 
         def update(self, depth, T_base_camera, T_guess):
             self.calls.append((depth, T_base_camera, T_guess))
-            np.linalg.svd(np.random.default_rng(0).normal(size=(200, 200)))   # some CPU work
+            cpu.t += 0.003
+            if depth is None:
+                raise ValueError("no depth")
             return "fit"
 
     class Tracker:
@@ -52,8 +59,13 @@ def test_the_refinement_cpu_wrapper_passes_calls_through_and_adds_up_their_cpu_t
 
     tracker = Tracker()
     total = rate._time_refinement_cpu(tracker)
+    assert total == [0.0]
+    cpu.t += 0.05                                        # the rest of the frame
     assert tracker.refined_track.update(1, 2, T_guess=3) == "fit"
-    assert tracker.refined_track.calls == [(1, 2, 3)]
-    assert total[0] > 0.0
+    cpu.t += 0.05
+    with pytest.raises(ValueError):
+        tracker.refined_track.update(None, 2, T_guess=3)
+    assert tracker.refined_track.calls == [(1, 2, 3), (None, 2, 3)]
+    assert total[0] == pytest.approx(0.006, abs=1e-12)
     Tracker.refined_track = None
     assert rate._time_refinement_cpu(Tracker()) == [0.0]

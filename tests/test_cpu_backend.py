@@ -124,13 +124,48 @@ def test_without_a_writable_cache_numba_compiles_uncached(monkeypatch, caplog):
     assert "NUMBA_CACHE_DIR" in caplog.text
 
 
-@pytest.mark.parametrize("software, expected", [(True, "cpu"), (False, "gl")])
-def test_auto_picks_cpu_on_a_software_renderer_and_gl_on_a_gpu(monkeypatch, software, expected):
+# GL_RENDERER strings as drivers report them: Mesa's CPU rasterisers, and GPUs (AMD's names LLVM,
+# its shader compiler, which is not llvmpipe)
+RENDERERS = [
+    ("llvmpipe (LLVM 15.0.6, 256 bits)", True),
+    ("softpipe", True),
+    ("Software Rasterizer", True),
+    ("Mesa X11 swrast", True),
+    ("NVIDIA H100 80GB HBM3/PCIe/SSE2", False),
+    ("AMD Radeon RX 7900 XTX (radeonsi, navi31, LLVM 15.0.7, DRM 3.54, 6.5.0-14-generic)", False),
+    ("Mesa Intel(R) UHD Graphics 620 (KBL GT2)", False),
+]
+
+
+@pytest.mark.parametrize("renderer, software", RENDERERS)
+def test_the_software_renderer_detection_reads_the_renderer_string(renderer, software):
+    from types import SimpleNamespace
+
     from app.render import context
 
-    monkeypatch.setattr(context, "is_software", lambda ctx: software)
+    assert context.is_software(SimpleNamespace(info={"GL_RENDERER": renderer})) is software
+
+
+def _gpu_device_nodes() -> list:
+    from pathlib import Path
+
+    return sorted(Path("/dev").glob("nvidia[0-9]*")) + sorted(Path("/dev/dri").glob("renderD*"))
+
+
+def test_auto_picks_the_backend_from_this_machines_real_context(gl_ctx):
+    """The real detection on the real context: without any GPU device node (CI, the development
+    machines) the context is Mesa's CPU rasteriser and 'auto' picks cpu, naming the renderer; on a
+    machine with a GPU the choice follows what its context reports."""
+    from app.render import context
+
+    renderer = gl_ctx.info["GL_RENDERER"]
+    if not _gpu_device_nodes():
+        assert context.is_software(gl_ctx), renderer
     name, why = backends.resolve("auto")
-    assert name == expected and why.startswith("auto")
+    if context.is_software(gl_ctx):
+        assert name == "cpu" and why.startswith("auto: GL is ") and renderer in why
+    else:
+        assert (name, why) == ("gl", "auto: GL runs on a GPU")
     assert backends.resolve("cpu") == ("cpu", "configured") and backends.resolve("gl") == ("gl", "configured")
     with pytest.raises(ValueError, match="auto, gl, cpu"):
         backends.resolve("vulkan")

@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,7 +32,6 @@ W, H = 64, 48
 CAMERA = PinholeCamera(np.array([[60.0, 0, 31.5], [0, 60.0, 23.5], [0, 0, 1]]), W, H)
 HOME_Q = [0.0, -1.6, 1.6, -1.57, -1.57, 0.0]
 FPS = 30.0
-LATE_S = 1.0   # how late a loaded machine may log a fault: a safety margin, no correct run needs it
 
 
 @dataclass
@@ -267,17 +267,22 @@ def test_loop_survives_every_fault_and_recovers(tmp_path, fake_plugins):
     t0 = camera.clock.t0
     kinds = {(e.source, e.kind): e.stamp - t0 for e in result.events}
 
-    # each fault is logged once, never before its scripted time (the sources start right after
-    # t0) and in the scripted order; a loaded machine may log it late, so the upper bound is the
-    # next fault's time plus a generous LATE_S
+    # each fault is logged exactly once, in the scripted order, and never before its scripted time
+    # (the sources sleep until it: a lower bound however loaded the machine). No upper bound in wall
+    # time: how late a loaded machine logs it is not the loop's behaviour; the order is (each fault
+    # logged before the next one's, and the recovery events between them)
     expected = [(("camera", "corrupt_frame"), 0.5), (("camera", "wrong_size_frame"), 0.6), (("camera", "clock"), 0.7),
                 (("session", "camera_stall"), 0.9 + 0.3), (("session", "camera_recovered"), 1.6),
-                (("camera.scripted", "disconnected"), 1.8), (("camera.scripted", "clock_jump"), 2.1),
-                (("robot", "nan_joints"), 2.6), (("robot.scripted", "disconnected"), 3.0)]
+                (("camera.scripted", "disconnected"), 1.8), (("camera.scripted", "connected"), 2.1),
+                (("camera.scripted", "clock_jump"), 2.1),
+                (("robot", "nan_joints"), 2.6), (("robot.scripted", "disconnected"), 3.0),
+                (("robot.scripted", "connected"), 4.3)]
+    counts = Counter((e.source, e.kind) for e in result.events)
+    assert {key: counts[key] for key, _ in expected} == {key: 1 for key, _ in expected}
     logged = [kinds[key] for key, _ in expected]
     assert logged == sorted(logged)
-    for (key, t_fault), t_next in zip(expected, [t for _, t in expected[1:]] + [4.3]):
-        assert t_fault - 0.05 < kinds[key] < t_next + LATE_S, key
+    for key, t_fault in expected:
+        assert kinds[key] > t_fault - 0.05, key
     assert ("session", "no_camera_pose") in kinds
     assert (tmp_path / "out" / "events.csv").read_text().count("\n") >= 10
 

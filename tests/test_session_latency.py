@@ -14,30 +14,14 @@ import trimesh
 
 from app import plugins_registry as registry
 from app.geometry.camera import PinholeCamera
-from app.interfaces import DepthFrame, JointSamples, SessionClock
+from app.interfaces import DepthFrame, JointSamples
 from app.session import parse_session, run_session
 from plugins.trial_player import RecordedCamera
+from tests.clocks import ManualClock
 
 W, H = 16, 12
 CAMERA = PinholeCamera(np.array([[15.0, 0, 7.5], [0, 15.0, 5.5], [0, 0, 1]]), W, H)
 HOME_Q = [0.0, -1.6, 1.6, -1.57, -1.57, 0.0]
-
-
-class ManualClock(SessionClock):
-    """A session clock that advances only when told to; sleeping jumps to the wake-up time."""
-
-    def __init__(self, start: float = 1000.0, lead_in_s: float = 0.2):
-        self.t = start
-        super().__init__(lead_in_s=lead_in_s, now=lambda: self.t)
-
-    def advance(self, dt: float) -> None:
-        self.t += dt
-
-    def wait_until(self, t: float, stop: threading.Event) -> bool:
-        if stop.is_set():
-            return False
-        self.t = max(self.t, t)
-        return True
 
 
 # ------------------------------------------------------------------------------------------------

@@ -170,27 +170,59 @@ def test_simulated_images_look_like_surgery(image_trial):
     assert f_off.color is None and not open_trial(off).meta.streams.infrared.emitter
 
 
+def _rerun_rows(rrd) -> dict[tuple[str, str], int]:
+    """{(entity, archetype): rows} of a .rrd, from ``rerun rrd print`` (its chunk summary lines)."""
+    import re
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    cli = Path(shutil.which("rerun") or Path(sys.executable).parent / "rerun")
+    if not cli.exists():
+        pytest.skip("rerun CLI not installed")
+    text = subprocess.run([str(cli), "rrd", "print", str(rrd)], capture_output=True, text=True, timeout=120).stdout
+    rows: dict[tuple[str, str], int] = {}
+    for n, entity, columns in re.findall(r"with (\d+) rows .* - (/\S+) - data columns: \[([^\]]*)\]", text):
+        archetype = columns.split(":")[0]
+        rows[entity, archetype] = rows.get((entity, archetype), 0) + int(n)
+    return rows
+
+
 def test_image_trial_is_accepted_by_view_and_replay(image_trial, tmp_path):
-    from app.cli import main
-
-    on, _ = image_trial
-    assert main(["view", str(on), "--save", str(tmp_path / "v.rrd")]) == 0
-    assert (tmp_path / "v.rrd").stat().st_size > 0
-    assert main(["replay", str(on), "--out", str(tmp_path / "r"), "--no-rrd"]) == 0
-
-
-def test_simulated_session_with_images_records_a_trial_that_view_and_replay_accept(image_trial, tmp_path):
-    """``osteonav record`` of ``camera: simulated`` with streams depth,ir,color: the recorder writes format 1.1
-    with the frames' own images (bit-exact against the played trial)."""
-    import yaml
-
+    """``view`` logs every frame's depth, infrared and colour image; ``replay`` tracks every frame."""
     from app.cli import main
     from app.trial.reader import open_trial
 
     on, _ = image_trial
+    n = len(open_trial(on))
+    assert n == 5                                              # 0.06 s at 90 Hz: 5.4 frame periods
+    assert main(["view", str(on), "--save", str(tmp_path / "v.rrd")]) == 0
+    rows = _rerun_rows(tmp_path / "v.rrd")
+    assert rows[("/world/camera/image/depth", "DepthImage")] == n
+    assert rows[("/world/camera/image/infrared", "EncodedImage")] == n
+    assert rows[("/world/camera/color/image", "EncodedImage")] == n
+    assert main(["replay", str(on), "--out", str(tmp_path / "r"), "--no-rrd"]) == 0
+    assert (tmp_path / "r" / "status.csv").read_text().count("\n") == n + 1
+    assert (tmp_path / "r" / "estimate.txt").read_text().count("\n") == n + 1
+
+
+def test_simulated_session_with_images_records_a_trial_that_view_and_replay_accept(image_trial, tmp_path, monkeypatch):
+    """``osteonav record`` of ``camera: simulated`` with streams depth,ir,color: the recorder writes format 1.1
+    with every frame's own images (bit-exact against the played trial). On the lockstep clock
+    (tests/clocks.py) the camera never falls behind its schedule, so it delivers every frame on any
+    machine (in real time a loaded machine skips to the newest due frame, issue 15 item 11)."""
+    import yaml
+
+    from app.cli import main
+    from app.trial.reader import open_trial
+    from tests.clocks import lockstep_sessions
+
+    clocks = lockstep_sessions(monkeypatch)
+    on, _ = image_trial
     params = {"scenario": "static_occluded", "seconds": 0.06, "seed": 4, "trial_dir": str(on), "streams": "depth,ir,color"}
     session = {"camera": {"plugin": "simulated", "params": params}, "robot": {"plugin": "simulated", "params": params},
-               "tracker": False}
+               "tracker": False, "loop": {"robot_wait_s": 30.0}}
     path = tmp_path / "session.yaml"
     path.write_text(yaml.safe_dump(session))
     rec = tmp_path / "rec"
@@ -199,14 +231,12 @@ def test_simulated_session_with_images_records_a_trial_that_view_and_replay_acce
     assert yaml.safe_load((rec / "trial.yaml").read_text())["format"] == "osteonav-trial/1.1"
     assert recorded.meta.streams.color.camera == played.meta.streams.color.camera
     np.testing.assert_allclose(recorded.meta.streams.color.T_depth_color, played.meta.streams.color.T_depth_color)
-    # The simulated camera, like a real one, drops the frames it could not deliver on time (it skips to
-    # the newest due frame: issue 15 item 11), so a loaded machine records fewer than all 5; every frame
-    # it recorded must be one of the played frames with its own images, bit for bit.
-    assert 2 <= len(recorded) <= len(played)
-    assert set(recorded.frame_ids) <= set(played.frame_ids)
-    by_id = {f.frame_id: f for f in played.iter_frames()}
-    for f in recorded.iter_frames():
-        np.testing.assert_array_equal(f.infrared, by_id[f.frame_id].infrared)
-        np.testing.assert_array_equal(f.color, by_id[f.frame_id].color)
+    # every played frame, in order, with its own depth, infrared and colour images, bit for bit
+    assert clocks[0].frames_pushed == len(played) == 5
+    assert list(recorded.frame_ids) == list(played.frame_ids)
+    for f, g in zip(recorded.iter_frames(), played.iter_frames()):
+        np.testing.assert_array_equal(f.depth_m, g.depth_m)
+        np.testing.assert_array_equal(f.infrared, g.infrared)
+        np.testing.assert_array_equal(f.color, g.color)
     assert main(["view", str(rec), "--save", str(tmp_path / "rec.rrd")]) == 0
     assert main(["replay", str(rec), "--out", str(tmp_path / "r"), "--no-rrd"]) == 0

@@ -100,12 +100,20 @@ def test_hand_covers_the_requested_fraction_of_the_bone(tmp_path, fraction):
 
 
 def test_dropouts_leave_300_ms_gaps(tmp_path):
+    """The dropouts scenario's gaps are 300 ms; the simulator leaves such a gap in the frames. Its
+    first gap moved from 2.0 s to 0.2 s, so 0.7 s of frames (63, not 225) hold it."""
+    from dataclasses import replace
+
     from app.trial.reader import open_trial
 
+    scenario = get_scenario("dropouts")
+    assert [d for _, d in scenario.gaps] == [0.3, 0.3, 0.3]
     out = tmp_path / "drop"
-    simulate(out, scenario_name="dropouts", seconds=2.5, seed=2)
-    gaps = np.diff(open_trial(out).stamps)
+    simulate(out, scenario_name=replace(scenario, seconds=0.7, gaps=((0.2, 0.3),)), seed=2)
+    stamps = open_trial(out).stamps
+    gaps = np.diff(stamps)
     assert gaps.max() == pytest.approx(0.3 + 1 / 90, abs=1 / 90 + 1e-6)
+    assert stamps[int(np.argmax(gaps))] - stamps[0] == pytest.approx(0.2, abs=1 / 90 + 1e-6)   # where it was put
 
 
 def test_unknown_scenario_lists_the_valid_ones():
