@@ -154,3 +154,26 @@ def test_live_session_never_reports_ok_while_more_than_5_mm_off(tmp_path):
     assert len(errors_mm) == processed >= 1
     dangerous = (statuses == "ok") & (errors_mm > 5.0)
     assert not dangerous.any(), f"{dangerous.sum()} of {processed} frames ok while > 5 mm off: {errors_mm[dangerous].round(2)}"
+
+
+def test_a_sessions_estimates_do_not_depend_on_its_outputs(tmp_path, sim_trial, monkeypatch):
+    """Issue 34: the tracker bounds the plan's template points whether or not the session has a
+    projector output (app/pipeline/tracker.py ``use_projector_plan``: else the default projector
+    configuration's plan, as replay does). The same session with a headless projector output and with
+    no output at all writes byte-identical estimate.txt and status.csv (lockstep clock: every frame)."""
+    runs = {}
+    for name, outputs in (("projector", [{"plugin": "projector", "params": {"png_dir": str(tmp_path / "png"),
+                                                                           "every": 50, "rerun": False}}]),
+                          ("none", [])):
+        monkeypatch.undo()                       # one lockstep clock per session (its hooks wrap the loop)
+        lockstep_sessions(monkeypatch, lead_s=0.005)
+        session = {"camera": {"plugin": "simulated", "params": {**SIM, "trial_dir": str(sim_trial)}},
+                   "robot": {"plugin": "simulated", "params": {**SIM, "trial_dir": str(sim_trial)}},
+                   "outputs": outputs, "loop": {"robot_wait_s": 30.0}}
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(yaml.safe_dump(session))
+        out = tmp_path / name
+        assert main(["track", "--config", str(path), "--out", str(out)]) == 0
+        runs[name] = [(out / f).read_text() for f in ("estimate.txt", "status.csv")]
+        assert runs[name][0].count("\n") == 135     # the header and each of the trial's 134 frames
+    assert runs["projector"] == runs["none"]

@@ -122,6 +122,7 @@ class RefineConfig:
     outline_ring: bool = False
     tissue_border: bool = True
     behind_frames: int = 30
+    behind_z: float = 3.0
     nearby_every: int = 10
     nearby_starts: int = 4
     nearby_sigma_p: float = 0.002

@@ -304,10 +304,18 @@ def use_plan(tracker, plan) -> None:
         inner.use_plan_points(plan.points())
 
 
-def use_projector_plan(tracker, sinks) -> None:
-    """A session: the plan of the first projector output (plugins/projector_output.py's ``sink.plan``)."""
+def use_projector_plan(tracker, sinks, mesh=None) -> None:
+    """A session: the plan of the first projector output (plugins/projector_output.py's ``sink.plan``),
+    else, given the ``mesh``, the default projector configuration's plan on it
+    (app/pipeline/replay.py ``known_plan``), as a replay does: the tracking never depends on which
+    outputs a session has (issue 34)."""
     plans = (getattr(getattr(s, "sink", None), "plan", None) for s in sinks)
-    use_plan(tracker, next((p for p in plans if p is not None), None))
+    plan = next((p for p in plans if p is not None), None)
+    if plan is None and mesh is not None:
+        from app.pipeline.replay import known_plan
+
+        plan, _ = known_plan(None, mesh)
+    use_plan(tracker, plan)
 
 
 def _filter_config(config: TrackerConfig) -> TrackerConfig:
@@ -331,7 +339,7 @@ def refine_params(config: TrackerConfig) -> RefineParams:
     c, lk = config.refine, config.likelihood
     return RefineParams(stride=c.stride, iterations=c.iterations, samples=c.samples, k=lk.k,
                         sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin, outline_ring=c.outline_ring,
-                        tissue_border=c.tissue_border)
+                        tissue_border=c.tissue_border, behind_z=c.behind_z)
 
 
 def _refined_track(config: TrackerConfig, mesh: trimesh.Trimesh, camera: PinholeCamera) -> RefinedTrack | None:

@@ -109,7 +109,7 @@ class LiveLoop:
         if config.tracker is not None:
             self.tracker = self.core.tracker = self._create_tracker(mesh)
         self._open_sinks()
-        use_projector_plan(self.tracker, self.sinks)   # the status bounds the plan's template points
+        use_projector_plan(self.tracker, self.sinks, mesh)   # the status bounds the plan's template points
         if self.out is not None and self.tracker is not None:
             self.estimate_files = EstimateFiles(self.out)
         self.core.sinks = [self.estimate_files, *self.sinks] if self.estimate_files is not None else list(self.sinks)
