@@ -1,5 +1,12 @@
 """Tracking status ok / uncertain / lost, from the filter's own evidence.
 
+Since issue 32 every rule that fires is returned as a :class:`Reason` (its text and a code of
+app/tracking/reasons.py), written per frame to status.csv and rerun, and counted in the summaries.
+With the refinement (the default) the filter's own shares fitted to one simulator are off
+(``uncertain_inlier_fraction``, ``min_ok_fraction``: app/pipeline/tracker.py ``_filter_config``),
+the motion rule reads the tracker's output pose (``DepthTracker._steady``), and the refinement's
+tests below measure the noise in the image they judge (app/tracking/fit_test.py).
+
 Import as ``from app.filter import status``. The projector must never show a confident template on
 a lost track (DESIGN.md "Output"), so the rules err towards caution. The status is per frame (it
 does not latch): a track that regains evidence returns to ok.
@@ -105,11 +112,14 @@ then lowered to UNCERTAIN, never raised, when
   than ``max_behind_excess`` = 0.2 % of them. Tissue, blood and instruments only ever lie in front
   of the bone, so a right pose leaves only the noise's tail behind it; a fit pulled part-way onto
   residual tissue, or slid along the crest under a hand, passes through the seen surface elsewhere.
-  The noise's share is not a fixed number: σ_n is estimated from the depth image itself (the
-  second difference along the rows of the silhouette's pixels, app/filter/behind_noise.py ``image_noise``: 0.61 mm at
-  0.42 m and 0.97 mm at 0.65 m on the simulated D415, whose model says 0.57 / 0.93 mm), each
-  measurement lies behind with probability e_i = Φ(−σ_i / (σ_n |n_i·r̂_i|)), and the bound is the
-  Poisson-binomial mean plus 3 standard deviations over the M measurements (behind_noise.py
+  The noise's share is not a fixed number: σ_n is estimated on the fitted surface itself (the
+  robust scale of the residuals' rough part behind the model, app/tracking/fit_test.py; issue 32:
+  the former estimate, the second difference along the image's rows, halved the noise of a stereo
+  camera whose noise is correlated over its matching window, and the rule then blocked right poses
+  on 99.8 % of the frames), each measurement lies behind with probability
+  e_i = Φ(−σ_i / (σ_n |n_i·r̂_i|)), and the bound is the Poisson-binomial mean plus
+  ``refine.behind_z`` = 3 standard deviations over the M measurements, the variance multiplied by
+  the residuals' spatial correlation factor f = n / n_eff (fit_test.py; behind_noise.py
   ``behind_bound``; app/filter/refine_track.py ``behind_excess``; the fixed 2 % when fewer than 30
   pixels estimate the noise). The 0.2 % margin covers what the noise model leaves out (the mesh's
   discretisation, the association): a right pose's share exceeds the bound by up to ~0.3 points.
