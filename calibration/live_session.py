@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from app.errors import ConfigError
+from app.outputs import wrote
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +36,7 @@ class CaptureRerun:
         self.rr = rr
         self.rec = rr.RecordingStream("osteonav-capture")
         if path:
+            wrote(path)
             self.rec.save(str(path))
         else:
             self.rec.spawn()

@@ -16,6 +16,7 @@ i.e. ``T_parent_child`` as it is.
 from __future__ import annotations
 
 from pathlib import Path
+from app.outputs import wrote
 
 import numpy as np
 
@@ -32,6 +33,7 @@ def log_hand_eye(path: "str | Path", result, K: np.ndarray, width: int, height: 
     from calibration.board import parse_board_spec
 
     rec = rr.RecordingStream("osteonav-calibration")
+    wrote(path)
     rec.save(str(path))
     spec = parse_board_spec(board_spec)
     w, h = spec.size

@@ -1,7 +1,7 @@
 """``osteonav bench``: every configuration on every trial, one table (see :mod:`app.bench.bench`)."""
 from __future__ import annotations
 
-from app.commands.outdir import PLOTS, add_overwrite_argument, prepare_dir, results_file
+from app.commands.outdir import add_overwrite_argument, prepare_dir, results_file
 
 DEFAULT_JSON = "recordings/bench/bench.json"
 
@@ -82,9 +82,9 @@ def run(args) -> int:
     args.json = str(results_file(args.json, DEFAULT_JSON, args.overwrite))
     configs = bench.resolve_configs(args.configs or (bench.QUICK_CONFIGS if args.quick else None))
     if args.plots:
-        prepare_dir(args.plots, args.overwrite, PLOTS, "--plots")
+        prepare_dir(args.plots, args.overwrite, "--plots")
     if args.out:
-        prepare_dir(args.out, args.overwrite, tuple(c.name for c in configs), "--out")
+        prepare_dir(args.out, args.overwrite, "--out")
     seconds = args.seconds or (bench.quick_seconds() if args.quick else None)
     if args.trials:
         trials = bench.recorded_trials(args.trials, seconds)

@@ -8,6 +8,8 @@ and at the best other pose (``--out``/diagnosis.rrd).
 """
 from __future__ import annotations
 
+from app.commands.outdir import add_overwrite_argument, prepare_dir
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("diagnose-likelihood", help="log-likelihood and refinement fit at the ground truth "
@@ -20,6 +22,7 @@ def register(subparsers) -> None:
     p.add_argument("--search-deg", type=float, default=40.0, help="rotation range of the search (deg)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="folder for diagnosis.md / .json / .rrd")
+    add_overwrite_argument(p, "--out's diagnosis")
     p.set_defaults(func=run)
 
 
@@ -31,6 +34,7 @@ def run(args) -> int:
     import numpy as np
 
     from app.bench import ambiguity
+    from app.outputs import wrote
     from app.config import load_config
     from app.errors import OsteonavError
     from app.trial.reader import open_trial
@@ -45,6 +49,8 @@ def run(args) -> int:
     bad = [f for f in frames if not 0 <= f < n]
     if bad:
         raise OsteonavError(f"--frames {bad}: the trial has frames 0..{n - 1}")
+    if args.out:
+        prepare_dir(args.out, args.overwrite, inputs=[args.trial])
     backend, refiner, camera_small = _scorers(config, reader)
     rec = _recording(Path(args.out) / "diagnosis.rrd") if args.out else None
     rng = np.random.default_rng(args.seed)
@@ -69,9 +75,9 @@ def run(args) -> int:
     text = ambiguity.table(rows)
     print(text)
     if args.out:
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "diagnosis.md").write_text(text + "\n")
-        (Path(args.out) / "diagnosis.json").write_text(json.dumps([asdict(r) for r in rows], indent=1))
+        for name, content in (("diagnosis.md", text + "\n"), ("diagnosis.json", json.dumps([asdict(r) for r in rows], indent=1))):
+            wrote(Path(args.out) / name)
+            (Path(args.out) / name).write_text(content)
         print(f"\nwrote {args.out}/diagnosis.md, .json, .rrd")
     return 0
 
@@ -98,7 +104,9 @@ def _scorers(config, reader):
 def _recording(path):
     import rerun as rr
 
-    path.parent.mkdir(parents=True, exist_ok=True)
+    from app.outputs import wrote
+
+    wrote(path)
     rec = rr.RecordingStream("osteonav-diagnose-likelihood")
     rec.save(str(path))
     return rec

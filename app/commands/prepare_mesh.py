@@ -48,7 +48,7 @@ def run(args) -> int:
         mesh.apply_scale(args.scale)
     check_units(mesh, args.input)
     out = prepare_mesh(mesh, max_triangles=args.triangles, center=not args.no_center)
-    prepare_file(args.out, args.overwrite)
+    prepare_file(args.out, args.overwrite, inputs=[args.input])
     out.export(args.out)
     offset = np.asarray(out.metadata["centering_offset"])
     fmt = lambda v: "[" + ", ".join(f"{x:.6f}" for x in v) + "]"  # noqa: E731

@@ -6,7 +6,7 @@ the plan), or the projector is skipped when nothing fits: a valid trial always r
 """
 from __future__ import annotations
 
-from app.commands.outdir import REPLAY, add_overwrite_argument, prepare_dir
+from app.commands.outdir import add_overwrite_argument, prepare_dir
 
 
 def register(subparsers) -> None:
@@ -34,7 +34,7 @@ def run(args) -> int:
 
     config = load_config(args.config)
     open_trial(args.trial).load_mesh()   # a broken trial or mesh is refused before OUT is touched
-    prepare_dir(args.out, args.overwrite, REPLAY)
+    prepare_dir(args.out, args.overwrite, inputs=[args.trial])
     bar = tqdm(desc="replay", unit="frame")
 
     def progress(done: int, total: int) -> None:

@@ -6,7 +6,7 @@ Ctrl-C ends it cleanly: sources stop, the recording and logs are flushed, and th
 """
 from __future__ import annotations
 
-from app.commands.outdir import SESSION, TRIAL, add_overwrite_argument, prepare_dir, prepare_file
+from app.commands.outdir import add_overwrite_argument, prepare_dir, prepare_file
 
 
 def register(subparsers) -> None:
@@ -43,7 +43,7 @@ def run(args) -> int:
     if args.duration:
         config.loop.duration_s = args.duration
     if getattr(args, "soak", False):
-        config.outputs, config.record = [], None
+        config.outputs, config.record, config.out = [], None, None
         for spec in (config.camera, config.robot):
             if spec.name in ("simulated", "recorded"):
                 spec.params["loop"] = True
@@ -56,21 +56,18 @@ def run(args) -> int:
 
 def prepare_session_dirs(config, overwrite: bool) -> None:
     """The overwrite policy (app/commands/outdir.py) for the session's out and record directories
-    and its rerun outputs' files (a record folder inside out is out's to clear)."""
-    from pathlib import Path
-
+    and its rerun outputs' files; a record folder inside out is listed in out's manifest as a
+    folder of its own. The recorded sources' trials are inputs, never outputs."""
+    inputs = [spec.params.get("trial") for spec in (config.camera, config.robot)
+              if isinstance(spec.params.get("trial"), str)]
     if config.out is not None:
-        owned = SESSION
-        if config.record is not None and Path(config.record).resolve().is_relative_to(Path(config.out).resolve()):
-            inner = Path(config.record).resolve().relative_to(Path(config.out).resolve()).parts
-            owned = SESSION + inner[:1]
-        prepare_dir(config.out, overwrite, owned, "out")
+        prepare_dir(config.out, overwrite, "out", inputs)
     if config.record is not None:
-        prepare_dir(config.record, overwrite, TRIAL, "record")
+        prepare_dir(config.record, overwrite, "record", inputs)
     for i, spec in enumerate(config.outputs):
         path = spec.params.get("path") if spec.name == "rerun" else None
         if isinstance(path, str):
-            prepare_file(path, overwrite, f"outputs[{i}].params.path")
+            prepare_file(path, overwrite, f"outputs[{i}].params.path", inputs)
 
 
 class naming_the_session_file:

@@ -41,6 +41,7 @@ from app import metrics
 from app.config import TrackerConfig, load_config
 from app.errors import MeshError
 from app.interfaces import DepthFrame
+from app.outputs import wrote
 from app.pipeline.engine_tracker import EngineTracker
 from app.pipeline.frame_core import FrameCore
 from app.pipeline.sinks import EstimateFiles, GroundTruthScoring, ProjectorEstimates, RerunSink, Trajectory
@@ -100,6 +101,7 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
     if "ProjectorEstimates" in reports:
         summary["projector"] = reports["ProjectorEstimates"]
     if out is not None:
+        wrote(out / "summary.json")
         (out / "summary.json").write_text(json.dumps(summary, indent=2))
     t = sinks.trajectory
     return ReplayResult(summary, np.array(t.stamps), np.array(t.poses), t.statuses, sinks.scoring.errors())
@@ -175,6 +177,7 @@ class ReplaySinks:
         if rrd:
             from app.viz.rerun_log import RerunLog
 
+            wrote(out / "log.rrd")
             log_ = RerunLog.to_file(out / "log.rrd")
             log_.log_static_scene(reader.meta.camera, np.asarray(mesh.vertices), np.asarray(mesh.faces),
                                   with_groundtruth=reader.groundtruth is not None)
