@@ -51,7 +51,33 @@ def run(args) -> int:
     with naming_the_session_file(args.config):
         result = run_session(config, progress=_progress_printer())
     print_summary(result.summary)
-    return 0
+    return recording_exit_code(result.summary)
+
+
+def recording_problem(summary: dict) -> str | None:
+    """Why the session's recording is not complete (plugins/recorder.py), or None (complete, or none)."""
+    report = (summary.get("outputs") or {}).get("Recorder")
+    if report is None:
+        return None
+    if "dropped" not in report:    # closing the recorder failed
+        return f"the recorder failed: {report.get('error')}"
+    if report.get("complete", True):
+        return None
+    d = report["dropped"]
+    why = report.get("error") or "the disk fell behind"
+    return (f"the recording in {report['dir']} is incomplete: {d['queue']} frames dropped in the recorder queue and "
+            f"{d['disk']} not written ({why}); it keeps its .recording-in-progress marker")
+
+
+def recording_exit_code(summary: dict) -> int:
+    """0, or 1 with a line on stderr when the session's recording lost frames or failed."""
+    import sys
+
+    problem = recording_problem(summary)
+    if problem is None:
+        return 0
+    print(f"error: {problem}", file=sys.stderr)
+    return 1
 
 
 def prepare_session_dirs(config, overwrite: bool) -> None:
@@ -137,5 +163,11 @@ def print_summary(summary: dict, tracked: bool = True) -> None:
     if rate.get("all"):
         print(f"tracked frames/s: {rate['all']:.1f} overall, {rate['first']:.1f} in the first and {rate['last']:.1f} "
               f"in the last {summary.get('latency_window_s', 10):.0f} s")
+    recorder = (summary.get("outputs") or {}).get("Recorder") or {}
+    if isinstance(recorder.get("dropped"), dict):
+        d = recorder["dropped"]
+        print(f"recorded: {recorder.get('frames', 0)} frames; dropped {d['camera']} by the camera (gaps in its frame "
+              f"ids), {d['queue']} in the recorder queue (the disk fell behind), {d['disk']} not written"
+              f"{' (' + recorder['error'] + ')' if recorder.get('error') else ''}")
     for name, report in (summary.get("outputs") or {}).items():
         print(f"{name}: {report}")

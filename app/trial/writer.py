@@ -256,12 +256,23 @@ class TrialWriter:
             if f is not None and not f.closed:
                 f.close()
 
-    def close(self) -> None:
-        """Flush and close the files, then remove the marker: the trial is complete."""
+    def note(self, key: str, value) -> None:
+        """Set trial.yaml's top-level ``key`` (one the format does not define: ``TrialMeta.extra``) and
+        rewrite trial.yaml atomically; an OSError (a full disk) leaves the earlier trial.yaml."""
+        self.meta.extra[key] = value
+        dump_meta(self.meta, self.path / META_FILE)
+
+    def close(self, complete: bool = True) -> None:
+        """Flush and close the files, then remove the marker: the trial is complete. With
+        ``complete=False`` (frames were lost) the marker stays: readers see an interrupted trial."""
         if self._closed:
             return
         self._closed = True
         self._close_files()
+        if not complete:
+            log.warning("%s: %d frames written, frames were lost: left marked as interrupted", self.path,
+                        len(self._frame_stamps))
+            return
         if self._gt_file is not None and self._n_groundtruth != len(self._frame_stamps):
             log.warning("%s: %d ground-truth poses for %d frames; readers will reject groundtruth.txt",
                         self.path, self._n_groundtruth, len(self._frame_stamps))
