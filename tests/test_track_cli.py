@@ -33,7 +33,8 @@ def _check_outputs(out: Path, rec: Path, tmp_path: Path, sim_trial: Path | None 
     # statistic of the latency is at least the tracker's own
     assert lat["median"] >= stages["tracker"]["median"] and lat["max"] >= stages["tracker"]["max"]
     assert (out / "estimate.txt").read_text().count("\n") == processed + 1
-    assert summary["outputs"]["Recorder"]["dropped"] == 0
+    recorder = summary["outputs"]["Recorder"]
+    assert recorder["dropped"]["queue"] == recorder["dropped"]["disk"] == 0 and recorder["complete"]
     assert Path(summary["outputs"]["RerunOutput"]["path"]).stat().st_size > 0
     if sim_trial is not None:
         _check_tracking_error(out, rec, sim_trial, processed)
