@@ -242,3 +242,76 @@ def test_record_onto_a_full_disk_exits_non_zero_and_the_retry_can_overwrite_it(t
     monkeypatch.undo()
     assert main(["record", "--config", str(config), "--out", str(out), "--duration", "0.3", "--overwrite"]) == 0
     assert "trial written" in capsys.readouterr().out and not (out / MARKER_FILE).exists()
+
+
+# ---------------------------------------------------------------- a full disk under replay, view --save, calibrate --rrd
+
+def _full_disk_for(monkeypatch, module, budget: int) -> None:
+    """Files ``module`` opens for writing raise ENOSPC once ``budget`` bytes are written in all."""
+    left = [budget]
+
+    class FullFile:
+        def __init__(self, f, path):
+            self._f, self._path = f, str(path)
+
+        def write(self, data):
+            left[0] -= len(data)
+            if left[0] < 0:
+                raise OSError(errno.ENOSPC, "No space left on device", self._path)
+            return self._f.write(data)
+
+        def __getattr__(self, name):
+            return getattr(self._f, name)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self._f.close()
+
+    def full_open(path, mode="r", *args, **kwargs):
+        f = open(path, mode, *args, **kwargs)
+        return FullFile(f, path) if ("w" in mode or "a" in mode) else f
+
+    monkeypatch.setattr(module, "open", full_open, raising=False)
+
+
+def _one_error_line(err: str, command: str) -> str:
+    assert "Traceback" not in err, err
+    lines = [line for line in err.splitlines() if line.startswith(f"osteonav {command}: error:")]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def test_replay_onto_a_full_disk_is_a_clear_error_and_its_rows_are_readable(tmp_path, capsys, monkeypatch):
+    import app.pipeline.sinks
+    from app.trial.tum import read_tum
+
+    out = tmp_path / "out"
+    _full_disk_for(monkeypatch, app.pipeline.sinks, 900)
+    assert main(["replay", str(V1_TRIAL), "--out", str(out), "--no-rrd", "--no-projector"]) == 2
+    line = _one_error_line(capsys.readouterr().err, "replay")
+    assert "the replay stopped at a failed write of" in line and "the disk is full" in line
+    assert not (out / "summary.json").exists()
+    stamps, _ = read_tum(out / "estimate.txt")
+    assert 0 < len(stamps) < 14
+    monkeypatch.undo()
+    assert main(["replay", str(V1_TRIAL), "--out", str(out), "--no-rrd", "--no-projector", "--overwrite"]) == 0
+
+
+def test_replay_view_and_hand_eye_with_an_rrd_onto_a_full_disk_fail_in_one_line(tmp_path, capsys, monkeypatch):
+    import app.viz.rrd_file
+
+    cal = tmp_path / "cal"
+    assert main(["calibrate", "simulate", "--out", str(cal), "--captures", "4"]) == 0
+    _full_disk_for(monkeypatch, app.viz.rrd_file, 4000)
+    runs = {"replay": ["replay", str(V1_TRIAL), "--out", str(tmp_path / "r"), "--no-projector"],
+            "view": ["view", str(V1_TRIAL), "--save", str(tmp_path / "v.rrd")],
+            "calibrate": ["calibrate", "hand-eye", "--captures", str(cal), "--rrd", str(tmp_path / "he.rrd")]}
+    for command, argv in runs.items():
+        capsys.readouterr()
+        assert main(argv) == 2, command
+        captured = capsys.readouterr()
+        line = _one_error_line(captured.err, command)
+        assert "the disk is full; the file is incomplete" in line, line
+        assert ".rrd" not in captured.out and "outputs in" not in captured.out, captured.out   # no success line

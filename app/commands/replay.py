@@ -24,9 +24,12 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from pathlib import Path
+
     from tqdm import tqdm
 
     from app.config import load_config
+    from app.outputs import OutputError, write_failure
     from app.pipeline.replay import replay
     from app.pipeline.report import print_summary
 
@@ -45,6 +48,10 @@ def run(args) -> int:
         result = replay(args.trial, args.out, config, realtime=args.realtime, rrd=not args.no_rrd, progress=progress,
                         projector=not args.no_projector, projector_config=args.projector,
                         projector_images=args.projector_images)
+    except OSError as exc:   # a write failed while frames were processed (a full disk)
+        raise OutputError(write_failure(exc, f"--out {args.out}: the replay stopped at a failed write of "
+                                             f"{Path(exc.filename).name if exc.filename else 'an output'}") +
+                          "; estimate.txt and status.csv hold the frames before it, no summary.json") from None
     finally:
         bar.close()
     print_summary(result.summary)
