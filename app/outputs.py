@@ -169,6 +169,14 @@ def _survey_folder(folder: Path, plan: _Plan, shown: str = "") -> bool:
     return _survey(folder, read_manifest(folder), plan, shown, skip=BOOKKEEPING)
 
 
+def unlisted(folder: "str | Path") -> list[str]:
+    """The entries of output folder ``folder`` (nested output folders included) that no manifest
+    lists: what ``--overwrite`` would refuse. Empty for a folder holding only osteonav's outputs."""
+    plan = _Plan()
+    _survey_folder(Path(folder), plan)
+    return plan.foreign
+
+
 def _names(names: list[str]) -> str:
     more = f" and {len(names) - MAX_NAMED} more" if len(names) > MAX_NAMED else ""
     return ", ".join(names[:MAX_NAMED]) + more

@@ -315,3 +315,25 @@ def test_replay_view_and_hand_eye_with_an_rrd_onto_a_full_disk_fail_in_one_line(
         line = _one_error_line(captured.err, command)
         assert "the disk is full; the file is incomplete" in line, line
         assert ".rrd" not in captured.out and "outputs in" not in captured.out, captured.out   # no success line
+
+
+# ---------------------------------------------------------------- every file a command writes is listed
+
+def test_every_file_the_writing_commands_leave_is_listed_in_a_manifest(tmp_path, fake_plugins):
+    """What a manifest misses, --overwrite would refuse: each command lists all it writes."""
+    from app.outputs import unlisted
+
+    trial, replayed, rec, cal = tmp_path / "trial", tmp_path / "replayed", tmp_path / "rec", tmp_path / "cal"
+    assert main(["simulate", "--out", str(trial), "--seconds", "0.2", "--streams", "depth,ir,color"]) == 0
+    assert main(["replay", str(trial), "--out", str(replayed), "--projector-images"]) == 0
+    config = _session_yaml(tmp_path, out=str(tmp_path / "session"),
+                           outputs=[{"plugin": "rerun", "params": {"path": str(tmp_path / "session" / "log.rrd")}}])
+    assert main(["record", "--config", str(config), "--out", str(rec), "--duration", "0.3", "--track",
+                 "--track-out", str(tmp_path / "session")]) == 0
+    assert main(["calibrate", "simulate", "--out", str(cal), "--captures", "4"]) == 0
+    assert main(["calibrate", "hand-eye", "--captures", str(cal), "--rrd", str(cal / "he.rrd")]) == 0
+    for folder in (trial, replayed, rec, tmp_path / "session", cal):
+        assert len(read_manifest(folder)) >= 3 and unlisted(folder) == [], folder
+    assert (replayed / "projector").is_dir() and "log.rrd" in read_manifest(replayed)
+    for folder in (trial, replayed, cal):   # and so the rerun replaces all of it
+        assert main(["calibrate", "simulate", "--out", str(folder), "--captures", "3", "--overwrite"]) == 0

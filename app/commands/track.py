@@ -70,14 +70,17 @@ def recording_problem(summary: dict) -> str | None:
 
 
 def recording_exit_code(summary: dict) -> int:
-    """0, or 1 with a line on stderr when the session's recording lost frames or failed."""
+    """0, or 1 with a line on stderr per problem when the session's recording lost frames or failed,
+    or another output (a rerun file on a full disk) could not be completed."""
     import sys
 
-    problem = recording_problem(summary)
-    if problem is None:
-        return 0
-    print(f"error: {problem}", file=sys.stderr)
-    return 1
+    problems = [recording_problem(summary)] + [
+        f"the output {name} is incomplete: {report['error']}" for name, report in (summary.get("outputs") or {}).items()
+        if name != "Recorder" and isinstance(report, dict) and set(report) == {"error"}]
+    problems = [p for p in problems if p]
+    for problem in problems:
+        print(f"error: {problem}", file=sys.stderr)
+    return 1 if problems else 0
 
 
 def prepare_session_dirs(config, overwrite: bool) -> None:
