@@ -337,3 +337,12 @@ def test_every_file_the_writing_commands_leave_is_listed_in_a_manifest(tmp_path,
     assert (replayed / "projector").is_dir() and "log.rrd" in read_manifest(replayed)
     for folder in (trial, replayed, cal):   # and so the rerun replaces all of it
         assert main(["calibrate", "simulate", "--out", str(folder), "--captures", "3", "--overwrite"]) == 0
+
+
+def test_track_with_a_recording_onto_a_full_disk_exits_non_zero(tmp_path, capsys, monkeypatch, fake_plugins):
+    config = _session_yaml(tmp_path, out=str(tmp_path / "out"))
+    _full_disk_after(monkeypatch, 2)
+    assert main(["track", "--config", str(config), "--record", str(tmp_path / "rec"), "--duration", "0.5"]) == 1
+    captured = capsys.readouterr()
+    assert "is incomplete" in captured.err and "Traceback" not in captured.err
+    assert (tmp_path / "rec" / MARKER_FILE).exists()
