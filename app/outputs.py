@@ -317,13 +317,13 @@ _registry_lock = threading.Lock()
 
 def open_folder(path: "str | Path", overwrite: bool, flag: str = "--out", inputs=()) -> OutputFolder:
     """:meth:`OutputFolder.open`, registered so that :func:`wrote` finds it; a folder this process
-    already has open is closed first (an earlier command of the same process is done with it). A
-    folder inside another open one is listed there as a folder of its own."""
+    already has open, and those inside it, are closed first (an earlier command of the same process
+    is done with them). A folder inside another open one is listed there as a folder of its own."""
     key = Path(path).resolve()
     with _registry_lock:
-        earlier = _open.pop(key, None)
-    if earlier is not None:
-        earlier.close()
+        earlier = [_open.pop(k) for k in list(_open) if k == key or key in k.parents]
+    for folder in earlier:
+        folder.close()
     wrote(key, folder=True)   # in the open folder around it, if any
     folder = OutputFolder.open(path, overwrite, flag, inputs)
     with _registry_lock:
