@@ -21,9 +21,9 @@ A recording is complete or says it is not. Every frame lost is counted where it 
 or the session before the recorder, never delivered it; or a frame without a declared image),
 ``queue`` (dropped because the disk fell behind), ``disk`` (a write failed, e.g. the disk is full:
 that frame and every later one). The counts go into trial.yaml (``dropped: {camera, queue, disk}``)
-and the report; when the queue or the disk lost frames, or the writer failed, the trial keeps its
-``.recording-in-progress`` marker and the report's ``complete`` is false (``osteonav record``
-then exits non-zero).
+and the report (with ``joint_samples_lost``); when the queue or the disk lost frames or joint
+samples, or the writer failed, the trial keeps its ``.recording-in-progress`` marker and the
+report's ``complete`` is false (``osteonav record`` then exits non-zero).
 """
 from __future__ import annotations
 
@@ -56,6 +56,8 @@ class Recorder:
         self._last_seen_id: int | None = None
         self.frames_in = 0        # handed to the recorder (on_frame)
         self.frames_taken = 0     # taken from the queue by the writer thread
+        self.joints_in = 0        # joint samples handed to the recorder
+        self.joints_taken = 0
         self.camera_gaps = 0
         self.disk_lost = 0
         self.error: str | None = None
@@ -88,6 +90,7 @@ class Recorder:
         self.queue.put(("frame", frame))
 
     def on_joints(self, samples: JointSamples) -> None:
+        self.joints_in += len(samples.stamps)
         self.queue.put(("joints", samples))
 
     def on_estimate(self, est: Estimate) -> None:
@@ -128,6 +131,8 @@ class Recorder:
                 continue
             if item[0] == "frame":
                 self.frames_taken += 1
+            else:
+                self.joints_taken += len(item[1].stamps)
             if self.error is not None:
                 self.disk_lost += item[0] == "frame"
                 continue
@@ -139,10 +144,15 @@ class Recorder:
                 log.error("recorder: %s; the frames from now on are not recorded", self.error)
 
     @property
+    def joint_samples_lost(self) -> int:
+        """Joint samples handed to the recorder and not written (dropped in the queue, or after a failed write)."""
+        return self.joints_in - self.joints_written
+
+    @property
     def complete(self) -> bool:
-        """Every frame handed to the recorder written (camera gaps aside) and no write failed."""
+        """Every frame and joint sample handed to the recorder written (camera gaps aside), no write failed."""
         dropped = self.dropped
-        return self.error is None and not dropped["queue"] and not dropped["disk"]
+        return self.error is None and not dropped["queue"] and not dropped["disk"] and not self.joint_samples_lost
 
     def close(self) -> dict:
         self._done.set()
@@ -166,7 +176,7 @@ class Recorder:
         if self.incomplete:
             log.warning("recorder: %d frames without a declared infrared/colour image not written", self.incomplete)
         return {"dir": str(self.dir), "frames": self.frames_written, "joint_samples": self.joints_written,
-                "dropped": dropped, "complete": complete, "renumbered": self.renumbered, "incomplete": self.incomplete,
+                "dropped": dropped, "joint_samples_lost": self.joint_samples_lost, "complete": complete, "renumbered": self.renumbered, "incomplete": self.incomplete,
                 "error": self.error}
 
 

@@ -66,7 +66,8 @@ def recording_problem(summary: dict) -> str | None:
     d = report["dropped"]
     why = report.get("error") or "the disk fell behind"
     return (f"the recording in {report['dir']} is incomplete: {d['queue']} frames dropped in the recorder queue and "
-            f"{d['disk']} not written ({why}); it keeps its .recording-in-progress marker")
+            f"{d['disk']} not written, {report.get('joint_samples_lost', 0)} joint samples lost ({why}); it keeps its "
+            f".recording-in-progress marker")
 
 
 def recording_exit_code(summary: dict) -> int:
