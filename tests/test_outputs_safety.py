@@ -324,7 +324,7 @@ def test_every_file_the_writing_commands_leave_is_listed_in_a_manifest(tmp_path,
     from app.outputs import unlisted
 
     trial, replayed, rec, cal = tmp_path / "trial", tmp_path / "replayed", tmp_path / "rec", tmp_path / "cal"
-    assert main(["simulate", "--out", str(trial), "--seconds", "0.2", "--streams", "depth,ir,color"]) == 0
+    assert main(["simulate", "--out", str(trial), "--seconds", "0.05", "--streams", "depth,ir,color"]) == 0
     assert main(["replay", str(trial), "--out", str(replayed), "--projector-images"]) == 0
     config = _session_yaml(tmp_path, out=str(tmp_path / "session"),
                            outputs=[{"plugin": "rerun", "params": {"path": str(tmp_path / "session" / "log.rrd")}}])
