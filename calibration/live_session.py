@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 
 from app.errors import ConfigError
-from app.outputs import wrote
 
 log = logging.getLogger(__name__)
 
@@ -34,11 +33,11 @@ class CaptureRerun:
         import rerun as rr
 
         self.rr = rr
+        from app.viz.rrd_file import RrdFile
+
         self.rec = rr.RecordingStream("osteonav-capture")
-        if path:
-            wrote(path)
-            self.rec.save(str(path))
-        else:
+        self.file = RrdFile(self.rec, path) if path else None
+        if not path:
             self.rec.spawn()
 
     def log_detection(self, stamp: float, image: np.ndarray, detection) -> None:
@@ -54,7 +53,11 @@ class CaptureRerun:
         self.rec.log("capture/status", self.rr.TextLog(text))
 
     def close(self) -> None:
-        self.rec.flush()
+        """Flush; with a file, raises OutputError when writing it failed (a full disk)."""
+        if self.file is not None:
+            self.file.close()
+        else:
+            self.rec.flush()
 
 
 def _image_of(frame, which: str) -> np.ndarray | None:

@@ -52,7 +52,8 @@ def run(args) -> int:
     if args.out:
         prepare_dir(args.out, args.overwrite, inputs=[args.trial])
     backend, refiner, camera_small = _scorers(config, reader)
-    rec = _recording(Path(args.out) / "diagnosis.rrd") if args.out else None
+    rrd = _recording(Path(args.out) / "diagnosis.rrd") if args.out else None
+    rec = rrd.rec if rrd is not None else None
     rng = np.random.default_rng(args.seed)
     T_base_camera, pose_valid = reader.camera_poses()
     rows = []
@@ -72,6 +73,8 @@ def run(args) -> int:
         if rec is not None:
             _log_terms(rec, backend, config, frame.index, depth_small, T_true, T_other)
     backend.release()
+    if rrd is not None:
+        rrd.close()   # an OutputError (one line) when the disk was full
     text = ambiguity.table(rows)
     print(text)
     if args.out:
@@ -102,14 +105,12 @@ def _scorers(config, reader):
 
 
 def _recording(path):
+    """The rerun recording of the terms, written to ``path`` (app/viz/rrd_file.py)."""
     import rerun as rr
 
-    from app.outputs import wrote
+    from app.viz.rrd_file import RrdFile
 
-    wrote(path)
-    rec = rr.RecordingStream("osteonav-diagnose-likelihood")
-    rec.save(str(path))
-    return rec
+    return RrdFile(rr.RecordingStream("osteonav-diagnose-likelihood"), path)
 
 
 def _log_terms(rec, backend, config, index, depth_small, T_true, T_other) -> None:

@@ -34,7 +34,7 @@ class RrdFile:
     def __init__(self, rec, path: "str | Path", blueprint=None):
         self.path = Path(path)
         self.error: OSError | None = None
-        self._rec = rec
+        self.rec = self._rec = rec
         wrote(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")
