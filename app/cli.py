@@ -15,6 +15,7 @@ import sys
 
 import app.commands
 from app.errors import OsteonavError
+from app.outputs import close_all
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"osteonav {args.command}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        close_all()   # the output folders' locks (app/outputs.py); their manifests stay
 
 
 if __name__ == "__main__":

@@ -43,6 +43,7 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Protocol
+from app.outputs import wrote
 
 import numpy as np
 
@@ -158,11 +159,14 @@ class CaptureWriter:
         import yaml
 
         self.root = Path(root)
+        wrote(self.root / "images", folder=True)
         (self.root / "images").mkdir(parents=True, exist_ok=True)
         meta = {"format": FORMAT, "robot": robot or {"model": "ur5e"}}
         if board:
             meta["board"] = board
+        wrote(self.root / "capture.yaml")
         (self.root / "capture.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
+        wrote(self.root / "captures.csv")
         self._file = (self.root / "captures.csv").open("w", newline="")
         self._csv = csv.writer(self._file)
         self._csv.writerow(["capture", "stamp", *JOINT_COLUMNS, *POSE_COLUMNS])
@@ -177,6 +181,7 @@ class CaptureWriter:
             raise ValueError("a capture needs an image or a board pose")
         index = self.count
         if image is not None:
+            wrote(self.root / "images" / f"{index:06d}.png")
             cv2.imwrite(str(self.root / "images" / f"{index:06d}.png"), image)
         pose = [""] * 6
         if T_camera_board is not None:

@@ -45,6 +45,7 @@ import numpy as np
 
 from calibration import solvers
 from calibration.board import DEFAULT_BOARD_SPEC, BoardDetector, Detection, board_pose
+from app.outputs import wrote
 
 log = logging.getLogger(__name__)
 
@@ -352,6 +353,7 @@ def result_to_dict(result: HandEyeResult, robot: dict | None = None, camera: dic
 def write_hand_eye_yaml(path: "str | Path", data: dict) -> None:
     import yaml
 
+    wrote(path)
     Path(path).write_text(yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
 
 

@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.board import DEFAULT_BOARD_SPEC, MIN_CORNERS, BoardDetector, parse_board_spec
+from app.outputs import wrote
 
 log = logging.getLogger(__name__)
 
@@ -205,6 +206,7 @@ def write_camera_yaml(path: "str | Path", camera: CameraIntrinsics, info: dict |
     data = {"format": CAMERA_FORMAT, "camera": camera.to_dict()}
     if info:
         data["calibration"] = info
+    wrote(path)
     Path(path).write_text(yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
 
 

@@ -33,10 +33,11 @@ class CaptureRerun:
         import rerun as rr
 
         self.rr = rr
+        from app.viz.rrd_file import RrdFile
+
         self.rec = rr.RecordingStream("osteonav-capture")
-        if path:
-            self.rec.save(str(path))
-        else:
+        self.file = RrdFile(self.rec, path) if path else None
+        if not path:
             self.rec.spawn()
 
     def log_detection(self, stamp: float, image: np.ndarray, detection) -> None:
@@ -52,7 +53,11 @@ class CaptureRerun:
         self.rec.log("capture/status", self.rr.TextLog(text))
 
     def close(self) -> None:
-        self.rec.flush()
+        """Flush; with a file, raises OutputError when writing it failed (a full disk)."""
+        if self.file is not None:
+            self.file.close()
+        else:
+            self.rec.flush()
 
 
 def _image_of(frame, which: str) -> np.ndarray | None:
@@ -173,7 +178,7 @@ def _loop(capturer, camera, frames, joints, which, stop, report, sink) -> None:
 
 def run_command(args) -> int:
     """``osteonav calibrate capture`` on a live session (app/commands/calibrate.py has the arguments)."""
-    from app.commands.outdir import CAPTURES, prepare_dir
+    from app.commands.outdir import prepare_dir
     from calibration.board import parse_board_spec
 
     if args.count < 3:
@@ -188,7 +193,7 @@ def run_command(args) -> int:
 
         if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
             raise ConfigError("--rrd", "no display for the rerun viewer here; pass --rrd FILE.rrd (or --no-viewer)")
-    prepare_dir(args.out, args.overwrite, CAPTURES)
+    prepare_dir(args.out, args.overwrite)
     print("capturing: move the robot to varied poses with the board in view; it captures when the robot has "
           f"rested 0.5 s{'' if args.manual else ' (and on Enter)'}; q + Enter stops")
     n = run_live_capture(args.config, args.out, args.count, args.image, auto=not args.manual, board=args.board,

@@ -38,6 +38,7 @@ import numpy as np
 from app.geometry import se3
 from calibration.board import DEFAULT_BOARD_SPEC, BoardDetector, Detection, board_image, parse_board_spec
 from calibration.graycode import Decoded, decode, pattern_count, patterns
+from app.outputs import wrote
 
 log = logging.getLogger(__name__)
 
@@ -142,15 +143,19 @@ def write_captures(out: "str | Path", views: list[np.ndarray], projector_size: t
     out.mkdir(parents=True, exist_ok=True)
     for k, stack in enumerate(views):
         d = out / f"pose_{k:03d}"
+        wrote(d, folder=True)
         d.mkdir(exist_ok=True)
         for i, im in enumerate(stack):
+            wrote(d / f"pattern_{i:03d}.png")
             Image.fromarray(im).save(d / f"pattern_{i:03d}.png", compress_level=1)
     meta = {"projector": {"width": int(projector_size[0]), "height": int(projector_size[1])},
             "board": parse_board_spec(board).to_string(), "poses": len(views), "order": "gray-code"}
+    wrote(out / "projector_capture.yaml")
     (out / "projector_capture.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
     write_camera_yaml(out / "camera.yaml", CameraIntrinsics(np.asarray(K_camera, float), np.zeros(5), *camera_size),
                       {"source": "simulated camera (true intrinsics)"})
     if truth is not None:
+        wrote(out / "truth.yaml")
         (out / "truth.yaml").write_text(yaml.safe_dump({"projector": truth}, sort_keys=False))
 
 
@@ -333,6 +338,7 @@ def write_projector_yaml(path: "str | Path", result: ProjectorCalibration) -> No
 
     text = ("# osteonav projector calibration (osteonav calibrate projector); the `projector:` block is\n"
             "# read by configs/projector.yaml's loader (app/projector/config.py)\n")
+    wrote(path)
     Path(path).write_text(text + yaml.safe_dump(result.to_dict(), sort_keys=False, default_flow_style=None))
 
 

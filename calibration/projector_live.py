@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration.graycode import patterns
+from app.outputs import wrote
 
 log = logging.getLogger(__name__)
 
@@ -91,11 +92,14 @@ def capture_poses(sequencer: PatternSequencer, out: str | Path, poses: int, wait
             report(f"pose attempt {attempt} discarded: {why}; place the board again")
             continue
         folder = out / f"pose_{kept:03d}"
+        wrote(folder, folder=True)
         folder.mkdir(exist_ok=True)
         for i, image in enumerate(stack):
+            wrote(folder / f"pattern_{i:03d}.png")
             Image.fromarray(image).save(folder / f"pattern_{i:03d}.png", compress_level=1)
         kept += 1
         meta["poses"] = kept
+        wrote(out / "projector_capture.yaml")
         (out / "projector_capture.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
         report(f"pose {kept}/{poses}: {len(stack)} pattern images")
     return kept

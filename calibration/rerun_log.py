@@ -31,8 +31,10 @@ def log_hand_eye(path: "str | Path", result, K: np.ndarray, width: int, height: 
 
     from calibration.board import parse_board_spec
 
+    from app.viz.rrd_file import RrdFile
+
     rec = rr.RecordingStream("osteonav-calibration")
-    rec.save(str(path))
+    rrd = RrdFile(rec, path)
     spec = parse_board_spec(board_spec)
     w, h = spec.size
     chosen = result.chosen
@@ -66,7 +68,4 @@ def log_hand_eye(path: "str | Path", result, K: np.ndarray, width: int, height: 
         rec.log("residuals/translation_mm", rr.Scalars(float(chosen.translation_mm[k])))
         if np.isfinite(chosen.reprojection_px[k]):
             rec.log("residuals/reprojection_px", rr.Scalars(float(chosen.reprojection_px[k])))
-    rec.flush()
-    rr_disconnect = getattr(rec, "disconnect", None)
-    if rr_disconnect is not None:
-        rr_disconnect()
+    rrd.close()      # flushes, disconnects; OutputError when the file could not be written (a full disk)

@@ -39,6 +39,7 @@ from typing import Callable
 import numpy as np
 
 from calibration.board import DEFAULT_BOARD_SPEC, board_image, parse_board_spec
+from app.outputs import wrote
 
 log = logging.getLogger(__name__)
 
@@ -373,6 +374,7 @@ def simulate_captures(out: "str | Path", count: int, rng: np.random.Generator,
         "noise": {"blur_sigma": config.blur_sigma, "pixel_noise": config.pixel_noise,
                   "joint_noise": config.joint_noise},
     }
+    wrote(out / "truth.yaml")
     (out / "truth.yaml").write_text(yaml.safe_dump(truth, sort_keys=False, default_flow_style=None))
     return SimulationTruth(config.T_flange_camera.copy(), scene.T_base_board, q_plan, corrupt)
 

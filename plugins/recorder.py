@@ -15,6 +15,15 @@ Image streams: when the camera declares infrared and/or colour (``context['image
 its ``session_defaults()``), the trial is written in format 1.1 with those streams, each frame's
 images beside its depth. A frame that lacks a declared image (the camera dropped it) is not written
 (format 1.1: every listed frame has one PNG per stream); such frames are counted and reported.
+
+A recording is complete or says it is not. Every frame lost is counted where it was lost
+(:attr:`Recorder.dropped`): ``camera`` (a gap in the frame ids handed to the recorder: the camera,
+or the session before the recorder, never delivered it; or a frame without a declared image),
+``queue`` (dropped because the disk fell behind), ``disk`` (a write failed, e.g. the disk is full:
+that frame and every later one). The counts go into trial.yaml (``dropped: {camera, queue, disk}``)
+and the report (with ``joint_samples_lost``); when the queue or the disk lost frames or joint
+samples, or the writer failed, the trial keeps its ``.recording-in-progress`` marker and the
+report's ``complete`` is false (``osteonav record`` then exits non-zero).
 """
 from __future__ import annotations
 
@@ -44,6 +53,13 @@ class Recorder:
         self.renumbered = 0
         self.incomplete = 0
         self._last_id = -1
+        self._last_seen_id: int | None = None
+        self.frames_in = 0        # handed to the recorder (on_frame)
+        self.frames_taken = 0     # taken from the queue by the writer thread
+        self.joints_in = 0        # joint samples handed to the recorder
+        self.joints_taken = 0
+        self.camera_gaps = 0
+        self.disk_lost = 0
         self.error: str | None = None
 
     def open(self, context: dict) -> None:
@@ -66,9 +82,15 @@ class Recorder:
         self._thread.start()
 
     def on_frame(self, frame: DepthFrame) -> None:
+        last, frame_id = self._last_seen_id, int(frame.frame_id)
+        if last is not None and frame_id > last + 1:
+            self.camera_gaps += frame_id - last - 1
+        self._last_seen_id = frame_id if last is None else max(last, frame_id)
+        self.frames_in += 1
         self.queue.put(("frame", frame))
 
     def on_joints(self, samples: JointSamples) -> None:
+        self.joints_in += len(samples.stamps)
         self.queue.put(("joints", samples))
 
     def on_estimate(self, est: Estimate) -> None:
@@ -95,22 +117,58 @@ class Recorder:
             self.writer.write_joints(data.stamps, data.q)
             self.joints_written += len(data.stamps)
 
+    @property
+    def dropped(self) -> dict:
+        """Frames lost, by where: camera, queue, disk (module docstring)."""
+        return {"camera": self.camera_gaps + self.incomplete, "queue": self.frames_in - self.frames_taken,
+                "disk": self.disk_lost}
+
     def _run(self) -> None:
-        try:
-            while not self._done.is_set() or len(self.queue):
-                item = self.queue.get(timeout=0.1)
-                if item is not None:
-                    self._write(item)
-        except Exception as exc:  # disk full, permissions: stop recording, keep the session going
-            log.exception("recorder failed")
-            self.error = f"{type(exc).__name__}: {exc}"
+        """Write what the queue holds until closed; after a failed write, keep taking frames and count them lost."""
+        while not self._done.is_set() or len(self.queue):
+            item = self.queue.get(timeout=0.1)
+            if item is None:
+                continue
+            if item[0] == "frame":
+                self.frames_taken += 1
+            else:
+                self.joints_taken += len(item[1].stamps)
+            if self.error is not None:
+                self.disk_lost += item[0] == "frame"
+                continue
+            try:
+                self._write(item)
+            except Exception as exc:  # disk full, permissions: stop writing, keep the session going
+                self.error = _failure(exc)
+                self.disk_lost += item[0] == "frame"
+                log.error("recorder: %s; the frames from now on are not recorded", self.error)
+
+    @property
+    def joint_samples_lost(self) -> int:
+        """Joint samples handed to the recorder and not written (dropped in the queue, or after a failed write)."""
+        return self.joints_in - self.joints_written
+
+    @property
+    def complete(self) -> bool:
+        """Every frame and joint sample handed to the recorder written (camera gaps aside), no write failed."""
+        dropped = self.dropped
+        return self.error is None and not dropped["queue"] and not dropped["disk"] and not self.joint_samples_lost
 
     def close(self) -> dict:
         self._done.set()
         if self._thread is not None:
             self._thread.join()
+        dropped, complete = self.dropped, self.complete
         if self.writer is not None:
-            self.writer.close()
+            try:
+                self.writer.note("dropped", dropped)
+            except OSError as exc:
+                log.error("recorder: cannot record the drop counts in trial.yaml (%s)", _failure(exc))
+            self.writer.close(complete=complete)
+        if any(dropped.values()):
+            log.warning("recorder: frames dropped: %d by the camera (gaps), %d in the queue (the disk fell behind), "
+                        "%d not written (%s)", dropped["camera"], dropped["queue"], dropped["disk"],
+                        self.error or "no write failed")
         if self.queue.dropped:
             log.warning("recorder: %d items dropped (the disk fell behind)", self.queue.dropped)
         if self.renumbered:
@@ -118,5 +176,14 @@ class Recorder:
         if self.incomplete:
             log.warning("recorder: %d frames without a declared infrared/colour image not written", self.incomplete)
         return {"dir": str(self.dir), "frames": self.frames_written, "joint_samples": self.joints_written,
-                "dropped": self.queue.dropped, "renumbered": self.renumbered, "incomplete": self.incomplete,
+                "dropped": dropped, "joint_samples_lost": self.joint_samples_lost, "complete": complete, "renumbered": self.renumbered, "incomplete": self.incomplete,
                 "error": self.error}
+
+
+def _failure(exc: Exception) -> str:
+    """A one-line reason for a failed write (a full disk said so)."""
+    import errno
+
+    if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+        return f"the disk is full ({exc.filename or exc})"
+    return f"{type(exc).__name__}: {exc}"

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from app.interfaces import DepthFrame, Estimate, JointSamples, SessionEvent
+from app.outputs import wrote
 from app.pipeline.sinks import RerunSink
 
 
@@ -52,6 +53,7 @@ class RerunOutput:
 
         if self.path and not self.spawn:
             self.path = str(fresh_path(Path(self.path)))
+            wrote(self.path)
         self.log = RerunLog.spawn() if (self.spawn or not self.path) else RerunLog.to_file(self.path)
         # the session's recording is the process's default: plugins that log extra entities
         # (the marker tracker's image and angles) find it with rr.get_data_recording()

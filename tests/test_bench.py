@@ -125,7 +125,10 @@ def bench_run(tmp_path_factory):
 
 
 def test_bench_writes_a_row_per_configuration_and_trial(bench_run, capsys):
+    from app.outputs import unlisted
+
     assert bench_run["rc"] == 0
+    assert unlisted(bench_run["runs"]) == [] and unlisted(bench_run["plots"]) == []   # --overwrite may clear them
     data = json.loads(bench_run["json"].read_text())
     rows = data["rows"]
     assert [(r["config"], r["trial"]) for r in rows] == [("tiny", "iliac_crest/static_clear"),

@@ -72,24 +72,27 @@ def test_replay_skips_the_projector_with_one_warning_when_no_plan_fits(tmp_path,
     assert "fits nowhere" in json.loads((tmp_path / "r" / "summary.json").read_text())["projector"]["skipped"]
 
 
-# ---------------------------------------------------------------- --overwrite clears what the command owns
+# ---------------------------------------------------------------- --overwrite clears what the command wrote
 
-def test_replay_overwrite_leaves_no_stale_log_rrd(tmp_path):
+def test_replay_overwrite_leaves_no_stale_log_rrd_and_never_removes_anothers(tmp_path):
+    from app.outputs import MANIFEST
+
     trial, out = tmp_path / "trial", tmp_path / "out"
     assert main(["simulate", "--out", str(trial), "--seconds", "0.05"]) == 0
-    out.mkdir()
-    (out / "log.rrd").write_bytes(b"another trial's recording")
-    (out / "summary.json").write_text("{}")
+    assert main(["replay", str(trial), "--out", str(out), "--no-projector"]) == 0
     assert main(["replay", str(trial), "--out", str(out), "--no-rrd", "--no-projector"]) == 2
-    assert (out / "log.rrd").read_bytes() == b"another trial's recording"
+    assert (out / "log.rrd").is_file()
     assert main(["replay", str(trial), "--out", str(out), "--no-rrd", "--no-projector", "--overwrite"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["estimate.txt", "status.csv", "summary.json"]
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "estimate.txt", "status.csv", "summary.json"]
+    (out / "log.rrd").write_bytes(b"another trial's recording")   # not this command's: never removed
+    assert main(["replay", str(trial), "--out", str(out), "--no-rrd", "--no-projector", "--overwrite"]) == 2
+    assert (out / "log.rrd").read_bytes() == b"another trial's recording"
 
 
 def test_calibrate_simulate_overwrite_replaces_every_capture_and_the_stale_hand_eye(tmp_path):
     cal = tmp_path / "cal"
     assert main(["calibrate", "simulate", "--out", str(cal), "--captures", "6"]) == 0
-    (cal / "hand_eye.yaml").write_text("stale: true\n")
+    assert main(["calibrate", "hand-eye", "--captures", str(cal)]) == 0   # its default --out: cal/hand_eye.yaml
     assert main(["calibrate", "simulate", "--out", str(cal), "--captures", "3"]) == 2
     assert len((cal / "captures.csv").read_text().splitlines()) == 7
     assert main(["calibrate", "simulate", "--out", str(cal), "--captures", "3", "--overwrite"]) == 0
@@ -220,9 +223,11 @@ def test_a_millimetre_mesh_is_refused_wherever_it_is_loaded(tmp_path):
 
 
 def test_a_second_session_needs_overwrite_which_clears_out_its_record_and_rrd(tmp_path):
-    """The simulated session's layout: record and the rerun file inside out (configs/sessions/simulated.yaml)."""
+    """The simulated session's layout: record and the rerun file inside out (configs/sessions/simulated.yaml).
+    What the earlier session wrote (listed in the manifests) goes; the user's own .rrd beside it stays."""
     from app.commands.outdir import OutputError
     from app.commands.track import prepare_session_dirs
+    from app.outputs import LOCK, MANIFEST, close_all, wrote
     from app.session import load_session
 
     out = tmp_path / "session"
@@ -231,12 +236,20 @@ def test_a_second_session_needs_overwrite_which_clears_out_its_record_and_rrd(tm
         "outputs": [{"plugin": "rerun", "params": {"path": str(out / "log.rrd")}}]})
     prepare_session_dirs(config, overwrite=False)
     for name in ("estimate.txt", "events.csv", "log.rrd", "trial/trial.yaml", "trial/frames.csv"):
+        wrote(out / name)
         (out / name).write_text("an earlier session\n")
+    close_all()
     with pytest.raises(OutputError, match=f"out {out} is not empty.*--overwrite"):
         prepare_session_dirs(config, overwrite=False)
     assert (out / "log.rrd").exists()
+    (out / "surgery_patient12.rrd").write_text("the user's")
+    with pytest.raises(OutputError, match="did not write: surgery_patient12.rrd"):
+        prepare_session_dirs(config, overwrite=True)
+    (out / "surgery_patient12.rrd").unlink()
     prepare_session_dirs(config, overwrite=True)
-    assert sorted(p.name for p in out.iterdir()) == ["trial"] and not any((out / "trial").iterdir())
+    assert sorted(p.name for p in out.iterdir()) == [LOCK, MANIFEST, "trial"]
+    assert sorted(p.name for p in (out / "trial").iterdir()) == [LOCK, MANIFEST]
+    close_all()
 
 
 def test_errors_raised_while_the_session_runs_name_the_session_file(tmp_path):

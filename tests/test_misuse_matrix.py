@@ -144,7 +144,7 @@ ROWS = [
     ("replay-out-unwritable", lambda t, tr, c: ["replay", tr, "--out", _file(t) / "sub"], "replay", 2,
      ["cannot create"]),
     ("replay-out-is-the-trial", lambda t, tr, c: ["replay", copy_trial(tr, t / "tr"), "--out", t / "tr", "--overwrite"],
-     "replay", 2, ["did not write"]),
+     "replay", 2, ["is never an output"]),
     ("replay-mm-mesh", lambda t, tr, c: ["replay", _mm_trial(t, tr), "--out", t / "r"], "replay", 2,
      ["looks like millimetres", "prepare-mesh", "--scale 0.001"]),
     ("simulate-out-not-empty", lambda t, tr, c: ["simulate", "--out", _nonempty(t), "--seconds", "0.05"], "simulate", 2,

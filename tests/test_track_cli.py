@@ -35,7 +35,8 @@ def _check_outputs(out: Path, rec: Path, tmp_path: Path) -> dict:
     parts = ("capture_to_arrival", "queue_wait", "tracker")
     assert lat["max"] <= sum(stages[k]["max"] for k in parts) + 1e-6
     assert (out / "estimate.txt").read_text().count("\n") == processed + 1
-    assert summary["outputs"]["Recorder"]["dropped"] == 0
+    recorder = summary["outputs"]["Recorder"]
+    assert recorder["dropped"]["queue"] == recorder["dropped"]["disk"] == 0 and recorder["complete"]
     assert Path(summary["outputs"]["RerunOutput"]["path"]).stat().st_size > 0
     replay_out = tmp_path / "replayed"
     assert main(["replay", str(rec), "--out", str(replay_out), "--no-rrd"]) == 0

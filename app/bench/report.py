@@ -179,6 +179,8 @@ def plot(rows: list[dict], folder: str | Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from app.outputs import wrote
+
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     written = []
@@ -203,6 +205,7 @@ def plot(rows: list[dict], folder: str | Path) -> list[Path]:
         ax_add.legend(fontsize=8, ncol=3)
         fig.tight_layout()
         path = folder / f"error_{trial.replace('/', '__')}.png"
+        wrote(path)
         fig.savefig(path, dpi=100)
         plt.close(fig)
         written.append(path)
@@ -216,6 +219,7 @@ def plot(rows: list[dict], folder: str | Path) -> list[Path]:
     ax.set_title("processing rate per configuration")
     fig.tight_layout()
     path = folder / "rate.png"
+    wrote(path)
     fig.savefig(path, dpi=100)
     plt.close(fig)
     written.append(path)

@@ -32,8 +32,8 @@ def run_one(config: BenchConfig, trial: TrialSpec, out_dir: str | Path | None = 
         tracker_config = load_config(None)
     trial.ensure()
     t0 = time.perf_counter()
-    result = replay(trial.path, out_dir, tracker_config, rrd=False, progress=progress,
-                    max_frames=trial.max_frames, make_tracker=make_tracker)
+    result = _replay_into(out_dir, lambda: replay(trial.path, out_dir, tracker_config, rrd=False, progress=progress,
+                                                  max_frames=trial.max_frames, make_tracker=make_tracker))
     wall = time.perf_counter() - t0
     reader = open_trial(trial.path)
     n = len(result.stamps)
@@ -80,6 +80,20 @@ def _run_task(task: dict) -> dict:
     return run_one(task["config"], task["trial"], task.get("out_dir"), with_vsd=task.get("with_vsd", True))
 
 
+def _replay_into(out_dir, run):
+    """``run()`` with ``out_dir`` (when given) open as an output folder of its own (app/outputs.py),
+    listed in the bench's ``--out`` folder: in a worker process too."""
+    if out_dir is None:
+        return run()
+    from app.outputs import close_folder, open_folder
+
+    open_folder(out_dir, overwrite=False, flag="--out")
+    try:
+        return run()
+    finally:
+        close_folder(out_dir)
+
+
 def run_bench(configs: list[BenchConfig], trials: list[TrialSpec], jobs: int = 1, out_dir: str | Path | None = None,
               with_vsd: bool = True, progress: bool = True, on_row=None) -> list[dict]:
     """Every configuration on every trial; rows ordered by trial, then configuration.
@@ -89,11 +103,15 @@ def run_bench(configs: list[BenchConfig], trials: list[TrialSpec], jobs: int = 1
     context); frames/s then measure a shared CPU. ``out_dir`` keeps each run's estimate.txt and
     status.csv under ``<out_dir>/<config>/<mesh>/<scenario>``.
     """
+    from app.outputs import wrote
+
     tasks = []
     for trial in trials:
         for config in configs:
             task_out = str(Path(out_dir) / config.name / trial.name) if out_dir else None
             tasks.append({"config": config, "trial": trial, "out_dir": task_out, "with_vsd": with_vsd})
+            if task_out:
+                wrote(task_out, folder=True)   # the bench's --out lists it (a worker process cannot)
     weights = [max(t["trial"].max_frames or t["trial"].frames, 1) for t in tasks]
     if jobs <= 1:
         rows = _run_serial(tasks, weights, progress, on_row)

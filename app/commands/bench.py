@@ -2,8 +2,7 @@
 from __future__ import annotations
 
 from app.cli_types import positive_int, seed
-
-from app.commands.outdir import PLOTS, add_overwrite_argument, prepare_dir, results_file
+from app.commands.outdir import add_overwrite_argument, prepare_dir, results_file
 
 DEFAULT_JSON = "recordings/bench/bench.json"
 
@@ -99,9 +98,9 @@ def run(args) -> int:
     args.json = str(results_file(args.json, DEFAULT_JSON, args.overwrite))
     configs = bench.resolve_configs(args.configs or (bench.QUICK_CONFIGS if args.quick else None))
     if args.plots:
-        prepare_dir(args.plots, args.overwrite, PLOTS, "--plots")
+        prepare_dir(args.plots, args.overwrite, "--plots")
     if args.out:
-        prepare_dir(args.out, args.overwrite, tuple(c.name for c in configs), "--out")
+        prepare_dir(args.out, args.overwrite, "--out")
     seconds = args.seconds or (bench.quick_seconds() if args.quick else None)
     if args.trials:
         trials = bench.recorded_trials(args.trials, seconds)

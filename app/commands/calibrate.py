@@ -33,7 +33,8 @@ import sys
 from pathlib import Path
 
 from app.cli_types import deprecated_alias, int_at_least, non_negative_int, positive_int, seed
-from app.commands.outdir import CAPTURES, PROJECTOR_CAPTURES, add_overwrite_argument, prepare_dir, prepare_file
+from app.commands.outdir import add_overwrite_argument, prepare_dir, prepare_file
+from app.outputs import wrote
 
 log = logging.getLogger(__name__)
 
@@ -142,7 +143,7 @@ def run_projector(args) -> int:
     if args.simulate:
         if args.simulate < MIN_VIEWS:
             raise ConfigError("--simulate", f"at least {MIN_VIEWS} board poses needed, got {args.simulate}")
-        prepare_dir(args.captures, args.overwrite, PROJECTOR_CAPTURES, "--captures")
+        prepare_dir(args.captures, args.overwrite, "--captures")
     if args.live:
         from calibration.projector_live import run_live_projector_capture
 
@@ -150,7 +151,7 @@ def run_projector(args) -> int:
             raise ConfigError("--config", "--live needs the session file naming the camera (e.g. realsense, streams depth,ir)")
         if args.simulate:
             raise ConfigError("--live", "give --live or --simulate, not both")
-        prepare_dir(args.captures, args.overwrite, PROJECTOR_CAPTURES, "--captures")
+        prepare_dir(args.captures, args.overwrite, "--captures")
         run_live_projector_capture(args.config, args.captures, args.poses, args.screen, args.image, args.board)
     prepare_file(args.out or args.captures / "projector.yaml", args.overwrite)
     return run_command(args)
@@ -341,7 +342,7 @@ def run_capture(args) -> int:
     _source_kind(config, "camera", str(args.config))
     _source_kind(config, "robot", str(args.config))
     sim, rig_source = _session_rig(args.config, config)
-    prepare_dir(args.out, args.overwrite, CAPTURES)
+    prepare_dir(args.out, args.overwrite, inputs=[args.config])
     rng = np.random.default_rng(args.seed)
     scene = make_scene(sim)
     rig = SimulatedCaptureRig(scene, plan_captures(scene, args.count, rng), rng)
@@ -351,6 +352,7 @@ def run_capture(args) -> int:
                       {"source": "simulated camera (true intrinsics)"})
     truth = {"note": "simulated session's rig; readers of capture folders ignore this file", "rig": rig_source,
              "hand_eye": sim.T_flange_camera.tolist(), "T_base_board": scene.T_base_board.tolist()}
+    wrote(args.out / "truth.yaml")
     (args.out / "truth.yaml").write_text(yaml.safe_dump(truth, sort_keys=False, default_flow_style=None))
     print(f"wrote {n} captures to {args.out} (the session's rig from {rig_source}; truth in truth.yaml)")
     return 0
@@ -382,7 +384,7 @@ def run_simulate(args) -> int:
     bad = [k for k in corrupt if not 0 <= k < args.count]
     if bad:
         raise ConfigError("--corrupt", f"capture indices {bad} outside 0..{args.count - 1}")
-    prepare_dir(args.out, args.overwrite, CAPTURES)
+    prepare_dir(args.out, args.overwrite)
     config = noisy() if args.noise else SimulationConfig()
     try:
         truth = simulate_captures(args.out, args.count, np.random.default_rng(args.seed), config,

@@ -2,6 +2,8 @@
 
 The README's main command. The trial lives in ``recordings/demo/trial`` and is simulated once;
 the replay's outputs (estimate, status, summary, ``log.rrd``) go to ``recordings/demo/replay``.
+Each run replaces the demo's own earlier outputs there, and nothing else (app/outputs.py: a folder
+holding other files is refused, by name).
 """
 from __future__ import annotations
 
@@ -28,6 +30,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from tqdm import tqdm
 
+    from app.commands.outdir import prepare_dir
     from app.config import load_config
     from app.pipeline.replay import replay
     from app.pipeline.report import print_summary
@@ -38,13 +41,14 @@ def run(args) -> int:
     base = Path(args.dir)
     trial = base / f"trial_{scenario}" if args.seconds is None else base / f"trial_{scenario}_{args.seconds:g}s"
     if not (trial / "trial.yaml").exists() or (trial / ".recording-in-progress").exists():
+        prepare_dir(trial, True, "--dir")
         bar = tqdm(desc=f"simulating {scenario}", unit="frame")
         simulate(trial, scenario_name=scenario, seconds=args.seconds, seed=0, overwrite=True,
                  progress=lambda done, total: (setattr(bar, "total", total), bar.update(done - bar.n)))
         bar.close()
     else:
         print(f"using the cached trial {trial}")
-    out = base / f"replay_{scenario}"
+    out = prepare_dir(base / f"replay_{scenario}", True, "--dir")
     bar = tqdm(desc="tracking", unit="frame")
     result = replay(trial, out, load_config(args.config),
                     progress=lambda done, total: (setattr(bar, "total", total), bar.update(done - bar.n)))

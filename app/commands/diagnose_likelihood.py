@@ -9,6 +9,7 @@ and at the best other pose (``--out``/diagnosis.rrd).
 from __future__ import annotations
 
 from app.cli_types import finite_positive_float, non_negative_int, positive_int, seed
+from app.commands.outdir import add_overwrite_argument, prepare_dir
 
 
 def register(subparsers) -> None:
@@ -26,6 +27,7 @@ def register(subparsers) -> None:
                    help="rotation range of the search, deg > 0 (default %(default)s)")
     p.add_argument("--seed", type=seed, default=0, help="seed of the search, an integer >= 0 (default 0)")
     p.add_argument("--out", default=None, help="folder for diagnosis.md / .json / .rrd (default: print only)")
+    add_overwrite_argument(p, "--out's diagnosis")
     p.set_defaults(func=run)
 
 
@@ -37,6 +39,7 @@ def run(args) -> int:
 
     from app import strict_json
     from app.bench import ambiguity
+    from app.outputs import wrote
     from app.config import load_config
     from app.errors import OsteonavError
     from app.trial.reader import open_trial
@@ -51,8 +54,11 @@ def run(args) -> int:
     bad = [f for f in frames if not 0 <= f < n]
     if bad:
         raise OsteonavError(f"--frames {bad}: the trial has frames 0..{n - 1}")
+    if args.out:
+        prepare_dir(args.out, args.overwrite, inputs=[args.trial])
     backend, refiner, camera_small = _scorers(config, reader)
-    rec = _recording(Path(args.out) / "diagnosis.rrd") if args.out else None
+    rrd = _recording(Path(args.out) / "diagnosis.rrd") if args.out else None
+    rec = rrd.rec if rrd is not None else None
     rng = np.random.default_rng(args.seed)
     T_base_camera, pose_valid = reader.camera_poses()
     rows = []
@@ -72,12 +78,15 @@ def run(args) -> int:
         if rec is not None:
             _log_terms(rec, backend, config, frame.index, depth_small, T_true, T_other)
     backend.release()
+    if rrd is not None:
+        rrd.close()   # an OutputError (one line) when the disk was full
     text = ambiguity.table(rows)
     print(text)
     if args.out:
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "diagnosis.md").write_text(text + "\n")
-        (Path(args.out) / "diagnosis.json").write_text(strict_json.dumps([asdict(r) for r in rows], indent=1))
+        for name, content in (("diagnosis.md", text + "\n"),
+                              ("diagnosis.json", strict_json.dumps([asdict(r) for r in rows], indent=1))):
+            wrote(Path(args.out) / name)
+            (Path(args.out) / name).write_text(content)
         print(f"\nwrote {args.out}/diagnosis.md, .json, .rrd")
     return 0
 
@@ -102,12 +111,12 @@ def _scorers(config, reader):
 
 
 def _recording(path):
+    """The rerun recording of the terms, written to ``path`` (app/viz/rrd_file.py)."""
     import rerun as rr
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    rec = rr.RecordingStream("osteonav-diagnose-likelihood")
-    rec.save(str(path))
-    return rec
+    from app.viz.rrd_file import RrdFile
+
+    return RrdFile(rr.RecordingStream("osteonav-diagnose-likelihood"), path)
 
 
 def _log_terms(rec, backend, config, index, depth_small, T_true, T_other) -> None:

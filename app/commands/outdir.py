@@ -1,95 +1,46 @@
-"""One overwrite policy for every command that writes a directory or a file.
+"""One overwrite policy for every command that writes a directory or a file (the CLI side of
+:mod:`app.outputs`, which keeps each output folder's manifest and lock).
 
 A command that writes a directory calls :func:`prepare_dir` before writing anything:
 
 - a path that does not exist is created (with its parents);
 - an empty directory is used as it is;
 - a non-empty directory is refused with a one-line :class:`OutputError` naming it and
-  ``--overwrite``, unless ``overwrite`` is true; then the entries the command OWNS (its ``owned``
-  glob patterns, e.g. ``log.rrd``, ``images``) are removed first, so no stale file of an earlier run
-  (a log.rrd, captures, a hand_eye.yaml, images) is left beside the new outputs;
-- a directory that also holds entries the command does not own is refused even with
-  ``--overwrite``: osteonav never deletes what it did not write;
+  ``--overwrite``; with ``overwrite`` exactly the files an earlier osteonav run listed in the
+  folder's manifest are removed, and a folder holding anything else is refused, naming those
+  entries, before anything is removed: osteonav never deletes what it did not write;
+- a folder another osteonav run is writing is refused (its lock); the input is never an output;
 - a path that is a file, or a directory that cannot be written, is a one-line error.
 
-A command that writes one file calls :func:`prepare_file`: an existing file needs ``--overwrite``,
-a directory in its place, a missing or unwritable parent is a one-line error.
+The folder stays locked until the command ends (:func:`app.outputs.close_all`, called by the CLI).
 
-A directory holding a trial (``trial.yaml`` or the ``.recording-in-progress`` marker) is the
-trial's entirely: :data:`TRIAL` owns every entry of it.
+A command that writes one file calls :func:`prepare_file`: an existing file needs ``--overwrite``,
+the file may not be one of the command's inputs, and a directory in its place, a missing or
+unwritable parent is a one-line error. A file written into an osteonav output folder is listed in
+that folder's manifest.
 """
 from __future__ import annotations
 
-import fnmatch
 import os
-import shutil
 from pathlib import Path
 
-from app.errors import OsteonavError
+from app.outputs import MANIFEST, OutputError, is_locked, open_folder, wrote
 
-TRIAL = "trial"
-"""A trial directory: everything in it belongs to the trial (RECORDING_FORMAT.md)."""
-TRIAL_MARKERS = ("trial.yaml", ".recording-in-progress")
-REPLAY = ("estimate.txt", "status.csv", "summary.json", "log.rrd", "projector")
-SESSION = ("estimate.txt", "status.csv", "events.csv", "summary.json", "log.rrd", "*.rrd", "latency.csv",
-           "projector")
-CAPTURES = ("capture.yaml", "captures.csv", "images", "camera.yaml", "camera_fit.yaml", "truth.yaml",
-            "hand_eye.yaml", "*.rrd")
-PROJECTOR_CAPTURES = ("projector_capture.yaml", "pose_*", "camera.yaml", "truth.yaml", "projector.yaml")
-PLOTS = ("*.png",)
+__all__ = ["OutputError", "prepare_dir", "prepare_file", "results_file", "add_overwrite_argument"]
 
 
-class OutputError(OsteonavError):
-    """An output path cannot be used; the message names it and the fix."""
+def prepare_dir(path: "str | Path", overwrite: bool, flag: str = "--out", inputs=()) -> Path:
+    """``path`` ready and locked for a command's outputs (see the module docstring); returns it as a Path."""
+    return open_folder(path, overwrite, flag, inputs).path
 
 
-def _owned(name: str, owned) -> bool:
-    return any(fnmatch.fnmatch(name, pattern) for pattern in owned)
-
-
-def prepare_dir(path: "str | Path", overwrite: bool, owned=TRIAL, flag: str = "--out") -> Path:
-    """``path`` ready for a command's outputs (see the module docstring); returns it as a Path."""
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise OutputError(f"{flag} {path} is a file, not a directory; choose a directory")
-    if path.is_dir():
-        if not os.access(path, os.W_OK | os.X_OK):
-            raise OutputError(f"{flag} {path}: the directory is not writable; choose another one")
-        entries = sorted(os.listdir(path))
-        if entries:
-            _clear(path, entries, overwrite, owned, flag)
-    else:
-        try:
-            path.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise OutputError(f"{flag} {path}: cannot create the directory ({exc.strerror or exc})") from None
-    return path
-
-
-def _clear(path: Path, entries: list[str], overwrite: bool, owned, flag: str) -> None:
-    if not overwrite:
-        raise OutputError(f"{flag} {path} is not empty ({len(entries)} entries, e.g. {entries[0]}); pass "
-                          f"--overwrite to replace its contents, or choose a new directory")
-    if owned == TRIAL:   # everything in a trial directory is the trial's; nothing elsewhere is
-        owned = ("*",) if any(m in entries for m in TRIAL_MARKERS) else ()
-    foreign = [e for e in entries if not _owned(e, owned)]
-    if foreign:
-        raise OutputError(f"{flag} {path} holds {foreign[0]!r}, which this command did not write; --overwrite "
-                          f"only replaces the command's own outputs: remove it or choose a new directory")
-    for name in entries:
-        target = path / name
-        try:
-            if target.is_dir() and not target.is_symlink():
-                shutil.rmtree(target)
-            else:
-                target.unlink()
-        except OSError as exc:
-            raise OutputError(f"{flag} {path}: cannot remove the old {name} ({exc.strerror or exc})") from None
-
-
-def prepare_file(path: "str | Path", overwrite: bool, flag: str = "--out") -> Path:
+def prepare_file(path: "str | Path", overwrite: bool, flag: str = "--out", inputs=()) -> Path:
     """``path`` ready to be written as one file (see the module docstring); returns it as a Path."""
     path = Path(path)
+    for source in inputs:
+        if source is not None and Path(source).resolve() == path.resolve():
+            raise OutputError(f"{flag} {path} is the input this command reads; the input is never an output: "
+                              f"choose another {flag}")
     if path.is_dir():
         raise OutputError(f"{flag} {path} is a directory; give a file name")
     if path.exists() and not overwrite:
@@ -101,7 +52,26 @@ def prepare_file(path: "str | Path", overwrite: bool, flag: str = "--out") -> Pa
         raise OutputError(f"{flag} {path}: cannot create the folder {parent} ({exc.strerror or exc})") from None
     if not os.access(parent, os.W_OK | os.X_OK) or (path.exists() and not os.access(path, os.W_OK)):
         raise OutputError(f"{flag} {path}: not writable; choose another location")
+    _list_in_output_folder(path, flag)
     return path
+
+
+def _list_in_output_folder(path: Path, flag: str) -> None:
+    """A file written into an osteonav output folder joins that folder's manifest (so that the
+    folder's next ``--overwrite`` may remove it); a folder another run is writing is refused."""
+    wrote(path)
+    parent = path.parent
+    if not (parent / MANIFEST).is_file():
+        return
+    holder = is_locked(parent)
+    if holder and str(os.getpid()) not in holder.split(",")[0].split():
+        raise OutputError(f"{flag} {path}: its folder is being written by another osteonav run ({holder}); wait for it "
+                          f"to finish or choose another location")
+    if not holder:
+        import json
+
+        with open(parent / MANIFEST, "a", encoding="utf-8") as manifest:
+            manifest.write(json.dumps(path.name) + "\n")
 
 
 def results_file(path: "str | None", default: str, overwrite: bool, flag: str = "--json") -> Path:

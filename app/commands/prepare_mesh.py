@@ -49,7 +49,7 @@ def run(args) -> int:
     check_triangles(mesh, args.input)   # a scale can underflow every triangle's area
     out = prepare_mesh(mesh, max_triangles=args.triangles, center=not args.no_center)
     check_triangles(out, args.out)
-    prepare_file(args.out, args.overwrite)
+    prepare_file(args.out, args.overwrite, inputs=[args.input])
     out.export(args.out)
     offset = np.asarray(out.metadata["centering_offset"])
     fmt = lambda v: "[" + ", ".join(f"{x:.6f}" for x in v) + "]"  # noqa: E731

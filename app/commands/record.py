@@ -27,7 +27,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from pathlib import Path
 
-    from app.commands.track import naming_the_session_file, prepare_session_dirs, print_summary
+    from app.commands.track import naming_the_session_file, prepare_session_dirs, print_summary, recording_exit_code
     from app.session import load_session, run_session
 
     overrides = {"record": str(Path(args.out).resolve())}
@@ -43,5 +43,7 @@ def run(args) -> int:
     with naming_the_session_file(args.config):
         result = run_session(config)
     print_summary(result.summary, tracked=args.track)
-    print(f"trial written to {args.out}")
-    return 0
+    code = recording_exit_code(result.summary)
+    if code == 0:
+        print(f"trial written to {args.out}")
+    return code

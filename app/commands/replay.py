@@ -6,7 +6,7 @@ the plan), or the projector is skipped when nothing fits: a valid trial always r
 """
 from __future__ import annotations
 
-from app.commands.outdir import REPLAY, add_overwrite_argument, prepare_dir
+from app.commands.outdir import add_overwrite_argument, prepare_dir
 
 
 def register(subparsers) -> None:
@@ -25,9 +25,12 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from pathlib import Path
+
     from tqdm import tqdm
 
     from app.config import load_config
+    from app.outputs import OutputError, write_failure
     from app.pipeline.replay import replay
     from app.pipeline.report import print_summary
 
@@ -35,7 +38,7 @@ def run(args) -> int:
 
     config = load_config(args.config)
     open_trial(args.trial).load_mesh()   # a broken trial or mesh is refused before OUT is touched
-    prepare_dir(args.out, args.overwrite, REPLAY)
+    prepare_dir(args.out, args.overwrite, inputs=[args.trial])
     bar = tqdm(desc="replay", unit="frame")
 
     def progress(done: int, total: int) -> None:
@@ -46,6 +49,10 @@ def run(args) -> int:
         result = replay(args.trial, args.out, config, realtime=args.realtime, rrd=not args.no_rrd, progress=progress,
                         projector=not args.no_projector, projector_config=args.projector,
                         projector_images=args.projector_images)
+    except OSError as exc:   # a write failed while frames were processed (a full disk)
+        raise OutputError(write_failure(exc, f"--out {args.out}: the replay stopped at a failed write of "
+                                             f"{Path(exc.filename).name if exc.filename else 'an output'}") +
+                          "; estimate.txt and status.csv hold the frames before it, no summary.json") from None
     finally:
         bar.close()
     print_summary(result.summary)

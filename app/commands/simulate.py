@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from app.cli_types import positive_seconds, seed
-from app.commands.outdir import TRIAL, add_overwrite_argument, prepare_dir
+from app.commands.outdir import add_overwrite_argument, prepare_dir
 
 
 def register(subparsers) -> None:
@@ -49,7 +49,7 @@ def run(args) -> int:
         from app.mesh import load_mesh
 
         load_mesh(args.mesh)   # unreadable or not in metres: refused before --out is touched
-    prepare_dir(args.out, args.overwrite, TRIAL)
+    prepare_dir(args.out, args.overwrite, inputs=[args.mesh])
     bar = tqdm(desc=f"simulate {args.scenario}", unit="frame")
 
     def progress(done: int, total: int) -> None:

@@ -7,7 +7,7 @@ Ctrl-C ends it cleanly: sources stop, the recording and logs are flushed, and th
 from __future__ import annotations
 
 from app.cli_types import deprecated_alias, positive_seconds
-from app.commands.outdir import SESSION, TRIAL, add_overwrite_argument, prepare_dir, prepare_file
+from app.commands.outdir import add_overwrite_argument, prepare_dir, prepare_file
 
 
 def register(subparsers) -> None:
@@ -52,7 +52,7 @@ def run(args) -> int:
     if args.seconds is not None:
         config.loop.duration_s = args.seconds
     if getattr(args, "soak", False):
-        config.outputs, config.record = [], None
+        config.outputs, config.record, config.out = [], None, None
         for spec in (config.camera, config.robot):
             if spec.name in ("simulated", "recorded"):
                 spec.params["loop"] = True
@@ -60,26 +60,53 @@ def run(args) -> int:
     with naming_the_session_file(args.config):
         result = run_session(config, progress=_progress_printer())
     print_summary(result.summary)
-    return 0
+    return recording_exit_code(result.summary)
+
+
+def recording_problem(summary: dict) -> str | None:
+    """Why the session's recording is not complete (plugins/recorder.py), or None (complete, or none)."""
+    report = (summary.get("outputs") or {}).get("Recorder")
+    if report is None:
+        return None
+    if "dropped" not in report:    # closing the recorder failed
+        return f"the recorder failed: {report.get('error')}"
+    if report.get("complete", True):
+        return None
+    d = report["dropped"]
+    why = report.get("error") or "the disk fell behind"
+    return (f"the recording in {report['dir']} is incomplete: {d['queue']} frames dropped in the recorder queue and "
+            f"{d['disk']} not written, {report.get('joint_samples_lost', 0)} joint samples lost ({why}); it keeps its "
+            f".recording-in-progress marker")
+
+
+def recording_exit_code(summary: dict) -> int:
+    """0, or 1 with a line on stderr per problem when the session's recording lost frames or failed,
+    or another output (a rerun file on a full disk) could not be completed."""
+    import sys
+
+    problems = [recording_problem(summary)] + [
+        f"the output {name} is incomplete: {report['error']}" for name, report in (summary.get("outputs") or {}).items()
+        if name != "Recorder" and isinstance(report, dict) and set(report) == {"error"}]
+    problems = [p for p in problems if p]
+    for problem in problems:
+        print(f"error: {problem}", file=sys.stderr)
+    return 1 if problems else 0
 
 
 def prepare_session_dirs(config, overwrite: bool) -> None:
     """The overwrite policy (app/commands/outdir.py) for the session's out and record directories
-    and its rerun outputs' files (a record folder inside out is out's to clear)."""
-    from pathlib import Path
-
+    and its rerun outputs' files; a record folder inside out is listed in out's manifest as a
+    folder of its own. The recorded sources' trials are inputs, never outputs."""
+    inputs = [spec.params.get("trial") for spec in (config.camera, config.robot)
+              if isinstance(spec.params.get("trial"), str)]
     if config.out is not None:
-        owned = SESSION
-        if config.record is not None and Path(config.record).resolve().is_relative_to(Path(config.out).resolve()):
-            inner = Path(config.record).resolve().relative_to(Path(config.out).resolve()).parts
-            owned = SESSION + inner[:1]
-        prepare_dir(config.out, overwrite, owned, "out")
+        prepare_dir(config.out, overwrite, "out", inputs)
     if config.record is not None:
-        prepare_dir(config.record, overwrite, TRIAL, "record")
+        prepare_dir(config.record, overwrite, "record", inputs)
     for i, spec in enumerate(config.outputs):
         path = spec.params.get("path") if spec.name == "rerun" else None
         if isinstance(path, str):
-            prepare_file(path, overwrite, f"outputs[{i}].params.path")
+            prepare_file(path, overwrite, f"outputs[{i}].params.path", inputs)
 
 
 class naming_the_session_file:
@@ -149,5 +176,11 @@ def print_summary(summary: dict, tracked: bool = True) -> None:
     if rate.get("all"):
         print(f"tracked frames/s: {rate['all']:.1f} overall, {rate['first']:.1f} in the first and {rate['last']:.1f} "
               f"in the last {summary.get('latency_window_s', 10):.0f} s")
+    recorder = (summary.get("outputs") or {}).get("Recorder") or {}
+    if isinstance(recorder.get("dropped"), dict):
+        d = recorder["dropped"]
+        print(f"recorded: {recorder.get('frames', 0)} frames; dropped {d['camera']} by the camera (gaps in its frame "
+              f"ids), {d['queue']} in the recorder queue (the disk fell behind), {d['disk']} not written"
+              f"{' (' + recorder['error'] + ')' if recorder.get('error') else ''}")
     for name, report in (summary.get("outputs") or {}).items():
         print(f"{name}: {report}")

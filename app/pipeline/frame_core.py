@@ -21,6 +21,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from app.errors import OsteonavError
 from app.interfaces import DepthFrame, Estimate, Tracker
 from app.filter.status import Reason
 from app.metrics import STATUS_CODE
@@ -40,6 +41,7 @@ class FrameCore:
     def __init__(self, tracker: Tracker | None, sinks: Sequence, now: Callable[[], float] | None = None):
         self.tracker = tracker
         self.sinks = list(sinks)
+        self.failures: dict[str, str] = {}   # sink name: why closing it failed (close())
         self.now = now
         self.t_estimate: float | None = None   # host time the last estimate was made (None without a clock)
 
@@ -93,9 +95,14 @@ class FrameCore:
                 name = name if name not in reports else f"{name}#{sum(k.startswith(name) for k in reports) + 1}"
                 try:
                     reports[name] = sink.close()
+                except (OsteonavError, OSError) as exc:   # a full disk: one line, the others still close
+                    log.error("closing the output %s failed: %s", name, exc)
+                    reports[name] = {"error": str(exc)}
+                    self.failures[name] = str(exc)
                 except Exception as exc:    # one failing output must not lose the others' files
                     log.exception("closing an output failed")
                     reports[name] = {"error": str(exc)}
+                    self.failures[name] = str(exc)
         finally:
             if self.tracker is not None:
                 self.tracker.release()

@@ -45,6 +45,7 @@ from app import metrics
 from app.config import TrackerConfig, load_config
 from app.errors import MeshError
 from app.interfaces import DepthFrame
+from app.outputs import OutputError, write_failure, wrote
 from app.pipeline.engine_tracker import EngineTracker
 from app.pipeline.frame_core import FrameCore
 from app.pipeline.sinks import EstimateFiles, GroundTruthScoring, ProjectorEstimates, RerunSink, Trajectory
@@ -105,8 +106,15 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
         summary["projector"] = {"plan": None, "skipped": sinks.projector_skipped}
     if "ProjectorEstimates" in reports:
         summary["projector"] = reports["ProjectorEstimates"]
+    failures = dict(core.failures)
     if out is not None:
-        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        wrote(out / "summary.json")
+        try:
+            (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        except OSError as exc:
+            failures["summary.json"] = write_failure(exc, "cannot write it")
+    if failures:
+        raise OutputError(f"{out}: the outputs are incomplete: " + "; ".join(f"{k}: {v}" for k, v in failures.items()))
     t = sinks.trajectory
     return ReplayResult(summary, np.array(t.stamps), np.array(t.poses), t.statuses, sinks.scoring.errors())
 
@@ -191,6 +199,7 @@ class ReplaySinks:
         if rrd:
             from app.viz.rerun_log import RerunLog
 
+            wrote(out / "log.rrd")
             log_ = RerunLog.to_file(out / "log.rrd")
             log_.log_static_scene(reader.meta.camera, np.asarray(mesh.vertices), np.asarray(mesh.faces),
                                   with_groundtruth=reader.groundtruth is not None)

@@ -119,6 +119,10 @@ class EstimateFiles:
     """
 
     def __init__(self, out: Path):
+        from app.outputs import wrote
+
+        wrote(Path(out) / "estimate.txt")
+        wrote(Path(out) / "status.csv")
         self.tum = open(Path(out) / "estimate.txt", "w", buffering=1)
         self.tum.write(tum.TUM_HEADER + "\n")
         self.status = open(Path(out) / "status.csv", "w", buffering=1)

@@ -27,7 +27,10 @@ class PngWriter:
     """Writes projector images as PNG files into a folder (created)."""
 
     def __init__(self, folder: "str | Path", prefix: str = "projector"):
+        from app.outputs import wrote
+
         self.folder = Path(folder)
+        wrote(self.folder, folder=True)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.prefix = prefix
         self.count = 0
@@ -36,7 +39,10 @@ class PngWriter:
         """Write (H, W, 3) or (H, W) uint8 ``image`` as ``<prefix>_<frame_id:06d>.png``; returns the path."""
         from PIL import Image
 
+        from app.outputs import wrote
+
         path = self.folder / f"{self.prefix}_{int(frame_id):06d}.png"
+        wrote(path)
         Image.fromarray(np.asarray(image, dtype=np.uint8)).save(path)
         self.count += 1
         return path

@@ -39,6 +39,9 @@ class EventLog:
         self._lock = threading.Lock()
         self._file = None
         if path is not None:
+            from app.outputs import wrote
+
+            wrote(path)
             self._file = open(path, "w", newline="", buffering=1)
             self._file.write("stamp,source,kind,message\n")
 

@@ -20,6 +20,7 @@ from app.filter.status import Reason, codes
 from app.errors import ConfigError
 from app.interfaces import DepthFrame, Estimate, SessionClock
 from app.pipeline.frame_core import FrameCore
+from app.outputs import wrote
 from app.pipeline.sinks import EstimateFiles
 from app.pipeline.tracker import start_tracker, tracker_report, use_projector_plan
 from app.session.bus import Bus, EventLog, JointBuffer
@@ -225,6 +226,7 @@ class LiveLoop:
         sink_reports.pop("EstimateFiles", None)
         summary = self.summary(sink_reports)
         if self.out is not None:
+            wrote(self.out / "summary.json")
             (self.out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
         self.events.close()
         return summary

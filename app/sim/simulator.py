@@ -35,6 +35,7 @@ from app.sim import world
 from app.sim.scenarios import Scenario, get_scenario
 from app.sim.sensors import DEFAULT_SENSOR, SceneErrors, parse_sensor, sensor_to_dict
 from app.sim.truth import CAMERA_TRUTH_FILE
+from app.outputs import wrote
 from app.trial.tum import write_tum
 
 log = logging.getLogger(__name__)
@@ -192,6 +193,7 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
     occlusions = []
     with TrialWriter(out, meta, mesh_source=mesh_path, overwrite=overwrite) as writer:
         _write_joints(writer, stamps, scenario, rng)
+        wrote(out / "simulation.csv")
         with open(out / "simulation.csv", "w") as sim_csv:
             sim_csv.write("frame,stamp,occlusion,bone_pixels\n")
             for k, (frame_id, stamp) in enumerate(zip(frame_ids, stamps)):
@@ -219,6 +221,7 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
                 sim_csv.write(f"{frame_id},{stamp:.6f},{occlusion:.4f},{n_bone}\n")
                 if progress:
                     progress(k + 1, len(stamps))
+        wrote(out / CAMERA_TRUTH_FILE)
         write_tum(out / CAMERA_TRUTH_FILE, stamps, T_base_camera)
         _write_simulation_yaml(out, scenario, seed, T_flange_camera, mesh_path, sensor)
     renderer.release()
@@ -314,6 +317,7 @@ def _write_simulation_yaml(out: Path, scenario: Scenario, seed: int, T_flange_ca
         "sensor": _plain(sensor_to_dict(sensor)),
         "true_hand_eye": T_flange_camera_true.tolist(),
     }
+    wrote(out / "simulation.yaml")
     (out / "simulation.yaml").write_text(yaml.safe_dump(info, sort_keys=False))
 
 

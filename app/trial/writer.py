@@ -31,6 +31,7 @@ import numpy as np
 
 from app.errors import TrialFormatError
 from app.image_streams import check_frame_images
+from app.outputs import wrote
 from app.trial.meta import (DEPTH_DIR, FRAMES_FILE, GROUNDTRUTH_FILE, JOINTS_FILE, MARKER_FILE, META_FILE, TrialMeta,
                             depth_png_name, dump_meta, image_png_name)
 from app.trial.tum import TUM_HEADER, format_tum_row
@@ -79,6 +80,8 @@ class TrialWriter:
         self._closed = False
         self._gt_file = None
         self._prepare_directory(overwrite)
+        for name in (MARKER_FILE, META_FILE, META_FILE + ".tmp", FRAMES_FILE, JOINTS_FILE):
+            wrote(self.path / name)
         (self.path / MARKER_FILE).write_text("osteonav: recording in progress; removed when the writer closes\n")
         dump_meta(meta, self.path / META_FILE)
         self._write_mesh(mesh_source)
@@ -104,6 +107,7 @@ class TrialWriter:
             for d in set(image_dirs) | old_dirs:   # the replaced trial's image streams go with it
                 shutil.rmtree(self.path / d, ignore_errors=True)
         for d in image_dirs:
+            wrote(self.path / d, folder=True)
             (self.path / d).mkdir(parents=True, exist_ok=True)
 
     def _old_stream_dirs(self) -> set[str]:
@@ -124,6 +128,7 @@ class TrialWriter:
             log.debug("trial mesh %s is absolute: not copied", mesh_name)
             return
         dest = self.path / mesh_name
+        wrote(dest.parent, folder=True)
         dest.parent.mkdir(parents=True, exist_ok=True)
         if isinstance(mesh_source, (str, os.PathLike)):
             source = Path(mesh_source)
@@ -132,9 +137,13 @@ class TrialWriter:
             if dest.exists() and dest.resolve() == source.resolve():
                 return
             tmp = dest.with_name(dest.name + ".tmp")
+            wrote(dest)
+            wrote(tmp)
             shutil.copyfile(source, tmp)
         else:  # a trimesh.Trimesh
             tmp = dest.with_name(".tmp-" + dest.name)   # trimesh picks the format from the suffix
+            wrote(dest)
+            wrote(tmp)
             mesh_source.export(tmp)
         os.replace(tmp, dest)
 
@@ -190,6 +199,8 @@ class TrialWriter:
         if not ok:
             raise OSError(f"cannot encode {dest} as PNG")
         tmp = dest.with_name(dest.name + ".tmp")
+        wrote(dest)
+        wrote(tmp)
         tmp.write_bytes(encoded.tobytes())
         os.replace(tmp, dest)
 
@@ -223,6 +234,7 @@ class TrialWriter:
         if abs(float(stamp) - self._frame_stamps[k]) > 1e-9:
             raise ValueError(f"write_groundtruth: stamp {stamp!r} differs from frame {k}'s {self._frame_stamps[k]!r}")
         if self._gt_file is None:
+            wrote(self.path / GROUNDTRUTH_FILE)
             self._gt_file = open(self.path / GROUNDTRUTH_FILE, "w")
             self._gt_file.write(TUM_HEADER + "\n")
         self._gt_file.write(format_tum_row(self._frame_stamps[k], T_base_bone))
@@ -244,12 +256,23 @@ class TrialWriter:
             if f is not None and not f.closed:
                 f.close()
 
-    def close(self) -> None:
-        """Flush and close the files, then remove the marker: the trial is complete."""
+    def note(self, key: str, value) -> None:
+        """Set trial.yaml's top-level ``key`` (one the format does not define: ``TrialMeta.extra``) and
+        rewrite trial.yaml atomically; an OSError (a full disk) leaves the earlier trial.yaml."""
+        self.meta.extra[key] = value
+        dump_meta(self.meta, self.path / META_FILE)
+
+    def close(self, complete: bool = True) -> None:
+        """Flush and close the files, then remove the marker: the trial is complete. With
+        ``complete=False`` (frames were lost) the marker stays: readers see an interrupted trial."""
         if self._closed:
             return
         self._closed = True
         self._close_files()
+        if not complete:
+            log.warning("%s: %d frames written, frames were lost: left marked as interrupted", self.path,
+                        len(self._frame_stamps))
+            return
         if self._gt_file is not None and self._n_groundtruth != len(self._frame_stamps):
             log.warning("%s: %d ground-truth poses for %d frames; readers will reject groundtruth.txt",
                         self.path, self._n_groundtruth, len(self._frame_stamps))

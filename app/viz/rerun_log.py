@@ -79,17 +79,20 @@ def transform(T: np.ndarray):
 class RerunLog:
     """One rerun recording (a file or a live viewer) with osteonav's entities."""
 
-    def __init__(self, recording):
+    def __init__(self, recording, file=None):
         self.rec = recording
+        self.file = file
 
     @classmethod
     def to_file(cls, path: str | Path, application_id: str = "osteonav") -> "RerunLog":
+        """A recording written to ``path`` by :class:`app.viz.rrd_file.RrdFile`: a failed write
+        (a full disk) is an OutputError from :meth:`close`, never a hang."""
         import rerun as rr
 
+        from app.viz.rrd_file import RrdFile
+
         rec = rr.RecordingStream(application_id)
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        rec.save(str(path), default_blueprint=blueprint())
-        return cls(rec)
+        return cls(rec, RrdFile(rec, path, blueprint()))
 
     @classmethod
     def spawn(cls, application_id: str = "osteonav") -> "RerunLog":
@@ -187,8 +190,12 @@ class RerunLog:
         self.rec.log(f"{PLOTS}/{name}", rr.TextLog(text))
 
     def close(self) -> None:
-        self.rec.flush()
-        self.rec.disconnect()
+        """Flush and disconnect; with a file, raises OutputError when writing it failed."""
+        if self.file is not None:
+            self.file.close()              # flushes and disconnects
+        else:
+            self.rec.flush()
+            self.rec.disconnect()
 
 
 def display_camera(camera: PinholeCamera) -> PinholeCamera:
