@@ -315,7 +315,10 @@ def test_loop_survives_every_fault_and_recovers(tmp_path, fake_plugins):
     assert lat["median"] >= stages["tracker"]["median"] and lat["max"] >= stages["queue_wait"]["max"]
     assert stages["capture_to_arrival"]["median"] >= -1e-6
     status_lines = (tmp_path / "out" / "status.csv").read_text().splitlines()
-    assert status_lines[0] == "stamp,status" and len(status_lines) == 1 + len(est)
+    assert status_lines[0] == "stamp,status,state,reasons" and len(status_lines) == 1 + len(est)
+    # the frames without a camera pose (the robot's stall) say so in status.csv's reasons column
+    assert any(line.split(",")[1] != "ok" and line.endswith(",no_pose") for line in status_lines[1:])
+    assert all(line.split(",")[3] == "" for line in status_lines[1:] if line.split(",")[1] == "ok")
 
 
 def test_stop_event_ends_the_loop_cleanly(tmp_path, fake_plugins):
