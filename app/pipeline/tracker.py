@@ -154,42 +154,62 @@ class DepthTracker:
         return result
 
     def process(self, depth_m: np.ndarray, stamp: float, T_base_camera: np.ndarray | None) -> FilterOutput:
-        """One frame: full-resolution depth (H, W) metres, its stamp (s) and camera pose (None = unknown)."""
+        """One frame: full-resolution depth (H, W) metres, its stamp (s) and camera pose (None = unknown).
+
+        The steps (DESIGN.md "The status as a test, and the tracker's lifecycle"): start from the point
+        when one is pending; re-initialise when the recovery has one due; the particle filter's step;
+        the refinement and its tests (seen, consistent, unique); the motion test (steady); the caps of
+        a point start and of the recovery (hold, confirmation); the lifecycle's state; the timings."""
         width, height = self.config.resolution
         depth_small = downsample_nearest(depth_m, width, height)
         if self._pending_point is not None:
             if not usable_frame(depth_small, T_base_camera):
                 return self._not_started(stamp)
             self._initialise_from_point(depth_small, T_base_camera)
-        runner = self.recovery_runner
-        reinitialised = False
-        if runner is not None and runner.may_run(depth_small, depth_m, T_base_camera):
-            seconds, reinitialised = runner.run(depth_small, depth_m, T_base_camera, stamp, self._T_base_bone_last)
-            self._timings["recovery_search"] += seconds
+        reinitialised = self._recover(depth_small, depth_m, T_base_camera, stamp)
         result = self.filter.step(depth_small, stamp, T_base_camera)
         if self.refined_track is not None:
             if reinitialised:
                 self.motion_gate.reset()
             result = self._steady(self._refine(result, depth_m, T_base_camera), stamp)
-        if self._started_from_point:                                  # start_from_point: never ok
-            result = replace(result, status=min(result.status, TrackingStatus.UNCERTAIN, key=STATUS_RANK.get),
-                             reasons=result.reasons + (Reason("point_start", "started from a point: never ok"),))
-        if self.recovery is not None:
-            status = self.recovery.update(result.status, result.weighed, result.refined, result.refine_fitness,
-                                          result.T_base_bone, stamp, sharp=result.refine_sharp)
-            cap = (Reason(self.recovery.capped, f"{self.recovery.capped} after a re-initialisation"),) \
-                if self.recovery.capped else ()
-            result = replace(result, status=status, reinitialised=reinitialised, reasons=result.reasons + cap)
+        result = self._caps(result, stamp, reinitialised)
         state = self.lifecycle.update(result, self.recovery, reinitialised)
         result = replace(result, state=state.value,
                          reasons=result.reasons if result.status != TrackingStatus.OK else ())
+        self._account(result)
+        return result
+
+    def _recover(self, depth_small, depth_m, T_base_camera, stamp: float) -> bool:
+        """Run a due re-initialisation (app/pipeline/recovery_runner.py); whether one ran."""
+        runner = self.recovery_runner
+        if runner is None or not runner.may_run(depth_small, depth_m, T_base_camera):
+            return False
+        seconds, reinitialised = runner.run(depth_small, depth_m, T_base_camera, stamp, self._T_base_bone_last)
+        self._timings["recovery_search"] += seconds
+        return reinitialised
+
+    def _caps(self, result: FilterOutput, stamp: float, reinitialised: bool) -> FilterOutput:
+        """The lifecycle's caps on ok: a point start is never ok; the recovery holds the frames after a
+        re-initialisation and a found pose until it is confirmed (app/filter/recovery.py)."""
+        if self._started_from_point:
+            result = replace(result, status=min(result.status, TrackingStatus.UNCERTAIN, key=STATUS_RANK.get),
+                             reasons=result.reasons + (Reason("point_start", "started from a point: never ok"),))
+        if self.recovery is None:
+            return result
+        status = self.recovery.update(result.status, result.weighed, result.refined, result.refine_fitness,
+                                      result.T_base_bone, stamp, sharp=result.refine_sharp)
+        cap = self.recovery.capped
+        reasons = result.reasons + ((Reason(cap, f"{cap} after a re-initialisation"),) if cap else ())
+        return replace(result, status=status, reinitialised=reinitialised, reasons=reasons)
+
+    def _account(self, result: FilterOutput) -> None:
+        """Remember the frame's pose and add its stage timings."""
         self._T_base_bone_last = result.T_base_bone
         for stage, seconds in result.timings.items():
             self._timings[stage] += seconds
         for stage, seconds in self.backend.timings.items():
             self._timings[f"{self.backend_name}_{stage}"] += seconds
         self._frames += 1
-        return result
 
     def _refine(self, result: FilterOutput, depth_m: np.ndarray, T_base_camera: np.ndarray | None) -> FilterOutput:
         """The local refinement on a weighed frame (app/filter/refine_track.py): the refined pose is
