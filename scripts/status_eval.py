@@ -11,6 +11,8 @@ Per run and per label (issue 32's targets):
   percentile), at rest (the true pose unchanged over the last ``REST_S``) and the estimate less than
   1 mm off (ADD);
 - ``ok_over_2mm``: frames ok while ADD > 2 mm (must be 0);
+- ``template_median_mm``: the median over frames of the plan's largest point error (what the surgeon
+  would see; the default projector configuration's plan on the mesh);
 - ``blocked_by``: among the eligible frames not ok, the share each reason code kept from ok
   (status.csv's ``reasons`` column; none for a status.csv without it).
 """
@@ -56,10 +58,15 @@ def score_run(out: Path) -> dict:
     statuses, reasons = _status_rows(out / "status.csv")
     sim = np.genfromtxt(trial / "simulation.csv", delimiter=",", names=True)
     mesh_name = next(p for p in trial.iterdir() if p.suffix in (".ply", ".stl", ".obj"))
-    points = np.asarray(trimesh.load(mesh_name).vertices)[::10]
+    mesh = trimesh.load(mesh_name)
+    points = np.asarray(mesh.vertices)[::10]
+    from app.pipeline.replay import known_plan
+    plan, _ = known_plan(None, mesh)
+    plan_points = np.asarray(plan.points(), float) if plan is not None else points
     n = min(len(t_est), len(statuses), len(t_gt))
     index = np.searchsorted(t_gt, t_est[:n] - 1e-6)
     add = np.array([1e3 * metrics.add(T_est[k], T_gt[j], points) for k, j in enumerate(index)])
+    template = np.array([1e3 * metrics.mdd(T_est[k], T_gt[j], plan_points) for k, j in enumerate(index)])
     ok = np.array(statuses[:n]) == "ok"
     pixels = np.asarray(sim["bone_pixels"], float)[index]
     visible = ((1.0 - np.asarray(sim["occlusion"], float)[index]) >= VISIBLE) & \
@@ -72,7 +79,8 @@ def score_run(out: Path) -> dict:
     n_el = int(eligible.sum())
     return {"frames": n, "eligible": n_el, "eligible_ok": float(ok[eligible].mean()) if n_el else float("nan"),
             "ok": float(ok.mean()), "ok_over_2mm": int(np.sum(ok & (add > DANGER_MM))),
-            "add_median_mm": float(np.median(add)), "max_ok_add_mm": float(add[ok].max()) if ok.any() else 0.0,
+            "add_median_mm": float(np.median(add)), "template_median_mm": float(np.median(template)),
+            "eligible_template_over_1mm": int(np.sum(eligible & (template > GOOD_MM))), "max_ok_add_mm": float(add[ok].max()) if ok.any() else 0.0,
             "blocked_by": {c: v / max(int((eligible & ~ok).sum()), 1) for c, v in blocked.most_common()}}
 
 
@@ -88,11 +96,11 @@ def main(argv=None) -> int:
         rows.setdefault(label, {})[f"{crest}/{scenario}"] = score_run(out)
     for label, runs in rows.items():
         print(f"\n## {label}")
-        print(f"{'run':42s} {'elig':>5s} {'ok|elig':>8s} {'ok':>6s} {'>2mm':>5s} {'ADDmed':>7s}  blocked_by")
+        print(f"{'run':42s} {'elig':>5s} {'ok|elig':>8s} {'ok':>6s} {'>2mm':>5s} {'ADDmed':>7s} {'tmpl':>6s}  blocked_by")
         for name, r in runs.items():
             blocked = ", ".join(f"{c} {100 * v:.0f}%" for c, v in list(r["blocked_by"].items())[:4])
             print(f"{name:42s} {r['eligible']:5d} {100 * r['eligible_ok']:7.1f}% {100 * r['ok']:5.1f}% "
-                  f"{r['ok_over_2mm']:5d} {r['add_median_mm']:7.3f}  {blocked}")
+                  f"{r['ok_over_2mm']:5d} {r['add_median_mm']:7.3f} {r['template_median_mm']:6.2f}  {blocked}")
         shares = [r["eligible_ok"] for r in runs.values() if np.isfinite(r["eligible_ok"])]
         if shares:
             print(f"{'median / worst':42s} {'':5s} {100 * np.median(shares):7.1f}% / {100 * min(shares):.1f}%  "
