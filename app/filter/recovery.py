@@ -192,7 +192,10 @@ class RecoveryConfig:
     silhouette at the last confident pose is not hidden by an occluder); confirm_frames (after one,
     weighed frames in a row that the rules find ok before a pose away from the last ok one may be ok);
     search (the wide search, app/filter/wide_search.py, replaces the one-point SMC attempts);
-    search_evaluations (its likelihood evaluations per search)."""
+    search_evaluations (its likelihood evaluations per search); the triggers' numbers (module
+    docstring, "Trigger"; defaults the module constants): far_m / far_angle (a pose this far from the
+    last ok one is "far"), search_retry_s, never_ok_search_s, sliding_factor, start_sigmas,
+    still_window_s, max_backoff_doublings."""
 
     enabled: bool = True
     after_lost_s: float = 0.11
@@ -207,6 +210,14 @@ class RecoveryConfig:
     confirm_frames: int = 90
     search: bool = True
     search_evaluations: int = 4000
+    far_m: float = FAR_M
+    far_angle: float = FAR_RAD
+    search_retry_s: float = SEARCH_RETRY_S
+    never_ok_search_s: float = NEVER_OK_SEARCH_S
+    sliding_factor: float = SLIDING_FACTOR
+    start_sigmas: float = START_SIGMAS
+    still_window_s: float = STILL_WINDOW_S
+    max_backoff_doublings: int = MAX_BACKOFF_DOUBLINGS
 
 
 class FramePeriod:
@@ -368,7 +379,7 @@ class RecoveryPolicy:
                       f"(sharp share {sharp:.2f} < {self.search_bar:.2f}), {self._gap_text(T_base_bone)} from the last ok pose")
         elif (c.after_uncertain_s and not self._ever_ok and not self.events and not self.declined_searches
               and not self.kept_searches
-              and self._not_ok >= self.period.frames(NEVER_OK_SEARCH_S)):
+              and self._not_ok >= self.period.frames(self.config.never_ok_search_s)):
             self._due(f"never ok for {self._not_ok} weighed frames since the start: one wide search")
         elif self._searching and weighed and not rules_ok and self._far(T_base_bone):
             self._due(f"still searching ({self.declined_searches} searches found nothing, "
@@ -384,7 +395,7 @@ class RecoveryPolicy:
     def _sliding_factor(self) -> float:
         """The sliding trigger's factor on ``after_uncertain_s`` (module docstring, "Trigger", the fifth):
         1 while the track is a found or kept pose awaiting its confirmation, else SLIDING_FACTOR."""
-        return 1.0 if self._unconfirmed else SLIDING_FACTOR
+        return 1.0 if self._unconfirmed else self.config.sliding_factor
 
     def _back_in_view(self, weighed: bool) -> int:
         """The count of not-weighed frames (not ok) just ended by a weighed one when it reached
@@ -423,14 +434,15 @@ class RecoveryPolicy:
         if self.T_base_bone_confident is None:
             return True
         dist, angle = self._gap(T_base_bone)
-        return dist > FAR_M or angle > FAR_RAD
+        return dist > self.config.far_m or angle > self.config.far_angle
 
     def _beyond_start(self, T_base_bone: np.ndarray) -> bool:
         """Never ok and outside the start's prior: more than START_SIGMAS start sigmas from it."""
         if self._ever_ok or self.T_base_bone_start is None:
             return False
         dist, angle = pose_gap(self.T_base_bone_start, T_base_bone)
-        return dist > START_SIGMAS * self.start_sigmas[0] or angle > START_SIGMAS * self.start_sigmas[1]
+        k = self.config.start_sigmas
+        return dist > k * self.start_sigmas[0] or angle > k * self.start_sigmas[1]
 
     def _gap_text(self, T_base_bone: np.ndarray) -> str:
         dist, angle = self._gap(T_base_bone) if self.T_base_bone_confident is not None else (math.nan, math.nan)
@@ -439,7 +451,7 @@ class RecoveryPolicy:
     def _moving(self, stamp: float, T_base_bone: np.ndarray) -> bool:
         """Whether the estimate moved faster than ``still`` over the window (ending at this frame)."""
         speed, angular, window = self.still
-        window = max(window, STILL_WINDOW_S)
+        window = max(window, self.config.still_window_s)
         self._recent.append((float(stamp), np.array(T_base_bone, float)))
         while len(self._recent) > 2 and stamp - self._recent[1][0] >= window:
             self._recent.popleft()
@@ -469,7 +481,7 @@ class RecoveryPolicy:
     def _cooldown(self) -> int:
         """After attempt k (attempts counts it already): cooldown_s (in frames) * 2^min(k, 3)."""
         k = max(self._attempts - 1, 0)
-        return self.period.frames(self.config.cooldown_s) * 2 ** min(k, MAX_BACKOFF_DOUBLINGS)
+        return self.period.frames(self.config.cooldown_s) * 2 ** min(k, self.config.max_backoff_doublings)
 
     def next_kind(self) -> str:
         """The kind of the due attempt (module docstring)."""
@@ -497,7 +509,7 @@ class RecoveryPolicy:
         self.declined_searches += 1
         self._searching = True
         self._not_ok_moving = 0
-        self._since, self._wait = 0, self.period.frames(SEARCH_RETRY_S)
+        self._since, self._wait = 0, self.period.frames(self.config.search_retry_s)
 
     def kept(self) -> None:
         """The due wide search kept the track: the current estimate, refined in place, explained the
