@@ -25,6 +25,13 @@ def register(subparsers) -> None:
                    "trials of seed N are cached in <cache>/<mesh>/<scenario>_seedN, each simulated just before its "
                    "first run, and the JSON is rewritten after every run (a partial matrix stays usable)")
     p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1: frames/s are then not shared)")
+    p.add_argument("--executor", choices=("local", "ray"), default="local", help="where the runs execute: local "
+                   "(this machine, --jobs processes; default) or ray (one Ray task per run; needs pip install -e '.[ray]'; "
+                   "see BENCHMARKS.md, Sweeps on a Ray cluster)")
+    p.add_argument("--address", metavar="auto|HOST:PORT", help="with --executor ray: the cluster (auto: the one "
+                   "`ray start` began on this machine; HOST:PORT: its head); default: a Ray instance started for this bench")
+    p.add_argument("--task-memory", type=float, metavar="GB", help="with --executor ray: memory reserved per run "
+                   "(GiB; default 1)")
     p.add_argument("--quick", action="store_true", help="a short run (minutes): 3 configurations (osteonav_default, A_cpu, "
                    "icp) on static_clear (1.5 s) and bone_moves (3.5 s, until its move ends), the default mesh only")
     from app.sim.scenarios import SCENARIOS, STANDARD
@@ -75,11 +82,8 @@ def parse_seconds(items) -> float | dict | None:
 
 
 def run(args) -> int:
-    import logging
-    import platform
-    import time
-
     from app.bench import bench
+    from app.bench.executors import make_executor
     from app.errors import ConfigError
 
     if args.jobs < 1:
@@ -89,6 +93,20 @@ def run(args) -> int:
         raise ConfigError("--sensors", "applies to simulated trials only: give --sensors or --trials, not both "
                           "(a recorded trial's model is in its trial.yaml)")
     bench.parse_sensors(args.sensors)   # an unknown model is refused before any output is touched
+    executor = make_executor(args.executor, args.jobs, args.address, args.task_memory)
+    try:
+        return _run(args, executor)
+    finally:
+        executor.close()
+
+
+def _run(args, executor) -> int:
+    import logging
+    import platform
+    import time
+
+    from app.bench import bench
+
     args.json = str(results_file(args.json, DEFAULT_JSON, args.overwrite))
     configs = bench.resolve_configs(args.configs or (bench.QUICK_CONFIGS if args.quick else None))
     if args.plots:
@@ -106,17 +124,20 @@ def run(args) -> int:
         if not args.meshes and not args.quick and not bench.pelvis_crest_meshes():
             logging.getLogger(__name__).warning("no pelvis crest meshes at %s: the default mesh only", bench.PELVIS_DIR)
         trials = bench.standard_trials(args.cache, scenarios, seconds, meshes, jobs=args.jobs, seeds=args.seeds,
-                                       lazy=bool(args.seeds), sensors=args.sensors)
+                                       lazy=bool(args.seeds) or executor.name == "ray", sensors=args.sensors)
     print(f"{len(configs)} configurations x {len(trials)} trials "
-          f"({sum(t.max_frames or t.frames for t in trials)} frames each configuration), {args.jobs} process(es)")
+          f"({sum(t.max_frames or t.frames for t in trials)} frames each configuration), {executor.describe()}")
     for c in configs:
         print(f"  {c.name:<18} {c.describe()}")
     meta = {"machine": platform.platform(), "processor": platform.processor(), "jobs": args.jobs,
+            "executor": executor.name, **({"cluster": executor.cluster()} if executor.name == "ray" else {}),
             "seconds": seconds, "seeds": args.seeds or [0], "configs": {c.name: c.describe() for c in configs},
             "planned_runs": len(configs) * len(trials)}
     t0 = time.perf_counter()
-    on_row = (lambda rows: bench.write_json(rows, args.json, {**meta, "partial": True})) if args.seeds else None
-    rows = bench.run_bench(configs, trials, jobs=args.jobs, out_dir=args.out, with_vsd=not args.no_vsd, on_row=on_row)
+    stream = args.seeds or executor.name == "ray"   # the JSON after every run: a long sweep's partial matrix
+    on_row = (lambda rows: bench.write_json(rows, args.json, {**meta, "partial": True})) if stream else None
+    rows = bench.run_bench(configs, trials, out_dir=args.out, with_vsd=not args.no_vsd, on_row=on_row,
+                           executor=executor)
     elapsed = time.perf_counter() - t0
     gl = next((r["gl"] for r in rows if r["tracker"] == "particle_filter" and r.get("gl")), None)
     print(f"\n{gl or ''}  ({platform.processor() or platform.machine()}, {elapsed:.0f} s)\n")

@@ -1,0 +1,134 @@
+"""``osteonav bench --executor local|ray``: the same rows from a Ray cluster as from this machine,
+trials shipped to a worker that does not see them, and the options' refusals."""
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+from app.bench import bench, bundles
+from app.bench.ray_executor import run_remote
+
+TRIAL_SECONDS = 0.5
+TIMING_KEYS = ("fps", "wall_s", "timings_ms")
+TINY = "filter:\n  particles: 40\nrender:\n  resolution: [40, 30]\n  mesh_triangles: 300\n"
+
+
+def _comparable(row: dict) -> str:
+    """The row without its timings and its trial path, as JSON text (NaN equal to NaN)."""
+    return json.dumps({k: v for k, v in row.items() if k not in TIMING_KEYS + ("trial_path",)}, sort_keys=True)
+
+
+@pytest.fixture(scope="module")
+def trial(tmp_path_factory) -> Path:
+    from app.sim.simulator import DEFAULT_MESH, simulate
+
+    out = tmp_path_factory.mktemp("executors") / "static_clear"
+    simulate(out, DEFAULT_MESH, "static_clear", seconds=TRIAL_SECONDS, seed=0)
+    return out
+
+
+@pytest.fixture
+def tiny(tmp_path) -> Path:
+    path = tmp_path / "tiny.yaml"
+    path.write_text(TINY)
+    return path
+
+
+# --------------------------------------------------------------------------- options
+
+def test_executor_ray_without_ray_says_how_to_install_it(monkeypatch, tmp_path, tiny, capsys):
+    from app.cli import main
+
+    monkeypatch.setitem(sys.modules, "ray", None)   # `import ray` raises ImportError
+    out_json = tmp_path / "bench.json"
+    rc = main(["bench", "--executor", "ray", "--configs", str(tiny), "--json", str(out_json)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1
+    assert "--executor" in err[0] and "pip install -e '.[ray]'" in err[0]
+    assert not out_json.exists()
+
+
+@pytest.mark.parametrize("argv, key", [(["--address", "auto"], "--address"), (["--task-memory", "2"], "--task-memory"),
+                                       (["--executor", "ray", "--jobs", "2"], "--jobs")])
+def test_ray_options_are_refused_where_they_do_not_apply(tmp_path, tiny, capsys, argv, key):
+    from app.cli import main
+
+    rc = main(["bench", *argv, "--configs", str(tiny), "--json", str(tmp_path / "b.json")])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"'{key}'" in err and "Traceback" not in err
+
+
+# --------------------------------------------------------------------------- bundles
+
+def test_a_packed_trial_unpacks_to_the_same_fingerprint_and_an_edit_changes_it(trial, tmp_path):
+    key = bundles.fingerprint(trial)
+    copy = bundles.unpack(bundles.pack(trial), tmp_path / "copy")
+    assert bundles.fingerprint(copy) == key
+    assert sorted(p.relative_to(copy) for p in copy.rglob("*")) == sorted(p.relative_to(trial) for p in trial.rglob("*"))
+    (copy / "groundtruth.txt").write_text((copy / "groundtruth.txt").read_text() + "\n")
+    assert bundles.fingerprint(copy) != key
+    shutil.rmtree(copy / "depth")
+    (copy / "depth").mkdir()
+    assert bundles.fingerprint(copy) != key
+    assert bundles.fingerprint(tmp_path / "nothing") is None
+
+
+def test_a_worker_that_does_not_see_the_trial_asks_for_it_then_runs_the_shipped_copy(trial, tiny, tmp_path,
+                                                                                       monkeypatch):
+    """run_remote (a Ray task's body, called here in this process): the trial's path missing or
+    holding another trial is "missing"; with the packed trial it runs on the copy unpacked in the
+    node's cache, and its row is the local run's but for timings (trial_path the driver's)."""
+    import tempfile
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "node_tmp"))
+    (tmp_path / "node_tmp").mkdir()
+    config = bench.resolve_configs([str(tiny)])[0]
+    key = bundles.fingerprint(trial)
+    elsewhere = bench.TrialSpec(str(tmp_path / "not_here"), "iliac_crest", "static_clear", frames=1)
+    task = {"config": config, "trial": elsewhere, "out_dir": "runs/x", "with_vsd": False}
+    assert run_remote(task, key)["missing"] == elsewhere.path
+    stale = bench.TrialSpec(str(trial), "iliac_crest", "static_clear")
+    assert "missing" in run_remote({**task, "trial": stale}, "0" * 40)
+
+    result = run_remote(task, key, bundles.pack(trial))
+    assert bundles.fingerprint(bundles.node_cache() / key) == key
+    local = bench.run_one(config, bench.TrialSpec(str(trial), "iliac_crest", "static_clear"), with_vsd=False)
+    assert result["row"]["trial_path"] == elsewhere.path
+    assert _comparable(result["row"]) == _comparable(local)
+    outputs = bundles.unpack(result["out"], tmp_path / "out")
+    assert (outputs / "estimate.txt").is_file() and (outputs / "status.csv").is_file()
+
+
+# --------------------------------------------------------------------------- a local Ray instance
+
+def test_ray_executor_gives_the_local_rows_and_simulates_the_same_trials(tmp_path, tiny):
+    """`osteonav bench` with --executor local and --executor ray (a Ray instance started for the
+    bench) on one 0.5 s scenario: identical rows but for timings, identical simulated trials, the
+    ray run's trial reusable from its cache, and its --out files where a local run puts them."""
+    pytest.importorskip("ray")
+    from app.cli import main
+    from app.sim.simulator import DEFAULT_MESH
+
+    common = ["bench", "--configs", str(tiny), "--scenarios", "static_clear", "--seconds", str(TRIAL_SECONDS),
+              "--meshes", str(DEFAULT_MESH), "--seeds", "0", "--no-vsd"]
+    runs = {}
+    for name in ("local", "ray"):
+        out_json = tmp_path / f"{name}.json"
+        rc = main([*common, "--executor", name, "--cache", str(tmp_path / f"cache_{name}"), "--json", str(out_json),
+                   "--out", str(tmp_path / f"out_{name}")])
+        assert rc == 0, name
+        runs[name] = json.loads(out_json.read_text())
+    assert runs["ray"]["meta"]["executor"] == "ray" and runs["ray"]["meta"]["cluster"]["cpus"] >= 1
+    assert [_comparable(r) for r in runs["ray"]["rows"]] == [_comparable(r) for r in runs["local"]["rows"]]
+    assert len(runs["ray"]["rows"]) == 1 and "partial" not in runs["ray"]["meta"]
+    trials = {name: tmp_path / f"cache_{name}" / DEFAULT_MESH.stem / "static_clear" for name in runs}
+    assert bundles.fingerprint(trials["ray"]) == bundles.fingerprint(trials["local"]) is not None
+    again = bench.standard_trials(tmp_path / "cache_ray", ["static_clear"], TRIAL_SECONDS, [DEFAULT_MESH], seeds=[0],
+                                  lazy=True, progress=False)
+    assert again[0].simulation is None   # the cache is valid: a second bench does not simulate again
+    run_out = Path("tiny") / DEFAULT_MESH.stem / "static_clear" / "estimate.txt"
+    assert (tmp_path / "out_ray" / run_out).read_text() == (tmp_path / "out_local" / run_out).read_text()
