@@ -132,3 +132,30 @@ def test_ray_executor_gives_the_local_rows_and_simulates_the_same_trials(tmp_pat
     assert again[0].simulation is None   # the cache is valid: a second bench does not simulate again
     run_out = Path("tiny") / DEFAULT_MESH.stem / "static_clear" / "estimate.txt"
     assert (tmp_path / "out_ray" / run_out).read_text() == (tmp_path / "out_local" / run_out).read_text()
+
+
+# --------------------------------------------------------------------------- the partial matrix
+
+def test_partial_json_writes_after_every_run_while_writing_stays_under_its_share():
+    """A manual clock: each write takes 1/8 s per row; runs finish every 1 s. With share 1/8, a
+    write of w s starting at t is followed by no other before t + 8 w: the first two runs are
+    written each, then the gaps grow with the rows (here they double), and the writes take at
+    most an eighth of the time."""
+    from app.bench.partial import PartialJson
+
+    now = [0.0]
+    written = []
+
+    def write(rows, path, meta):
+        assert meta["partial"] is True and meta["planned_runs"] == 40 and path == "b.json"
+        written.append((now[0], len(rows)))
+        now[0] += 0.125 * len(rows)
+
+    partial = PartialJson("b.json", {"planned_runs": 40}, share=0.125, clock=lambda: now[0], write=write)
+    rows = []
+    for k in range(40):
+        now[0] = max(now[0], float(k))   # run k finishes at k s (or when the last write ended)
+        rows.append({"run": k})
+        partial(rows)
+    assert written == [(0.0, 1), (1.0, 2), (3.0, 4), (7.0, 8), (15.0, 16), (31.0, 32)]
+    assert sum(0.125 * n for _, n in written) <= 0.125 * (written[-1][0] + 8 * 0.125 * written[-1][1])

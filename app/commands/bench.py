@@ -23,7 +23,8 @@ def register(subparsers) -> None:
                    "the first S seconds); NAME=S for one scenario, e.g. --seconds 3 bone_moves=4.5")
     p.add_argument("--seeds", nargs="+", type=int, metavar="N", help="simulation seeds (default: 0); several seeds: "
                    "trials of seed N are cached in <cache>/<mesh>/<scenario>_seedN, each simulated just before its "
-                   "first run, and the JSON is rewritten after every run (a partial matrix stays usable)")
+                   "first run, and the JSON is rewritten as the runs finish (a partial matrix stays usable; after every run "
+                   "while writing takes under 10 %% of the time)")
     p.add_argument("--jobs", type=int, default=1, help="parallel processes (default 1: frames/s are then not shared)")
     p.add_argument("--executor", choices=("local", "ray"), default="local", help="where the runs execute: local "
                    "(this machine, --jobs processes; default) or ray (one Ray task per run; needs pip install -e '.[ray]'; "
@@ -106,6 +107,7 @@ def _run(args, executor) -> int:
     import time
 
     from app.bench import bench
+    from app.bench.partial import PartialJson
 
     args.json = str(results_file(args.json, DEFAULT_JSON, args.overwrite))
     configs = bench.resolve_configs(args.configs or (bench.QUICK_CONFIGS if args.quick else None))
@@ -135,7 +137,7 @@ def _run(args, executor) -> int:
             "planned_runs": len(configs) * len(trials)}
     t0 = time.perf_counter()
     stream = args.seeds or executor.name == "ray"   # the JSON after every run: a long sweep's partial matrix
-    on_row = (lambda rows: bench.write_json(rows, args.json, {**meta, "partial": True})) if stream else None
+    on_row = PartialJson(args.json, meta) if stream else None
     rows = bench.run_bench(configs, trials, out_dir=args.out, with_vsd=not args.no_vsd, on_row=on_row,
                            executor=executor)
     elapsed = time.perf_counter() - t0
