@@ -159,3 +159,16 @@ def test_partial_json_writes_after_every_run_while_writing_stays_under_its_share
         partial(rows)
     assert written == [(0.0, 1), (1.0, 2), (3.0, 4), (7.0, 8), (15.0, 16), (31.0, 32)]
     assert sum(0.125 * n for _, n in written) <= 0.125 * (written[-1][0] + 8 * 0.125 * written[-1][1])
+
+
+def test_osteonav_errors_survive_pickling_so_a_worker_can_raise_them():
+    """A run in a spawned process or a Ray task raises in the worker; the driver unpickles the error."""
+    import pickle
+
+    from app.errors import ConfigError, TrialFormatError
+
+    for exc in (ConfigError("filter.particles", "expected > 0, got -1", "my.yaml"),
+                TrialFormatError("trial/frames.csv", "bad row", "line 3")):
+        back = pickle.loads(pickle.dumps(exc))
+        assert type(back) is type(exc) and str(back) == str(exc)
+    assert pickle.loads(pickle.dumps(ConfigError("k", "m"))).key == "k"

@@ -4,13 +4,16 @@
   (default :data:`DEFAULT_TASK_MEMORY_GB`); Ray runs as many at once as the nodes' CPUs and memory
   allow. The driver keeps :data:`WINDOW_PER_CPU` tasks per cluster CPU submitted (a long sweep does
   not flood the scheduler) and collects them with ``ray.wait``.
-- **Code.** The driver's packages (``app``, ``plugins``, ``calibration``) go with the job
-  (``ray.init(runtime_env={"py_modules": ...})``), so that every node runs the driver's version;
-  the nodes need the dependencies installed (``pip install -e '.[ray]'`` on each).
+- **Code.** The driver's checkout goes with the job as its working directory (``ray.init(runtime_env=
+  {"working_dir": REPO})``: the packages, ``configs/`` and ``meshes/``; not :data:`NOT_SHIPPED` nor
+  what ``.gitignore`` names, about 1.5 MB), so that every node runs the driver's version and finds
+  the files the code reads beside it; the nodes need the dependencies installed
+  (``pip install -e '.[ray]'`` on each).
 - **Trials.** A worker reads the trial from its path when it sees the same trial there
   (:func:`app.bench.bundles.fingerprint`; a shared file system). Otherwise the task answers
   "missing", and the driver packs the trial once into a Ray object (:mod:`app.bench.bundles`) and
-  sends the task again with it; the worker unpacks it once per machine.
+  sends the task again with it; the worker unpacks it once per machine, and after the trial's last
+  run every node removes its copy.
 - **Lazy trials** (``bench --seeds``): a trial not yet simulated is simulated by a task of its own
   just before its first run (the mesh file goes with it); the driver unpacks the result into its
   cache folder, so that a second bench reuses it as a local one would.
@@ -30,13 +33,14 @@ from dataclasses import replace
 from pathlib import Path
 
 from app.bench import bundles
+from app.bench.configs import REPO
 from app.errors import ConfigError
 
 TASK_CPUS = 1
 DEFAULT_TASK_MEMORY_GB = 1.0   # a 0.5 s trial's run peaks at 0.39 GB RSS (BENCHMARKS.md)
 WINDOW_PER_CPU = 2
 RAY_INSTALL = "pip install -e '.[ray]'"
-SHIPPED_PACKAGES = ("app", "plugins", "calibration")
+NOT_SHIPPED = ["tests/", "docs/", "plans/", "recordings/", ".git/", ".venv/", "*.rrd"]
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +78,13 @@ def run_remote(task: dict, key: str, bundle: bytes | None = None) -> dict:
     return {"row": row, "out": files}
 
 
+def forget_remote(key: str) -> None:
+    """Remove a shipped trial from this machine's cache (its last run has finished)."""
+    import shutil
+
+    shutil.rmtree(bundles.node_cache() / key, ignore_errors=True)
+
+
 def simulate_remote(simulation: dict, mesh: bytes) -> bytes:
     """Simulate a lazy trial on a worker (``simulation``: :class:`app.bench.trials.TrialSpec`'s) and
     return it packed. ``mesh`` is the mesh file's content: a worker that lacks the file at its path
@@ -103,9 +114,9 @@ def simulate_remote(simulation: dict, mesh: bytes) -> bytes:
 
 class RayExecutor:
     """Bench runs as Ray tasks on the cluster at ``address`` (``auto``: the one started on this
-    machine with ``ray start``; ``HOST:PORT``: its head; None: a Ray instance started here for
-    this bench). A process already connected to Ray keeps its connection, and its ``runtime_env``
-    decides the code the workers import."""
+    machine with ``ray start``; ``HOST:PORT``: its head; None: that one if there is one, else a
+    Ray instance started here for this bench, ``ray.init``'s rule). A process already connected to Ray keeps its connection, and its ``runtime_env``
+    decides the code the workers import (module docstring)."""
 
     name = "ray"
 
@@ -126,7 +137,7 @@ class RayExecutor:
             kwargs = {"include_dashboard": False} if self.address is None else {}
             try:
                 ray.init(address=self.address, log_to_driver=True,
-                         runtime_env={"py_modules": _shipped_modules()}, **kwargs)
+                         runtime_env={"working_dir": str(REPO), "excludes": NOT_SHIPPED}, **kwargs)
             except ConnectionError as exc:
                 raise ConfigError("--address", f"no Ray cluster at '{self.address}' ({exc}); start one with "
                                   "`ray start --head`, or give its head's HOST:PORT") from None
@@ -134,6 +145,7 @@ class RayExecutor:
         options = {"num_cpus": TASK_CPUS, "memory": int(self.task_memory_gb * 2**30)}
         self._run = ray.remote(**options)(run_remote)
         self._simulate = ray.remote(**options)(simulate_remote)
+        self._forget = ray.remote(num_cpus=0)(forget_remote)
         self._connected = True
 
     def cluster(self) -> dict:
@@ -179,6 +191,7 @@ class RayExecutor:
                         on_row(rows)
                     bar.set_postfix_str(f"{row['config']} on {row['trial']}")
                     bar.update(1)
+                sweep.wait_cleanups()
             finally:
                 sweep.cancel()
         return rows
@@ -197,6 +210,7 @@ class _Sweep:
         self.keys: dict[str, str] = {}       # trial path -> fingerprint
         self.shipped: dict[str, object] = {}  # trial path -> ObjectRef of the packed trial
         self.inflight: dict = {}               # ObjectRef -> ("run", task) | ("sim", group)
+        self.cleanups: list = []               # forget_remote tasks of shipped trials
         self.window = max(2, WINDOW_PER_CPU * executor.cluster()["cpus"] // TASK_CPUS)
 
     def rows(self):
@@ -205,7 +219,7 @@ class _Sweep:
             self._fill()
             [ref], _ = self.ray.wait(list(self.inflight), num_returns=1)
             kind, item = self.inflight.pop(ref)
-            result = self.ray.get(ref)
+            result = self._get(ref)
             if kind == "sim":
                 self._simulated(item, result)
                 continue
@@ -220,6 +234,18 @@ class _Sweep:
                 bundles.unpack(result["out"], item["out_dir"])
             self._finished(item["trial"].path)
             yield result["row"]
+
+    def _get(self, ref):
+        """The task's result; an osteonav error raised in the worker is raised here as itself
+        (one line for the command), any other as Ray's error with the worker's traceback."""
+        from app.errors import OsteonavError
+
+        try:
+            return self.ray.get(ref)
+        except self.ray.exceptions.RayTaskError as exc:
+            if isinstance(exc.cause, OsteonavError):
+                raise exc.cause from None
+            raise
 
     def cancel(self) -> None:
         """Cancel what is still running (after an error or an interruption)."""
@@ -265,12 +291,18 @@ class _Sweep:
 
     def _finished(self, path: str) -> None:
         self.left[path] -= 1
-        if not self.left[path]:
-            self.shipped.pop(path, None)   # the last run of this trial: its object can go
+        if not self.left[path] and self.shipped.pop(path, None) is not None:
+            self._forget_everywhere(self.keys[path])   # its last run: the object and the nodes' copies go
 
+    def _forget_everywhere(self, key: str) -> None:
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-def _shipped_modules() -> list[str]:
-    """The folders of the driver's packages that the workers import (``runtime_env.py_modules``)."""
-    import importlib
+        for node in self.ray.nodes():
+            if node.get("Alive"):
+                strategy = NodeAffinitySchedulingStrategy(node["NodeID"], soft=False)
+                self.cleanups.append(self.ex._forget.options(scheduling_strategy=strategy).remote(key))
 
-    return [str(Path(importlib.import_module(name).__file__).parent) for name in SHIPPED_PACKAGES]
+    def wait_cleanups(self, timeout_s: float = 60.0) -> None:
+        """Wait (a while) for the shipped trials' copies to be removed from the nodes."""
+        if self.cleanups:
+            self.ray.wait(self.cleanups, num_returns=len(self.cleanups), timeout=timeout_s)

@@ -30,7 +30,8 @@ def register(subparsers) -> None:
                    "(this machine, --jobs processes; default) or ray (one Ray task per run; needs pip install -e '.[ray]'; "
                    "see BENCHMARKS.md, Sweeps on a Ray cluster)")
     p.add_argument("--address", metavar="auto|HOST:PORT", help="with --executor ray: the cluster (auto: the one "
-                   "`ray start` began on this machine; HOST:PORT: its head); default: a Ray instance started for this bench")
+                   "`ray start` began on this machine; HOST:PORT: its head); default: that one if any, else a Ray instance "
+                   "started for this bench")
     p.add_argument("--task-memory", type=float, metavar="GB", help="with --executor ray: memory reserved per run "
                    "(GiB; default 1)")
     p.add_argument("--quick", action="store_true", help="a short run (minutes): 3 configurations (osteonav_default, A_cpu, "
