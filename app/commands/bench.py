@@ -137,7 +137,7 @@ def _run(args, executor) -> int:
             "seconds": seconds, "seeds": args.seeds or [0], "configs": {c.name: c.describe() for c in configs},
             "planned_runs": len(configs) * len(trials)}
     t0 = time.perf_counter()
-    stream = args.seeds or executor.name == "ray"   # the JSON after every run: a long sweep's partial matrix
+    stream = args.seeds or executor.name == "ray"   # the JSON as runs finish: a long sweep's partial matrix
     on_row = PartialJson(args.json, meta) if stream else None
     rows = bench.run_bench(configs, trials, out_dir=args.out, with_vsd=not args.no_vsd, on_row=on_row,
                            executor=executor)
