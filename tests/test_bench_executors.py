@@ -172,3 +172,15 @@ def test_osteonav_errors_survive_pickling_so_a_worker_can_raise_them():
         back = pickle.loads(pickle.dumps(exc))
         assert type(back) is type(exc) and str(back) == str(exc)
     assert pickle.loads(pickle.dumps(ConfigError("k", "m"))).key == "k"
+
+
+@pytest.mark.parametrize("address, says", [("127.0.0.1:1", "no Ray cluster answers at 127.0.0.1:1"),
+                                           ("headnode", "expected auto or HOST:PORT")])
+def test_an_address_without_a_cluster_is_refused_at_once(address, says):
+    """ray.init would retry an unreachable head for minutes; the bench says so in one line instead."""
+    from app.bench.ray_executor import _check_reachable
+    from app.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="--address") as info:
+        _check_reachable(address, timeout_s=2.0)
+    assert says in str(info.value)

@@ -112,6 +112,21 @@ def simulate_remote(simulation: dict, mesh: bytes) -> bytes:
 
 # --------------------------------------------------------------------------- on the driver
 
+def _check_reachable(address: str | None, timeout_s: float = 5.0) -> None:
+    """ConfigError naming ``--address`` when ``HOST:PORT`` (or ``ray://HOST:PORT``) takes no
+    connection (``ray.init`` would retry for minutes); None and ``auto`` are ``ray.init``'s to find."""
+    if address in (None, "auto"):
+        return
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not port.isdigit():
+        raise ConfigError("--address", f"expected auto or HOST:PORT (the head's, e.g. 10.0.0.5:6379), got '{address}'")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        raise ConfigError("--address", f"no Ray cluster answers at {address} ({exc}); start one there with "
+                          "`ray start --head --port PORT`, or give its head's HOST:PORT") from None
+
+
 class RayExecutor:
     """Bench runs as Ray tasks on the cluster at ``address`` (``auto``: the one started on this
     machine with ``ray start``; ``HOST:PORT``: its head; None: that one if there is one, else a
@@ -134,6 +149,7 @@ class RayExecutor:
             return
         ray = self.ray
         if not ray.is_initialized():
+            _check_reachable(self.address)
             kwargs = {"include_dashboard": False} if self.address is None else {}
             try:
                 ray.init(address=self.address, log_to_driver=True,
