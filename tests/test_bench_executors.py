@@ -18,8 +18,13 @@ TINY = "filter:\n  particles: 40\nrender:\n  resolution: [40, 30]\n  mesh_triang
 
 
 def _comparable(row: dict) -> str:
-    """The row without its timings and its trial path, as JSON text (NaN equal to NaN)."""
-    return json.dumps({k: v for k, v in row.items() if k not in TIMING_KEYS + ("trial_path",)}, sort_keys=True)
+    """The row without its timings, its backend's thread count and its trial path, as JSON text
+    (NaN equal to NaN)."""
+    import re
+
+    kept = {k: v for k, v in row.items() if k not in TIMING_KEYS + ("trial_path",)}
+    kept["gl"] = re.sub(r"\d+ threads", "N threads", kept.get("gl") or "")
+    return json.dumps(kept, sort_keys=True)
 
 
 @pytest.fixture(scope="module")
@@ -107,7 +112,8 @@ def test_a_worker_that_does_not_see_the_trial_asks_for_it_then_runs_the_shipped_
 
 def test_ray_executor_gives_the_local_rows_and_simulates_the_same_trials(tmp_path, tiny):
     """`osteonav bench` with --executor local and --executor ray (a Ray instance started for the
-    bench) on one 0.5 s scenario: identical rows but for timings, identical simulated trials, the
+    bench) on one 0.5 s scenario: identical rows but for timings (and the thread count the backend
+    names: a Ray run has 1 CPU), identical simulated trials, the
     ray run's trial reusable from its cache, and its --out files where a local run puts them."""
     pytest.importorskip("ray")
     from app.cli import main
@@ -125,6 +131,8 @@ def test_ray_executor_gives_the_local_rows_and_simulates_the_same_trials(tmp_pat
     assert runs["ray"]["meta"]["executor"] == "ray" and runs["ray"]["meta"]["cluster"]["cpus"] >= 1
     assert [_comparable(r) for r in runs["ray"]["rows"]] == [_comparable(r) for r in runs["local"]["rows"]]
     assert len(runs["ray"]["rows"]) == 1 and "partial" not in runs["ray"]["meta"]
+    gl = runs["ray"]["rows"][0]["gl"] or ""
+    assert "threads" not in gl or "1 threads" in gl   # a run's numba threads are its 1 CPU
     trials = {name: tmp_path / f"cache_{name}" / DEFAULT_MESH.stem / "static_clear" for name in runs}
     assert bundles.fingerprint(trials["ray"]) == bundles.fingerprint(trials["local"]) is not None
     again = bench.standard_trials(tmp_path / "cache_ray", ["static_clear"], TRIAL_SECONDS, [DEFAULT_MESH], seeds=[0],

@@ -1,7 +1,8 @@
 """Bench runs on a Ray cluster: each (trial, configuration, seed) run is one Ray task.
 
 - **Resources.** A run is a task of :data:`TASK_CPUS` CPU and ``task_memory_gb`` GiB of memory
-  (default :data:`DEFAULT_TASK_MEMORY_GB`); Ray runs as many at once as the nodes' CPUs and memory
+  (default :data:`DEFAULT_TASK_MEMORY_GB`), and its numba kernels use that many threads (a
+  hypothesis's likelihood does not depend on the thread count: the rows stay the same); Ray runs as many at once as the nodes' CPUs and memory
   allow. The driver keeps :data:`WINDOW_PER_CPU` tasks per cluster CPU submitted (a long sweep does
   not flood the scheduler) and collects them with ``ray.wait``.
 - **Code.** The driver's checkout goes with the job as its working directory (``ray.init(runtime_env=
@@ -112,6 +113,12 @@ def simulate_remote(simulation: dict, mesh: bytes) -> bytes:
 
 # --------------------------------------------------------------------------- on the driver
 
+def runtime_env() -> dict:
+    """The job's runtime environment: the checkout (module docstring) and a run's threads, numba's
+    included, held to its :data:`TASK_CPUS` (Ray sets ``OMP_NUM_THREADS`` itself)."""
+    return {"working_dir": str(REPO), "excludes": NOT_SHIPPED, "env_vars": {"NUMBA_NUM_THREADS": str(TASK_CPUS)}}
+
+
 def _check_reachable(address: str | None, timeout_s: float = 5.0) -> None:
     """ConfigError naming ``--address`` when ``HOST:PORT`` (or ``ray://HOST:PORT``) takes no
     connection (``ray.init`` would retry for minutes); None and ``auto`` are ``ray.init``'s to find."""
@@ -153,7 +160,7 @@ class RayExecutor:
             kwargs = {"include_dashboard": False} if self.address is None else {}
             try:
                 ray.init(address=self.address, log_to_driver=True,
-                         runtime_env={"working_dir": str(REPO), "excludes": NOT_SHIPPED}, **kwargs)
+                         runtime_env=runtime_env(), **kwargs)
             except ConnectionError as exc:
                 raise ConfigError("--address", f"no Ray cluster at '{self.address}' ({exc}); start one with "
                                   "`ray start --head`, or give its head's HOST:PORT") from None
