@@ -192,3 +192,25 @@ def test_an_address_without_a_cluster_is_refused_at_once(address, says):
     with pytest.raises(ConfigError, match="--address") as info:
         _check_reachable(address, timeout_s=2.0)
     assert says in str(info.value)
+
+
+def test_unpacking_a_run_s_outputs_keeps_what_the_folder_already_holds(tmp_path):
+    """The driver unpacks a Ray run's output folder with replace=False: files there stay."""
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "estimate.txt").write_text("new")
+    dest = tmp_path / "dest"
+    dest.mkdir()
+    (dest / "notes.txt").write_text("mine")
+    (dest / "estimate.txt").write_text("old")
+    bundles.unpack(bundles.pack(src), dest, replace=False)
+    assert (dest / "notes.txt").read_text() == "mine" and (dest / "estimate.txt").read_text() == "new"
+
+
+@pytest.mark.parametrize("text", ["0", "-1", "nan", "inf", "x"])
+def test_task_memory_is_checked_at_parse_time(text, capsys):
+    from app.cli import build_parser
+
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(["bench", "--executor", "ray", "--task-memory", text])
+    assert exc.value.code == 2 and "--task-memory" in capsys.readouterr().err

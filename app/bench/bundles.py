@@ -45,11 +45,16 @@ def pack(folder: str | Path) -> bytes:
     return buf.getvalue()
 
 
-def unpack(data: bytes, dest: str | Path) -> Path:
+def unpack(data: bytes, dest: str | Path, replace: bool = True) -> Path:
     """Unpack :func:`pack`'s bytes into ``dest`` (made whole in a sibling folder, then renamed into
-    place, so that a reader never sees half a folder); an existing ``dest`` is replaced."""
+    place, so that a reader never sees half a folder). An existing ``dest`` is replaced, or with
+    ``replace=False`` kept, the packed files written into it over their namesakes only."""
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
+    if not replace and dest.exists():
+        with tarfile.open(fileobj=io.BytesIO(data), mode="r") as tar:
+            tar.extractall(dest, filter="data")
+        return dest
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
     with tarfile.open(fileobj=io.BytesIO(data), mode="r") as tar:
         tar.extractall(tmp, filter="data")

@@ -254,7 +254,7 @@ class _Sweep:
                 self._submit(item)
                 continue
             if item["out_dir"] and result["out"] is not None:
-                bundles.unpack(result["out"], item["out_dir"])
+                bundles.unpack(result["out"], item["out_dir"], replace=False)   # never removes what is there
             self._finished(item["trial"].path)
             yield result["row"]
 

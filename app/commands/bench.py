@@ -32,7 +32,7 @@ def register(subparsers) -> None:
     p.add_argument("--address", metavar="auto|HOST:PORT", help="with --executor ray: the cluster (auto: the one "
                    "`ray start` began on this machine; HOST:PORT: its head); default: that one if any, else a Ray instance "
                    "started for this bench")
-    p.add_argument("--task-memory", type=float, metavar="GB", help="with --executor ray: memory reserved per run "
+    p.add_argument("--task-memory", type=_gib, metavar="GB", help="with --executor ray: memory reserved per run "
                    "(GiB; default 1)")
     p.add_argument("--quick", action="store_true", help="a short run (minutes): 3 configurations (osteonav_default, A_cpu, "
                    "icp) on static_clear (1.5 s) and bone_moves (3.5 s, until its move ends), the default mesh only")
@@ -53,6 +53,20 @@ def register(subparsers) -> None:
     p.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     add_overwrite_argument(p, "the --json file and the --plots and --out folders' earlier contents")
     p.set_defaults(func=run)
+
+
+def _gib(text: str) -> float:
+    """``--task-memory``: a finite number of GiB > 0, checked at parse time."""
+    import argparse
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected GiB > 0, got {text!r}")
+    return value
 
 
 def parse_seconds(items) -> float | dict | None:
