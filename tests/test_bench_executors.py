@@ -17,12 +17,12 @@ TIMING_KEYS = ("fps", "wall_s", "timings_ms")
 TINY = "filter:\n  particles: 40\nrender:\n  resolution: [40, 30]\n  mesh_triangles: 300\n"
 
 
-def _comparable(row: dict) -> str:
-    """The row without its timings, its backend's thread count and its trial path, as JSON text
-    (NaN equal to NaN)."""
+def _comparable(row: dict, keep_path: bool = False) -> str:
+    """The row without its timings, its backend's thread count and (unless ``keep_path``) its
+    trial path, as JSON text (NaN equal to NaN)."""
     import re
 
-    kept = {k: v for k, v in row.items() if k not in TIMING_KEYS + ("trial_path",)}
+    kept = {k: v for k, v in row.items() if k not in TIMING_KEYS + (() if keep_path else ("trial_path",))}
     kept["gl"] = re.sub(r"\d+ threads", "N threads", kept.get("gl") or "")
     return json.dumps(kept, sort_keys=True)
 
@@ -110,36 +110,39 @@ def test_a_worker_that_does_not_see_the_trial_asks_for_it_then_runs_the_shipped_
 
 # --------------------------------------------------------------------------- a local Ray instance
 
-def test_ray_executor_gives_the_local_rows_and_simulates_the_same_trials(tmp_path, tiny):
+def test_ray_executor_gives_the_local_rows_and_simulates_the_same_trials(tmp_path, tiny, monkeypatch):
     """`osteonav bench` with --executor local and --executor ray (a Ray instance started for the
-    bench) on one 0.5 s scenario: identical rows but for timings (and the thread count the backend
-    names: a Ray run has 1 CPU), identical simulated trials, the
-    ray run's trial reusable from its cache, and its --out files where a local run puts them."""
+    bench), each in a folder of its own with the same relative --cache, --json and --out, on one
+    0.5 s scenario: identical rows but for timings (and the thread count the backend names: a Ray
+    run has 1 CPU), trial paths included; identical simulated trials, the ray run's trial reusable
+    from its cache, and its --out files where a local run puts them."""
     pytest.importorskip("ray")
     from app.cli import main
     from app.sim.simulator import DEFAULT_MESH
 
     common = ["bench", "--configs", str(tiny), "--scenarios", "static_clear", "--seconds", str(TRIAL_SECONDS),
-              "--meshes", str(DEFAULT_MESH), "--seeds", "0", "--no-vsd"]
+              "--meshes", str(DEFAULT_MESH), "--seeds", "0", "--no-vsd", "--cache", "cache", "--json", "b.json",
+              "--out", "out"]
     runs = {}
     for name in ("local", "ray"):
-        out_json = tmp_path / f"{name}.json"
-        rc = main([*common, "--executor", name, "--cache", str(tmp_path / f"cache_{name}"), "--json", str(out_json),
-                   "--out", str(tmp_path / f"out_{name}")])
-        assert rc == 0, name
-        runs[name] = json.loads(out_json.read_text())
+        (tmp_path / name).mkdir()
+        monkeypatch.chdir(tmp_path / name)
+        assert main([*common, "--executor", name]) == 0, name
+        runs[name] = json.loads((tmp_path / name / "b.json").read_text())
     assert runs["ray"]["meta"]["executor"] == "ray" and runs["ray"]["meta"]["cluster"]["cpus"] >= 1
-    assert [_comparable(r) for r in runs["ray"]["rows"]] == [_comparable(r) for r in runs["local"]["rows"]]
+    assert [_comparable(r, keep_path=True) for r in runs["ray"]["rows"]] == \
+        [_comparable(r, keep_path=True) for r in runs["local"]["rows"]]
     assert len(runs["ray"]["rows"]) == 1 and "partial" not in runs["ray"]["meta"]
+    assert runs["ray"]["rows"][0]["trial_path"] == str(Path("cache") / DEFAULT_MESH.stem / "static_clear")
     gl = runs["ray"]["rows"][0]["gl"] or ""
     assert "threads" not in gl or "1 threads" in gl   # a run's numba threads are its 1 CPU
-    trials = {name: tmp_path / f"cache_{name}" / DEFAULT_MESH.stem / "static_clear" for name in runs}
+    trials = {name: tmp_path / name / "cache" / DEFAULT_MESH.stem / "static_clear" for name in runs}
     assert bundles.fingerprint(trials["ray"]) == bundles.fingerprint(trials["local"]) is not None
-    again = bench.standard_trials(tmp_path / "cache_ray", ["static_clear"], TRIAL_SECONDS, [DEFAULT_MESH], seeds=[0],
-                                  lazy=True, progress=False)
+    again = bench.standard_trials(tmp_path / "ray" / "cache", ["static_clear"], TRIAL_SECONDS, [DEFAULT_MESH],
+                                  seeds=[0], lazy=True, progress=False)
     assert again[0].simulation is None   # the cache is valid: a second bench does not simulate again
-    run_out = Path("tiny") / DEFAULT_MESH.stem / "static_clear" / "estimate.txt"
-    assert (tmp_path / "out_ray" / run_out).read_text() == (tmp_path / "out_local" / run_out).read_text()
+    run_out = Path("out") / "tiny" / DEFAULT_MESH.stem / "static_clear" / "estimate.txt"
+    assert (tmp_path / "ray" / run_out).read_text() == (tmp_path / "local" / run_out).read_text()
 
 
 # --------------------------------------------------------------------------- the partial matrix

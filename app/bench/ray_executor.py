@@ -2,8 +2,8 @@
 
 - **Resources.** A run is a task of :data:`TASK_CPUS` CPU and ``task_memory_gb`` GiB of memory
   (default :data:`DEFAULT_TASK_MEMORY_GB`), and its numba kernels use that many threads (a
-  hypothesis's likelihood does not depend on the thread count: the rows stay the same); Ray runs as many at once as the nodes' CPUs and memory
-  allow. The driver keeps :data:`WINDOW_PER_CPU` tasks per cluster CPU submitted (a long sweep does
+  hypothesis's likelihood does not depend on the thread count: the rows stay the same). Ray runs
+  as many at once as the nodes' CPUs and memory allow. The driver keeps :data:`WINDOW_PER_CPU` tasks per cluster CPU submitted (a long sweep does
   not flood the scheduler) and collects them with ``ray.wait``.
 - **Code.** The driver's checkout goes with the job as its working directory (``ray.init(runtime_env=
   {"working_dir": REPO})``: the packages, ``configs/`` and ``meshes/``; not :data:`NOT_SHIPPED` nor
@@ -75,7 +75,7 @@ def run_remote(task: dict, key: str, bundle: bytes | None = None) -> dict:
         out = tmp if task["out_dir"] else None
         row = run_one(task["config"], replace(trial, path=path), out, with_vsd=task["with_vsd"])
         files = bundles.pack(out) if out else None
-    row["trial_path"] = trial.path
+    row["trial_path"] = trial.path   # not the shipped copy's
     return {"row": row, "out": files}
 
 
@@ -137,8 +137,8 @@ def _check_reachable(address: str | None, timeout_s: float = 5.0) -> None:
 class RayExecutor:
     """Bench runs as Ray tasks on the cluster at ``address`` (``auto``: the one started on this
     machine with ``ray start``; ``HOST:PORT``: its head; None: that one if there is one, else a
-    Ray instance started here for this bench, ``ray.init``'s rule). A process already connected to Ray keeps its connection, and its ``runtime_env``
-    decides the code the workers import (module docstring)."""
+    Ray instance started here for this bench, ``ray.init``'s rule). A process already connected
+    to Ray keeps its connection, and its ``runtime_env`` decides the code the workers import."""
 
     name = "ray"
 
@@ -256,7 +256,7 @@ class _Sweep:
             if item["out_dir"] and result["out"] is not None:
                 bundles.unpack(result["out"], item["out_dir"], replace=False)   # never removes what is there
             self._finished(item["trial"].path)
-            yield result["row"]
+            yield {**result["row"], "trial_path": item["trial"].path}   # as given, as a local row has it
 
     def _get(self, ref):
         """The task's result; an osteonav error raised in the worker is raised here as itself
