@@ -38,7 +38,7 @@ from app.bench.configs import REPO
 from app.errors import ConfigError
 
 TASK_CPUS = 1
-DEFAULT_TASK_MEMORY_GB = 1.0   # a 0.5 s trial's run peaks at 0.39 GB RSS (BENCHMARKS.md)
+DEFAULT_TASK_MEMORY_GB = 1.0   # a run of a 0.5 s or a 3 s trial peaks at 0.39 GB RSS (BENCHMARKS.md)
 WINDOW_PER_CPU = 2
 RAY_INSTALL = "pip install -e '.[ray]'"
 NOT_SHIPPED = ["tests/", "docs/", "plans/", "recordings/", ".git/", ".venv/", "*.rrd"]
@@ -265,6 +265,11 @@ class _Sweep:
 
         try:
             return self.ray.get(ref)
+        except self.ray.exceptions.OutOfMemoryError as exc:
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else "out of memory"
+            raise ConfigError("--task-memory", f"Ray stopped a run for lack of memory on its node ({first}); give a "
+                              f"larger --task-memory than {self.ex.task_memory_gb:g} GiB, so that fewer runs share "
+                              "a node") from None
         except self.ray.exceptions.RayTaskError as exc:
             if isinstance(exc.cause, OsteonavError):
                 raise exc.cause from None
