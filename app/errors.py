@@ -11,8 +11,12 @@ class ConfigError(OsteonavError, ValueError):
 
     def __init__(self, key: str, message: str, source: str | None = None):
         self.key = key
+        self._args = (key, message, source)
         where = f"{source}: " if source else ""
         super().__init__(f"{where}config key '{key}': {message}")
+
+    def __reduce__(self):   # pickled whole: an error raised in a worker process reaches the driver
+        return type(self), self._args
 
 
 class TrialFormatError(OsteonavError, ValueError):
@@ -21,8 +25,12 @@ class TrialFormatError(OsteonavError, ValueError):
     def __init__(self, path, message: str, location: str | None = None):
         self.path = str(path)
         self.location = location
+        self._args = (self.path, message, location)
         loc = f" ({location})" if location else ""
         super().__init__(f"{self.path}{loc}: {message}")
+
+    def __reduce__(self):   # pickled whole: an error raised in a worker process reaches the driver
+        return type(self), self._args
 
 
 class MeshError(OsteonavError, ValueError):

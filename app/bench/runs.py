@@ -1,14 +1,12 @@
 """Bench runs: one configuration replayed on one trial and scored (a JSON-ready row), and all of them."""
 from __future__ import annotations
 
-import logging
 import time
 from pathlib import Path
 
 import numpy as np
 
 from app.bench.configs import BenchConfig
-from app.bench.parallel import pmap
 from app.bench.scoring import after_rest, in_view_share, jitter, refound, static_pairs, vsd_series
 from app.bench.template import template_scores
 from app.bench.trials import TrialSpec
@@ -74,12 +72,6 @@ def run_one(config: BenchConfig, trial: TrialSpec, out_dir: str | Path | None = 
     return row
 
 
-def _run_task(task: dict) -> dict:
-    """Worker entry point (spawned process: its own GL context)."""
-    logging.basicConfig(level=logging.WARNING)
-    return run_one(task["config"], task["trial"], task.get("out_dir"), with_vsd=task.get("with_vsd", True))
-
-
 def _replay_into(out_dir, run):
     """``run()`` with ``out_dir`` (when given) open as an output folder of its own (app/outputs.py),
     listed in the bench's ``--out`` folder: in a worker process too."""
@@ -94,52 +86,36 @@ def _replay_into(out_dir, run):
         close_folder(out_dir)
 
 
-def run_bench(configs: list[BenchConfig], trials: list[TrialSpec], jobs: int = 1, out_dir: str | Path | None = None,
-              with_vsd: bool = True, progress: bool = True, on_row=None) -> list[dict]:
-    """Every configuration on every trial; rows ordered by trial, then configuration.
-
-    ``on_row(rows)`` is called with the rows so far after each run (to write a partial matrix).
-    With ``jobs`` > 1 the runs go to a spawned process pool (each process opens its own GL
-    context); frames/s then measure a shared CPU. ``out_dir`` keeps each run's estimate.txt and
-    status.csv under ``<out_dir>/<config>/<mesh>/<scenario>``.
-    """
-    from app.outputs import wrote
-
+def bench_tasks(configs: list[BenchConfig], trials: list[TrialSpec], out_dir: str | Path | None = None,
+                with_vsd: bool = True) -> list[dict]:
+    """One task per (trial, configuration), trial-major: ``{config, trial, out_dir, with_vsd}``; the
+    tasks of one trial share its :class:`TrialSpec` (a lazy trial is simulated once)."""
     tasks = []
     for trial in trials:
         for config in configs:
             task_out = str(Path(out_dir) / config.name / trial.name) if out_dir else None
             tasks.append({"config": config, "trial": trial, "out_dir": task_out, "with_vsd": with_vsd})
-            if task_out:
-                wrote(task_out, folder=True)   # the bench's --out lists it (a worker process cannot)
-    weights = [max(t["trial"].max_frames or t["trial"].frames, 1) for t in tasks]
-    if jobs <= 1:
-        rows = _run_serial(tasks, weights, progress, on_row)
-    else:
-        rows = []
-        for row in pmap(_run_task, tasks, jobs, desc="bench", unit="frame", progress=progress, weights=weights):
-            rows.append(row)
-            if on_row:
-                on_row(rows)
+    return tasks
+
+
+def run_bench(configs: list[BenchConfig], trials: list[TrialSpec], jobs: int = 1, out_dir: str | Path | None = None,
+              with_vsd: bool = True, progress: bool = True, on_row=None, executor=None) -> list[dict]:
+    """Every configuration on every trial; rows ordered by trial, then configuration.
+
+    ``on_row(rows)`` is called with the rows so far after each run (to write a partial matrix).
+    ``executor`` runs the tasks (:mod:`app.bench.executors`; default a :class:`LocalExecutor` of
+    ``jobs`` processes). With ``jobs`` > 1 the runs go to a spawned process pool (each process opens
+    its own GL context); frames/s then measure a shared CPU. ``out_dir`` keeps each run's
+    estimate.txt and status.csv under ``<out_dir>/<config>/<mesh>/<scenario>``, each listed in the
+    bench's ``--out`` folder before it runs (a worker process cannot list it).
+    """
+    from app.bench.executors import LocalExecutor
+    from app.outputs import wrote
+
+    tasks = bench_tasks(configs, trials, out_dir, with_vsd)
+    for task in tasks:
+        if task["out_dir"]:
+            wrote(task["out_dir"], folder=True)
+    rows = (executor or LocalExecutor(jobs)).run(tasks, progress=progress, on_row=on_row)
     order = {(t["trial"].name, t["config"].name): k for k, t in enumerate(tasks)}
     return sorted(rows, key=lambda r: order[(r["trial"], r["config"])])
-
-
-def _run_serial(tasks, weights, progress: bool, on_row=None) -> list[dict]:
-    from tqdm import tqdm
-
-    rows = []
-    with tqdm(total=sum(weights), desc="bench", unit="frame", disable=not progress, dynamic_ncols=True) as bar:
-        for task, w in zip(tasks, weights):
-            bar.set_postfix_str(f"{task['config'].name} on {task['trial'].name}")
-            done = [0]
-
-            def step(i, total, done=done):
-                bar.update(i - done[0])
-                done[0] = i
-
-            rows.append(run_one(task["config"], task["trial"], task["out_dir"], progress=step, with_vsd=task["with_vsd"]))
-            if on_row:
-                on_row(rows)
-            bar.update(w - done[0])
-    return rows

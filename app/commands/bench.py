@@ -1,7 +1,7 @@
 """``osteonav bench``: every configuration on every trial, one table (see :mod:`app.bench.bench`)."""
 from __future__ import annotations
 
-from app.cli_types import positive_int, seed
+from app.cli_types import finite_positive_float, positive_int, seed
 from app.commands.outdir import add_overwrite_argument, prepare_dir, results_file
 
 DEFAULT_JSON = "recordings/bench/bench.json"
@@ -27,9 +27,18 @@ def register(subparsers) -> None:
                    "recorded: the first S seconds; default: the scenario's, the whole trial); NAME=S for one scenario, e.g. --seconds 3 bone_moves=4.5")
     p.add_argument("--seeds", nargs="+", type=seed, metavar="N", help="simulation seeds, integers >= 0 (default: 0); several seeds: "
                    "trials of seed N are cached in <cache>/<mesh>/<scenario>_seedN, each simulated just before its "
-                   "first run, and the JSON is rewritten after every run (a partial matrix stays usable)")
+                   "first run, and the JSON is rewritten as the runs finish (a partial matrix stays usable; after every run "
+                   "while writing takes under 10 %% of the time)")
     p.add_argument("--jobs", type=positive_int, default=1,
                    help="parallel processes, >= 1 (default 1: frames/s are then not shared)")
+    p.add_argument("--executor", choices=("local", "ray"), default="local", help="where the runs execute: local "
+                   "(this machine, --jobs processes; default) or ray (one Ray task per run; needs pip install -e '.[ray]'; "
+                   "see BENCHMARKS.md, Sweeps on a Ray cluster)")
+    p.add_argument("--address", metavar="auto|HOST:PORT", help="with --executor ray: the cluster (auto: the one "
+                   "`ray start` began on this machine; HOST:PORT: its head); default: that one if any, else a Ray instance "
+                   "started for this bench")
+    p.add_argument("--task-memory", type=finite_positive_float, metavar="GB", help="with --executor ray: memory reserved "
+                   "per run (GiB > 0; default 1)")
     p.add_argument("--quick", action="store_true", help="a short run (minutes): 3 configurations (osteonav_default, A_cpu, "
                    "icp) on static_clear (1.5 s) and bone_moves (3.5 s, until its move ends), the default mesh only")
     from app.sim.scenarios import SCENARIOS, STANDARD
@@ -82,12 +91,8 @@ def parse_seconds(items) -> float | dict | None:
 
 
 def run(args) -> int:
-    import logging
-    import platform
-    import time
-
     from app.bench import bench
-
+    from app.bench.executors import make_executor
     from app.errors import ConfigError
 
     args.seconds = parse_seconds(args.seconds)
@@ -95,6 +100,21 @@ def run(args) -> int:
         raise ConfigError("--sensors", "applies to simulated trials only: give --sensors or --trials, not both "
                           "(a recorded trial's model is in its trial.yaml)")
     bench.parse_sensors(args.sensors)   # an unknown model is refused before any output is touched
+    executor = make_executor(args.executor, args.jobs, args.address, args.task_memory)
+    try:
+        return _run(args, executor)
+    finally:
+        executor.close()
+
+
+def _run(args, executor) -> int:
+    import logging
+    import platform
+    import time
+
+    from app.bench import bench
+    from app.bench.partial import PartialJson
+
     args.json = str(results_file(args.json, DEFAULT_JSON, args.overwrite))
     configs = bench.resolve_configs(args.configs or (bench.QUICK_CONFIGS if args.quick else None))
     if args.plots:
@@ -112,17 +132,20 @@ def run(args) -> int:
         if not args.meshes and not args.quick and not bench.pelvis_crest_meshes():
             logging.getLogger(__name__).warning("no pelvis crest meshes at %s: the default mesh only", bench.PELVIS_DIR)
         trials = bench.standard_trials(args.cache, scenarios, seconds, meshes, jobs=args.jobs, seeds=args.seeds,
-                                       lazy=bool(args.seeds), sensors=args.sensors)
+                                       lazy=bool(args.seeds) or executor.name == "ray", sensors=args.sensors)
     print(f"{len(configs)} configurations x {len(trials)} trials "
-          f"({sum(t.max_frames or t.frames for t in trials)} frames each configuration), {args.jobs} process(es)")
+          f"({sum(t.max_frames or t.frames for t in trials)} frames each configuration), {executor.describe()}")
     for c in configs:
         print(f"  {c.name:<18} {c.describe()}")
     meta = {"machine": platform.platform(), "processor": platform.processor(), "jobs": args.jobs,
+            "executor": executor.name, **({"cluster": executor.cluster()} if executor.name == "ray" else {}),
             "seconds": seconds, "seeds": args.seeds or [0], "configs": {c.name: c.describe() for c in configs},
             "planned_runs": len(configs) * len(trials)}
     t0 = time.perf_counter()
-    on_row = (lambda rows: bench.write_json(rows, args.json, {**meta, "partial": True})) if args.seeds else None
-    rows = bench.run_bench(configs, trials, jobs=args.jobs, out_dir=args.out, with_vsd=not args.no_vsd, on_row=on_row)
+    stream = args.seeds or executor.name == "ray"   # the JSON as runs finish: a long sweep's partial matrix
+    on_row = PartialJson(args.json, meta) if stream else None
+    rows = bench.run_bench(configs, trials, out_dir=args.out, with_vsd=not args.no_vsd, on_row=on_row,
+                           executor=executor)
     elapsed = time.perf_counter() - t0
     gl = next((r["gl"] for r in rows if r["tracker"] == "particle_filter" and r.get("gl")), None)
     print(f"\n{gl or ''}  ({platform.processor() or platform.machine()}, {elapsed:.0f} s)\n")
