@@ -207,3 +207,21 @@ def test_a_competitor_that_chased_one_frames_noise_is_withdrawn_on_the_next_fram
     _run(track, 1)
     refiner.unrefined = [0.70, 0.69]
     assert all(out.nearby == pytest.approx(0.0015) for out in _run(track, 9))   # without validation: held
+
+
+def test_a_validated_competitor_stays_while_it_still_explains_each_search_frame_better():
+    """Once validated out of sample, a competitor is checked again on each search's frame, both poses as
+    they are (two scores, no refinement): while it still explains the image better it stays the answer
+    beyond nearby_hold; the first frame it does not, it is dropped and the search runs as usual."""
+    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10, nearby_hold=2)
+    refiner.unrefined = [0.70, 0.72]                   # out of sample the competitor stays better
+    outs = _run(track, 40)
+    assert all(out.nearby == pytest.approx(0.0015) for out in outs)
+    n_starts = len(refiner.starts)
+    more = _run(track, 10)                             # a search frame: checked, not searched again
+    assert all(out.nearby == pytest.approx(0.0015) for out in more)
+    assert len(refiner.starts) == n_starts + 10        # only the track's own refinement per frame
+    refiner.minima = [(_pose(), 0.70)]                  # the image changes: the competitor's pose explains it no better
+    refiner.unrefined = None
+    rest = _run(track, 30)
+    assert np.isnan(rest[-1].nearby)

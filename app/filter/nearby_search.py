@@ -20,6 +20,12 @@ replaces it: on a plateau one search's draws can miss a competitor that is still
 (crest_left_02 or_model_mismatch: 3 of 32 searches found none, each leaving 10 frames ok
 while 1.0-1.3 mm off; BENCHMARKS.md §6j).
 
+Out of sample (``nearby_validate``, issue 32): a competitor is a fit refined on one frame and can chase
+that frame's noise (a stereo camera's is correlated over its matching window). On the next frame the
+competitor and the kept pose, both as they are, are scored on the new image: the competitor is withdrawn
+unless it explains it better. A validated one is checked so again on each search's frame instead of
+being searched for again, and stays the answer while it still explains the image better.
+
 Follow-ups: a search that finds no competitor but a fit within ``nearby_gap`` scoring at least
 ``nearby_margin`` above the track's searches again on the next frame, its draws about that
 fit, up to ``nearby_followups`` frames in a row; meanwhile the answer is that fit's gap (the
@@ -91,6 +97,7 @@ class NearbySearch:
         self.validations: list[tuple[float, float]] = []   # (competitor, kept) shares of each validation
         self._margin = self.config.nearby_margin           # nearby_margin sqrt(f) of the last step's fit
         self._unchecked: tuple[np.ndarray, np.ndarray] | None = None   # (T_base competitor, T_base kept) to validate
+        self._validated: np.ndarray | None = None                     # T_base of a competitor validated out of sample
 
     def step(self, fit: Fit, T_base_bone_kept: np.ndarray, own: float, correlation: float = 1.0,
              score: Score | None = None) -> float:
@@ -109,6 +116,10 @@ class NearbySearch:
         if c.nearby_starts <= 0 or c.nearby_every <= 0 or self._since < c.nearby_every:
             return self._gap
         following, self._since = self._T_kept_follow is not None, 0
+        if self._validated is not None and score is not None and not following:
+            if self._still_better(score, T_base_bone_kept):
+                self._age = 0
+                return self._gap
         if not following:
             self._age += 1
             if self._age >= c.nearby_hold:
@@ -138,7 +149,20 @@ class NearbySearch:
         competitor, kept = score(T_base_competitor), score(T_base_kept)
         if not (competitor > kept):
             self._gap, self._T_kept_competitor = math.nan, None
+        else:
+            self._validated = T_base_competitor
         self.validations.append((float(competitor), float(kept)))
+
+    def _still_better(self, score: Score, T_base_kept: np.ndarray) -> bool:
+        """A validated competitor, on a search's frame: both poses as they are, scored on this frame's
+        image. While the competitor still explains it better it stays the answer (no new search: the
+        evidence is already out of sample); else it is dropped and the search runs as usual."""
+        competitor, kept = score(self._validated), score(T_base_kept)
+        self.validations.append((float(competitor), float(kept)))
+        if competitor > kept:
+            return True
+        self._validated = None
+        return False
 
     def _search(self, fit: Fit, T_base_kept: np.ndarray, own: float):
         """Refine from the retried competitor's pose, then from ``nearby_starts`` draws about the kept pose
