@@ -357,7 +357,8 @@ class RealSenseCamera(ThreadedSource):
 
     def _seek_forward(self, device_t: float, now: float, read_s: float) -> bool:
         """Seek the playback to the frame that will be due once read (``read_s`` from now), when that is
-        two frames or more past where it reads; True when it seeked.
+        two frames or more past where it reads; True when it seeked, or when the playback has read to
+        its end (nothing fresher will come: the stale frame goes, like the trial player's last one).
 
         Playback positions are the file's write times, not the frames' stamps (a recording written by
         :func:`write_recording` is written faster than real time), so the position of a recorded time
@@ -366,6 +367,13 @@ class RealSenseCamera(ThreadedSource):
         position = self._position()
         if position is None or self._first_position is None or not self._ns_per_s or self._ns_per_s <= 0:
             return False
+        try:
+            duration = self._playback.get_duration()
+            duration_ns = int(duration.total_seconds() * 1e9) if hasattr(duration, "total_seconds") else int(duration)
+        except RuntimeError:
+            return False
+        if position >= duration_ns:     # read to the end: nothing fresher comes (the trial player skips it too)
+            return True
         t0, p0 = self._first_position
         rate = getattr(self.clock, "replay_rate", 1.0)
         late_s = now - float(self.clock.replay_to_host(device_t, self._replay_origin))
@@ -374,12 +382,10 @@ class RealSenseCamera(ThreadedSource):
         if target_t - reading_t < 2 * self._period_s:
             return False
         target = p0 + int(self._ns_per_s * (target_t - t0))
+        target = min(target, duration_ns)       # past the end: the last frame is the newest
+        if target <= position:
+            return False
         try:
-            duration = self._playback.get_duration()
-            duration_ns = int(duration.total_seconds() * 1e9) if hasattr(duration, "total_seconds") else int(duration)
-            target = min(target, duration_ns)       # past the end: the last frame is the newest
-            if target <= position:
-                return False
             self._playback.seek(datetime.timedelta(microseconds=target / 1e3))
         except RuntimeError as exc:   # a playback that cannot seek: reads on
             log.debug("RealSense playback seek failed: %s", exc)

@@ -38,8 +38,10 @@ class FakePlayback:
     """``n`` frames at ``FPS`` stamped from 100 s, written ``write_ratio`` times faster than real time
     (positions: ns of write time, as :func:`plugins.realsense.write_recording` makes them)."""
 
-    def __init__(self, clock: ManualClock, n: int, read_s: float, write_ratio: float = 0.07, can_seek: bool = True):
+    def __init__(self, clock: ManualClock, n: int, read_s, write_ratio: float = 0.07, can_seek: bool = True,
+                 sleep=None):
         self.clock, self.n, self.read_s, self.can_seek = clock, n, read_s, can_seek
+        self.sleep = sleep or clock.advance     # how a read takes its time on the clock
         self.stamps_ms = 1e5 + 1e3 * np.arange(n) / FPS
         self.positions = (np.arange(n) / FPS * write_ratio * 1e9).astype(np.int64)
         self.next = 0           # the next frame to read
@@ -49,7 +51,7 @@ class FakePlayback:
 
     # rs.pipeline
     def try_wait_for_frames(self, timeout_ms: int):
-        self.clock.advance(self.read_s(self.reads) if callable(self.read_s) else self.read_s)   # a busy host
+        self.sleep(self.read_s(self.reads) if callable(self.read_s) else self.read_s)   # the read, on a busy host
         if self.next >= self.n:
             return False, None
         k, self.next = self.next, self.next + 1
@@ -139,3 +141,107 @@ def test_a_playback_that_cannot_seek_and_reads_slower_than_its_rate_still_pushes
     (each the newest it has), late; only a playback that seeks can keep to the schedule."""
     camera, playback, pushed = play(monkeypatch, 60, read_s=1.5 * PERIOD, can_seek=False)
     assert camera.skipped == 0 and len(pushed) == 60
+
+
+# ------------------------------------------------------------------------------------------------
+# the session: a tracker four frame periods slow over the recording
+# ------------------------------------------------------------------------------------------------
+HOME_Q = [0.0, -1.6, 1.6, -1.57, -1.57, 0.0]
+
+
+class SlowTracker:
+    """Every frame costs ``work_s`` of the session clock (:meth:`tests.clocks.PacedClock.work`)."""
+
+    description = "slow tracker"
+
+    def __init__(self, clocks, work_s: float):
+        self.clocks, self.work_s, self.calls = clocks, work_s, 0
+
+    def start(self, T_base_bone):
+        self.T = np.asarray(T_base_bone, float)
+
+    def process(self, frame, T_base_camera):
+        self.calls += 1
+        self.clocks[-1].work(self.work_s)
+        return types.SimpleNamespace(T_base_bone=self.T, status="ok")
+
+    def particle_positions(self):
+        return self.T[None, :3, 3]
+
+    def mean_timings_ms(self):
+        return {}
+
+    def release(self):
+        pass
+
+
+@pytest.fixture
+def bag_session(tmp_path, monkeypatch):
+    """Register a ``fakebag`` camera (the RealSense plugin over a :class:`FakePlayback` whose reads take
+    ``read_s`` on the session clock) and a ``slow`` tracker; the sessions run on a PacedClock."""
+    import plugins.realsense as plugin
+    from tests.clocks import paced_sessions
+
+    clocks = paced_sessions(monkeypatch)
+    monkeypatch.setattr(plugin, "_rs", lambda: None)
+    made: dict = {"cameras": [], "trackers": []}
+
+    class FakeBagCamera(plugin.RealSenseCamera):
+        def __init__(self, n: int = 360, read_s: float = 1.5 * PERIOD):
+            super().__init__(recording="unused.bag")
+            self.n, self.read_s = n, read_s
+            made["cameras"].append(self)
+
+        def open(self, clock, event):
+            self._bind(clock, event)
+            playback = FakePlayback(clock, self.n, self.read_s, sleep=lambda s: clock.wait_until(clock.now() + s,
+                                                                                                 self._stop))
+            self._pipeline = self._playback = playback
+            self._period_s, self.depth_scale, self.camera = PERIOD, 1e-4, CAMERA
+            return CAMERA
+
+        def _stop_pipeline(self):
+            pass
+
+    def tracker_factory(work_s=4 * PERIOD, **_):
+        made["trackers"].append(SlowTracker(clocks, work_s))
+        return made["trackers"][-1]
+
+    registry.register("camera", "fakebag", FakeBagCamera)
+    registry.register("tracker", "slow", tracker_factory)
+    mesh_path = tmp_path / "bone.ply"
+    trimesh.creation.box((0.05, 0.02, 0.01)).export(mesh_path)
+    yield made, mesh_path
+    registry.unregister("camera", "fakebag")
+    registry.unregister("tracker", "slow")
+
+
+def test_a_slow_tracker_over_a_recording_keeps_a_flat_latency_and_counts_the_drops(tmp_path, bag_session):
+    """The issue's bag flow: reads 1.5 frame periods each (the tracker has the CPU), the tracker four
+    periods a frame, over a 4 s recording at 90 Hz. Each processed frame is at most two periods old
+    when the tracker starts on it, over the whole recording; every frame the tracker did not see is
+    counted, by the camera (stale or seeked over) or by the tracker's queue (a newer one came)."""
+    made, mesh_path = bag_session
+    n, work_s = 360, 4 * PERIOD
+    config = parse_session({
+        "camera": {"plugin": "fakebag", "params": {"n": n}},
+        "robot": {"plugin": "static", "model": "ur5e", "params": {"q": HOME_Q, "rate_hz": 250}},
+        "tracker": {"plugin": "slow", "params": {"work_s": work_s}},
+        "calibration": {"hand_eye": np.eye(4).tolist()},
+        "bone": {"mesh": str(mesh_path), "initial_pose": np.eye(4).tolist()},
+        "out": str(tmp_path / "out"),
+    }, tmp_path)
+    summary = run_session(config).summary
+    camera, tracker = made["cameras"][0], made["trackers"][0]
+
+    lat = summary["latency_ms"]
+    assert lat["n"] == summary["processed"] == tracker.calls > 0
+    assert lat["max"] <= 1e3 * (2 * PERIOD + work_s) + 1e-6
+    assert abs(summary["latency_last_ms"]["p99"] - summary["latency_first_ms"]["p99"]) <= 1e3 * PERIOD
+    # the 4 s recording took about 4 s of session time, not n reads' worth (6 s)
+    assert summary["seconds"] <= n * PERIOD + 1.0
+    # every recorded frame is processed or counted as dropped: by the camera, or in the tracker's queue
+    assert summary["frames_skipped_by_camera"] == camera.skipped > 0 and camera.seeks > 0
+    accepted = summary["frames"]["frames_accepted"]
+    assert accepted + camera.skipped == n
+    assert accepted - summary["processed"] - summary["frames_skipped_by_tracker"] in (0, 1)
