@@ -304,7 +304,8 @@ class RealSenseCamera(ThreadedSource):
         better: it seeked forward to the frame due by the time it is read, or its recent reads were
         faster than the frame rate (it catches up by reading on). A reader slower than the frame
         rate that cannot seek pushes it anyway (the newest frame it has; skipping every frame would
-        push none).
+        push none). A reader slower than the frame rate also seeks ahead after a frame it pushes, to the
+        frame due once read.
         """
         if self._last_due is not None:                 # this frame's read (and the last one's push)
             self._read_s.append(self.clock.now() - self._last_due)
@@ -321,6 +322,8 @@ class RealSenseCamera(ThreadedSource):
                                            or (read_s is not None and read_s < self._period_s)):
             self.skipped += 1
             return None
+        if read_s is not None and read_s > self._period_s:   # a slow reader: the next frame in the file
+            self._seek_forward(device_t, now, read_s)         # may be stale once read, read a later one
         return stamp, now
 
     def _count_seeked_over(self, device_t: float) -> None:

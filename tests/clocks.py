@@ -143,15 +143,21 @@ class PacedClock(ManualClock):
                 self._cond.notify_all()
 
     def work(self, dt: float, timeout: float = 10.0) -> None:
-        """The tracker's ``dt`` seconds: the clock moves on, the sources do what fell due meanwhile."""
+        """The tracker's ``dt`` seconds. The clock moves on from one source's wake-up to the next within
+        them, each source doing what fell due (as on a second core) before it moves again."""
         import time
 
         deadline = time.monotonic() + timeout
         with self._cond:
-            self.t += dt
-            self._cond.notify_all()
-            while not self._all_asleep_past(self.t) and time.monotonic() < deadline:
-                self._cond.wait(0.005)
+            end = self.t + dt
+            while True:
+                while not self._all_asleep_past(self.t) and time.monotonic() < deadline:
+                    self._cond.wait(0.005)
+                wakes = [w for th, w in self._sleepers.items() if th.is_alive() and w is not None]
+                if self.t >= end or time.monotonic() >= deadline:
+                    return
+                self.t = min([end, *wakes])
+                self._cond.notify_all()
 
     def set_loop_waiting(self, waiting: bool) -> None:
         with self._cond:
