@@ -102,6 +102,7 @@ def test_whole_runs_both_engines_on_the_same_frames_and_its_rows_add_up(tmp_path
         assert row["fps"] > 0 and row["frame_ms"] == pytest.approx(1e3 * row["wall_s"] / 4)
         assert row["fps"] == pytest.approx(1e3 / row["frame_ms"])
     assert result["ratio"] == pytest.approx(t["fps"] / i["fps"])
+    assert result["cpu_ratio"] == pytest.approx(i["cpu_ms"] / t["cpu_ms"])
     # the default tracker: its filter stages and the refinement, each a share of the frame
     assert {"predict", "likelihood", "weight", "resample", "estimate", "refine"} <= set(t["stages_ms"])
     shares = t["stage_shares"]

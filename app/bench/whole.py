@@ -8,7 +8,8 @@ slows both alike:
 
 - frames/s of each, from the wall time of its ``process`` calls (``fps``), and the process CPU time
   per frame (``cpu_ms``, all threads: Open3D's and numba's included), which other jobs on the
-  machine do not inflate; the ratio ``tracker fps / ICP fps``;
+  machine do not inflate; the ratios ``tracker fps / ICP fps`` (``ratio``) and ICP's CPU per frame
+  over the tracker's (``cpu_ratio``);
 - the tracker's split per stage from its own timings (``DepthTracker.mean_timings_ms``: the filter's
   stages, ``refine``, ``recovery_search``; the backend's sub-stages of the likelihood apart), each
   as ms per frame and as a share of the frame's wall time; the rest (status, bookkeeping) is
@@ -97,7 +98,8 @@ def measure(trial: str | Path, config: TrackerConfig | None = None, frames: int 
     row_t = _tracker_row(runs["tracker"], tracker, config)
     row_i = runs["icp"].row()
     return {"trial": str(trial), "mesh": str(reader.mesh_path), "frames": n - warmup, "warmup": warmup,
-            "tracker": row_t, "icp": row_i, "ratio": row_t["fps"] / row_i["fps"] if row_i["fps"] > 0 else None}
+            "tracker": row_t, "icp": row_i, "ratio": row_t["fps"] / row_i["fps"] if row_i["fps"] > 0 else None,
+            "cpu_ratio": row_i["cpu_ms"] / row_t["cpu_ms"] if row_t["cpu_ms"] > 0 else None}
 
 
 class _Timed:
@@ -166,8 +168,9 @@ def table(result: dict) -> str:
     lines.append(f"{'icp':<8} {i['frames']:>6} {i['fps']:>7.1f} {i['frame_ms']:>9.2f} {i['cpu_ms']:>8.2f}  "
                  f"Open3D point-to-plane, status {_counts(i['status_counts'])}")
     ratio = result["ratio"]
+    cpu_ratio = result.get("cpu_ratio")
     lines.append(f"tracker / ICP: {'-' if ratio is None else f'{ratio:.2f}'}x the frames/s on the same "
-                 f"{t['frames']} frames")
+                 f"{t['frames']} frames ({'-' if cpu_ratio is None else f'{cpu_ratio:.2f}'}x by CPU time per frame)")
     lost = i["status_counts"].get("lost", 0)
     if lost:
         lines.append(f"note: ICP was lost on {lost} of {i['frames']} frames; a lost ICP stops early (too few points "
