@@ -21,10 +21,11 @@ RealSense Viewer of that era) or ``.db3`` (ROS2, written by librealsense 2.58 an
 played in real time: frames are read in order (the SDK's non-real-time playback, which drops none
 by itself) and pushed when the host clock reaches their recorded timestamp mapped through the
 session's replay anchor, so a recorded robot trial taken on the same clock lines up. Like a live
-camera it never delivers a stale frame and never queues: a reader behind its schedule (a busy host:
-the tracker's CPU, the GIL) skips a frame whose successor is already due (``skipped``, in the
-session summary) and seeks the playback forward to the frame due now, so the latency stays flat
-however long the recording.
+camera it never delivers a stale frame and never queues: a frame read after its successor was
+already due (a busy host: the tracker's CPU, the GIL, the sinks of the frame before) is skipped,
+neither converted nor pushed (``skipped``, in the session summary), while the reader reads faster
+than the frame rate, so it catches up by reading on and the latency stays flat however long the
+recording. (Seeking the playback instead hangs the SDK's pipeline for 10 s now and then, 2.59.)
 
 :func:`write_recording` writes depth images to such a file with the SDK's own software device and
 recorder (the tests use it; also a way to turn a trial into a file the RealSense Viewer opens).
@@ -32,7 +33,6 @@ recorder (the tests use it; also a way to turn a trial into a file the RealSense
 from __future__ import annotations
 
 import collections
-import datetime
 import logging
 import time
 from pathlib import Path
@@ -120,16 +120,11 @@ class RealSenseCamera(ThreadedSource):
         self.camera: PinholeCamera | None = None
         self._pipeline = None
         self._replay_origin = None
-        self._playback = None       # the recording's rs.playback, for seeking forward when behind
-        self._period_s = None       # the recording's depth frame period (recorded seconds)
-        self._first_position = None  # (recorded stamp s, playback position ns) of the first frame read
-        self._ns_per_s = None       # playback position per recorded second, from the frames read
-        self._last_due = None       # session time the last recorded frame was due (read time = now - this)
-        self._read_s = collections.deque(maxlen=8)   # the last reads' durations (session clock)
+        self._period_s = None       # the recording's frame period: the smallest stamp step read so far
         self._last_read_t = None    # recorded stamp of the last frame read
-        self._seeked = False        # a seek since the last frame read
-        self.skipped = 0            # recorded frames never pushed: stale when read, or seeked over
-        self.seeks = 0              # forward seeks of a reader behind its schedule
+        self._last_done = None      # session time the last recorded frame was pushed or skipped
+        self._read_s = collections.deque(maxlen=8)   # the last reads' durations (session clock)
+        self.skipped = 0            # recorded frames read when already stale, never pushed
 
     # -- setup -----------------------------------------------------------------------------------
     def open(self, clock: SessionClock, event) -> PinholeCamera:
@@ -188,9 +183,6 @@ class RealSenseCamera(ThreadedSource):
         stream = profile.get_stream(rs.stream.depth).as_video_stream_profile()
         self.camera = camera_from_intrinsics(stream.get_intrinsics())
         self._pipeline = pipeline
-        if self.recording is not None:
-            self._playback = device.as_playback()
-            self._period_s = 1.0 / stream.fps() if stream.fps() > 0 else None
         log.info("RealSense %s: %dx%d, depth unit %.6g m", self.recording or "device", self.camera.width,
                  self.camera.height, self.depth_scale)
 
@@ -295,107 +287,45 @@ class RealSenseCamera(ThreadedSource):
         data = depth[2] if isinstance(depth[2], np.ndarray) else np.asanyarray(depth[2].get_data())
         depth_m = data.astype(np.float32) * np.float32(self.depth_scale)
         self._push(DepthFrame(int(depth[1]), stamp, depth_m, arrival, infrared=infrared, color=color))
+        self._last_done = self.clock.now()
 
     def _when_due(self, device_t: float) -> tuple[float, float] | None:
         """(host stamp, arrival) of the recorded frame stamped ``device_t`` (s), pushed once its stamp is
         due; None when stopped meanwhile or when the frame is stale and skipped.
 
-        Stale: the next frame (a period later) is due already. It is skipped when the reader can do
-        better: it seeked forward to the frame due by the time it is read, or its recent reads were
-        faster than the frame rate (it catches up by reading on). A reader slower than the frame
-        rate that cannot seek pushes it anyway (the newest frame it has; skipping every frame would
-        push none). A reader slower than the frame rate also seeks ahead after a frame it pushes, to the
-        frame due once read.
+        Stale: the next frame (a period later) is due already. It is skipped while the reader's recent
+        reads were faster than the frame rate (it catches up by reading on: each stale frame costs a
+        read, no conversion, no push). A reader slower than the frame rate pushes it anyway (the
+        newest frame it has; skipping every frame would push none).
         """
-        if self._last_due is not None:                 # this frame's read (and the last one's push)
-            self._read_s.append(self.clock.now() - self._last_due)
+        if self._last_done is not None:                # this frame's read
+            self._read_s.append(self.clock.now() - self._last_done)
         read_s = min(self._read_s) if self._read_s else None   # what the next read may cost: the quickest of late
         if self._replay_origin is None:
             self._replay_origin = device_t
-        self._count_seeked_over(device_t)
+        self._learn_period(device_t)
         stamp = float(self.clock.replay_to_host(device_t, self._replay_origin))
         if not self._sleep_until(stamp):
             return None
-        now = self._last_due = self.clock.now()
-        self._learn_position(device_t)
-        if self._stale(device_t, now) and (self._seek_forward(device_t, now, read_s or 0.0)
-                                           or (read_s is not None and read_s < self._period_s)):
+        now = self.clock.now()
+        if self._stale(device_t, now) and read_s is not None and read_s < self._period_s:
             self.skipped += 1
+            self._last_done = now
             return None
-        if read_s is not None and read_s > self._period_s:   # a slow reader: the next frame in the file
-            self._seek_forward(device_t, now, read_s)         # may be stale once read, read a later one
         return stamp, now
 
-    def _count_seeked_over(self, device_t: float) -> None:
-        """After a seek, the frames it jumped over (from the stamps, one a period) count as skipped."""
+    def _learn_period(self, device_t: float) -> None:
+        """The recording's frame period: the smallest step between the stamps read (the stream profile's
+        fps is what the recorder was told, not always the frames' rate; a dropped frame makes a larger step)."""
         last, self._last_read_t = self._last_read_t, device_t
-        if self._seeked and last is not None and self._period_s:
-            self.skipped += max(int(round((device_t - last) / self._period_s)) - 1, 0)
-        self._seeked = False
+        if last is not None and device_t > last:
+            self._period_s = min(self._period_s or np.inf, device_t - last)
 
     def _stale(self, device_t: float, now: float) -> bool:
         """True when the recorded frame after this one (one period later) is already due on the session clock."""
         if self._period_s is None:
             return False
         return float(self.clock.replay_to_host(device_t + self._period_s, self._replay_origin)) <= now
-
-    def _position(self) -> int | None:
-        """The playback's position (ns of the file's write time), or None without one."""
-        try:
-            return int(self._playback.get_position()) if self._playback is not None else None
-        except RuntimeError:
-            return None
-
-    def _learn_position(self, device_t: float) -> None:
-        """Remember where in the file the frame stamped ``device_t`` (recorded s) was read: the first
-        frame's position, and the file's positions per recorded second since then, up to the first seek
-        (after one, frames the SDK had queued before it can arrive with the new position)."""
-        position = self._position()
-        if position is None or self.seeks:
-            return
-        if self._first_position is None:
-            self._first_position = (device_t, position)
-        elif device_t > self._first_position[0]:
-            self._ns_per_s = (position - self._first_position[1]) / (device_t - self._first_position[0])
-
-    def _seek_forward(self, device_t: float, now: float, read_s: float) -> bool:
-        """Seek the playback to the frame that will be due once read (``read_s`` from now), when that is
-        two frames or more past where it reads; True when it seeked, or when the playback has read to
-        its end (nothing fresher will come: the stale frame goes, like the trial player's last one).
-
-        Playback positions are the file's write times, not the frames' stamps (a recording written by
-        :func:`write_recording` is written faster than real time), so the position of a recorded time
-        is extrapolated from the frames read so far. Never seeks back, nor past the end.
-        """
-        position = self._position()
-        if position is None or self._first_position is None or not self._ns_per_s or self._ns_per_s <= 0:
-            return False
-        try:
-            duration = self._playback.get_duration()
-            duration_ns = int(duration.total_seconds() * 1e9) if hasattr(duration, "total_seconds") else int(duration)
-        except RuntimeError:
-            return False
-        if position >= duration_ns:     # read to the end: nothing fresher comes (the trial player skips it too)
-            return True
-        t0, p0 = self._first_position
-        rate = getattr(self.clock, "replay_rate", 1.0)
-        late_s = now - float(self.clock.replay_to_host(device_t, self._replay_origin))
-        target_t = device_t + (late_s + read_s) * rate                       # recorded time due once read
-        reading_t = max(device_t, t0 + (position - p0) / self._ns_per_s)    # where the playback reads
-        if target_t - reading_t < 2 * self._period_s:
-            return False
-        target = p0 + int(self._ns_per_s * (target_t - t0))
-        target = min(target, duration_ns)       # past the end: the last frame is the newest
-        if target <= position:
-            return False
-        try:
-            self._playback.seek(datetime.timedelta(microseconds=target / 1e3))
-        except RuntimeError as exc:   # a playback that cannot seek: reads on
-            log.debug("RealSense playback seek failed: %s", exc)
-            return False
-        self.seeks += 1
-        self._seeked = True
-        return True
 
     def session_defaults(self) -> dict:
         out = {"camera": self.camera} if self.camera is not None else {}

@@ -1,20 +1,21 @@
 """Recorded sources play in real time and drop, never queue (issue 35, Deliver 4).
 
 The RealSense recording (``camera: realsense`` with ``recording:``, the README's ``bag_replay.yaml``)
-reads its frames through the SDK's playback, one after the other. On a busy host (the tracker's
-CPU, the GIL) a read can take longer than a frame period; the plugin then skips the stale frames
-and seeks the playback forward, so every frame it pushes is the one due now and the whole
-recording plays in its own duration. Before, it pushed every frame, each later than the last: the
-issue's 6 s bag took 18 s with the latency growing to a 6.8 s median.
+reads its frames through the SDK's playback, one after the other, and pushes each to the bus from
+its own thread: converted to metres, validated, handed to the sinks (the recorder, rerun). On a busy
+host that push can take longer than a frame period. Before, the plugin pushed every frame, each
+later than the last: the issue's 6 s bag took 18 s with the latency growing to a 6.8 s median.
+Now a frame read after its successor was due is skipped (a read, no push), so the reader catches up
+and every frame it pushes is the one due now. The trial player (``camera: recorded``) decodes the
+frame that will be due once decoded.
 
-Time is a :class:`tests.clocks.ManualClock` that the fake SDK advances per read, so every figure
-follows from the counts, not from the machine's load. The SDK is a fake with the playback's
-contract (frames in order, positions in the file's write time, ``seek``); the real SDK's reading
-is covered by tests/test_plugins_realsense.py.
+Time is a :class:`tests.clocks.ManualClock` (the plugin alone) or a :class:`tests.clocks.PacedClock`
+(the session, with a slow tracker), so every figure follows from the counts, not from the machine's
+load. The SDK is a fake with the playback's contract (frames in order); the real SDK's reading is
+covered by tests/test_plugins_realsense.py.
 """
 from __future__ import annotations
 
-import datetime
 import threading
 import types
 
@@ -36,28 +37,20 @@ PERIOD = 1 / FPS
 
 
 class FakePlayback:
-    """``n`` frames at ``FPS`` stamped from 100 s, written ``write_ratio`` times faster than real time
-    (positions: ns of write time, as :func:`plugins.realsense.write_recording` makes them)."""
+    """The SDK pipeline over a recording of ``n`` frames at ``FPS`` stamped from 100 s; each read takes
+    ``read_s`` (or ``read_s(k)`` for the k-th read) on the clock, through ``sleep``."""
 
-    def __init__(self, clock: ManualClock, n: int, read_s, write_ratio: float = 0.07, can_seek: bool = True,
-                 sleep=None):
-        self.clock, self.n, self.read_s, self.can_seek = clock, n, read_s, can_seek
-        self.sleep = sleep or clock.advance     # how a read takes its time on the clock
+    def __init__(self, clock: ManualClock, n: int, read_s, sleep=None):
+        self.clock, self.n, self.read_s = clock, n, read_s
+        self.sleep = sleep or clock.advance
         self.stamps_ms = 1e5 + 1e3 * np.arange(n) / FPS
-        self.positions = (np.arange(n) / FPS * write_ratio * 1e9).astype(np.int64)
-        self.next = 0           # the next frame to read
-        self.position = 0
         self.reads = 0
-        self.seeks: list[int] = []
 
-    # rs.pipeline
     def try_wait_for_frames(self, timeout_ms: int):
-        self.sleep(self.read_s(self.reads) if callable(self.read_s) else self.read_s)   # the read, on a busy host
-        if self.next >= self.n:
+        self.sleep(self.read_s(self.reads) if callable(self.read_s) else self.read_s)
+        if self.reads >= self.n:
             return False, None
-        k, self.next = self.next, self.next + 1
-        self.position = int(self.positions[k])
-        self.reads += 1
+        k, self.reads = self.reads, self.reads + 1
         depth = types.SimpleNamespace(get_timestamp=lambda: float(self.stamps_ms[k]), get_frame_number=lambda: k,
                                       get_data=lambda: np.full((H, W), 1000 + k, np.uint16))
         return True, types.SimpleNamespace(get_depth_frame=lambda: depth)
@@ -65,83 +58,85 @@ class FakePlayback:
     def stop(self) -> None:
         pass
 
-    # rs.playback
-    def get_position(self) -> int:
-        return self.position
 
-    def get_duration(self) -> datetime.timedelta:
-        return datetime.timedelta(microseconds=int(self.positions[-1]) / 1e3)
-
-    def seek(self, when: datetime.timedelta) -> None:
-        if not self.can_seek:
-            raise RuntimeError("seek not supported")
-        target = int(when.total_seconds() * 1e9)
-        self.seeks.append(target)
-        self.next = max(self.next, int(np.searchsorted(self.positions, target)))
-        self.position = target
-
-
-def play(monkeypatch, n: int, read_s: float, can_seek: bool = True):
-    """Run the RealSense plugin's playback loop over a fake recording; (camera, playback, pushed frames)."""
+def play(monkeypatch, n: int, read_s, push_s: float = 0.0):
+    """Run the RealSense plugin's playback loop over a fake recording whose reads take ``read_s`` and
+    whose pushes (conversion, the bus, the sinks) take ``push_s``; (camera, playback, pushed frames)."""
     import plugins.realsense as plugin
 
     monkeypatch.setattr(plugin, "_rs", lambda: None)   # the loop needs the SDK only to restart a live device
     clock = ManualClock(lead_in_s=0.0)
-    playback = FakePlayback(clock, n, read_s, can_seek=can_seek)
+    playback = FakePlayback(clock, n, read_s)
     camera = plugin.RealSenseCamera(recording="unused.bag")
     camera._bind(clock, lambda *a: None)
-    camera._pipeline = camera._playback = playback
-    camera._period_s, camera.depth_scale = PERIOD, 1e-4
+    camera._pipeline, camera.depth_scale = playback, 1e-4
     monkeypatch.setattr(camera, "_stop_pipeline", lambda: None)
     pushed: list[DepthFrame] = []
-    camera._push = pushed.append
+
+    def push(frame):
+        pushed.append(frame)
+        clock.advance(push_s)
+
+    camera._push = push
     camera._run()
     return camera, playback, pushed
 
 
-def test_a_recording_read_slower_than_its_rate_stays_on_schedule(monkeypatch):
-    """Each read costs three frame periods (the tracker has the CPU): the plugin pushes only frames
-    that are due now, and the 2 s recording plays in about 2 s instead of 6."""
-    n, read_s = 180, 3 * PERIOD
-    camera, playback, pushed = play(monkeypatch, n, read_s)
+def test_a_recording_whose_pushes_take_longer_than_its_rate_stays_on_schedule(monkeypatch):
+    """Reads take 0.3 frame periods, pushes 2.5 (the sinks of a loaded host): the plugin skips the
+    frames that went stale meanwhile and the 2 s recording plays in 2 s, never more than a period
+    late; before, it pushed all 180, the last 2.8 s late (the 2 s in 5.1 s)."""
+    n = 180
+    camera, playback, pushed = play(monkeypatch, n, read_s=0.3 * PERIOD, push_s=2.5 * PERIOD)
     delay = np.array([f.arrival - f.stamp for f in pushed])
-    # never stale: a pushed frame's successor was not due yet, from the first frame to the last
-    assert delay.max() < PERIOD
-    # the whole recording in its own duration (plus the last reads), not n reads' worth of time
-    assert pushed[-1].stamp - pushed[0].stamp >= (n - 1) * PERIOD - 4 * read_s
-    assert pushed[-1].arrival - pushed[0].arrival <= (n - 1) * PERIOD + read_s
-    # it got there by seeking over frames it never read, and skipping the stale ones it did read
-    assert camera.seeks == len(playback.seeks) > 0 and playback.reads < n / 2
-    # every frame is pushed or counted as skipped (the summary's frames_skipped_by_camera)
-    assert camera.skipped > 0 and len(pushed) + camera.skipped == n
+    assert delay.max() < PERIOD                                   # never stale, first frame to last
+    assert pushed[-1].stamp - pushed[0].stamp >= (n - 4) * PERIOD     # to the end of the recording
+    assert playback.reads == n and len(pushed) + camera.skipped == n  # every frame pushed or counted
+    assert n / 4 <= len(pushed) <= n / 2
     ids = [f.frame_id for f in pushed]
     assert ids == sorted(set(ids)) and ids[0] == 0
     assert pushed[-1].depth_m[0, 0] == pytest.approx((1000 + ids[-1]) * 1e-4)   # the frame read, converted
 
 
 def test_a_recording_read_within_its_rate_pushes_every_frame(monkeypatch):
-    camera, playback, pushed = play(monkeypatch, 90, read_s=0.3 * PERIOD)
+    camera, playback, pushed = play(monkeypatch, 90, read_s=0.3 * PERIOD, push_s=0.3 * PERIOD)
     assert [f.frame_id for f in pushed] == list(range(90))
-    assert camera.skipped == camera.seeks == 0
+    assert camera.skipped == 0
     assert max(f.arrival - f.stamp for f in pushed) < PERIOD
 
 
-def test_a_playback_that_cannot_seek_skips_stale_frames_only_while_it_reads_faster_than_its_rate(monkeypatch):
-    """No seek. Reads at half a period, but the 30th takes ten periods (a hiccup): the frames that
-    were due meanwhile are skipped until the reader is back on schedule, then every frame is pushed."""
-    camera, playback, pushed = play(monkeypatch, 180, lambda k: 10 * PERIOD if k == 30 else 0.5 * PERIOD,
-                                    can_seek=False)
-    assert camera.seeks == 0 and playback.reads == 180
+def test_after_a_hiccup_the_reader_skips_the_stale_frames_and_is_back_on_schedule(monkeypatch):
+    """Reads at half a period, but the 30th takes ten periods: the frames due meanwhile are skipped
+    until the reader is back on schedule, then every frame is pushed."""
+    camera, playback, pushed = play(monkeypatch, 180, lambda k: 10 * PERIOD if k == 30 else 0.5 * PERIOD)
+    assert playback.reads == 180
     assert 5 <= camera.skipped <= 20 and len(pushed) + camera.skipped == 180
     assert max(f.arrival - f.stamp for f in pushed) < PERIOD
     assert [f.frame_id for f in pushed][-100:] == list(range(80, 180))
 
 
-def test_a_playback_that_cannot_seek_and_reads_slower_than_its_rate_still_pushes_its_frames(monkeypatch):
-    """Skipping without seeking would skip every frame of a reader that cannot keep up: it pushes them
-    (each the newest it has), late; only a playback that seeks can keep to the schedule."""
-    camera, playback, pushed = play(monkeypatch, 60, read_s=1.5 * PERIOD, can_seek=False)
+def test_a_reader_slower_than_its_rate_still_pushes_its_frames(monkeypatch):
+    """Skipping would skip every frame of a reader that cannot keep up: it pushes them (each the
+    newest it has), late; nothing faster is possible without reading fewer frames."""
+    camera, playback, pushed = play(monkeypatch, 60, read_s=1.5 * PERIOD)
     assert camera.skipped == 0 and len(pushed) == 60
+
+
+def test_the_trial_player_decodes_the_frame_due_once_decoded(monkeypatch):
+    """Decodes take three frame periods: the player decodes the frame that will be due when the decode
+    ends, so it pushes it within its period (before: the frame due when the decode began, pushed four
+    periods after its stamp)."""
+    clock = ManualClock(lead_in_s=0.0)
+    camera = RecordedCamera("unused")
+    camera._bind(clock, lambda *a: None)
+    camera.reader = FakeTrial(180, lambda: clock.advance(3 * PERIOD))
+    pushed: list[DepthFrame] = []
+    camera._push = pushed.append
+    camera._run()
+    delay = np.array([f.arrival - f.stamp for f in pushed])
+    assert delay[2:].max() <= PERIOD + 1e-9    # after two decodes timed, each frame pushed within its period
+    assert delay.max() <= 3 * PERIOD + 1e-9    # the second: decoded before a decode's time was known
+    assert camera.pushed + camera.skipped == 180 and 50 <= camera.pushed <= 65
 
 
 # ------------------------------------------------------------------------------------------------
@@ -198,8 +193,8 @@ class SlowTracker:
 
 @pytest.fixture
 def bag_session(tmp_path, monkeypatch):
-    """Register a ``fakebag`` camera (the RealSense plugin over a :class:`FakePlayback` whose reads take
-    ``read_s`` on the session clock) and a ``slow`` tracker; the sessions run on a PacedClock."""
+    """Register the ``fakebag`` and ``faketrial`` cameras, a ``held`` robot and a ``slow`` tracker;
+    the sessions run on a :class:`tests.clocks.PacedClock`."""
     import plugins.realsense as plugin
     from tests.clocks import paced_sessions
 
@@ -208,18 +203,25 @@ def bag_session(tmp_path, monkeypatch):
     made: dict = {"cameras": [], "trackers": []}
 
     class FakeBagCamera(plugin.RealSenseCamera):
-        def __init__(self, n: int = 360, read_s: float = 1.5 * PERIOD):
+        """The RealSense plugin over a :class:`FakePlayback` whose reads take ``read_s`` and whose
+        pushes (conversion, the bus's checks, the sinks) take ``push_s`` on the session clock."""
+
+        def __init__(self, n: int = 360, read_s: float = 0.3 * PERIOD, push_s: float = 2.5 * PERIOD):
             super().__init__(recording="unused.bag")
-            self.n, self.read_s = n, read_s
+            self.n, self.read_s, self.push_s = n, read_s, push_s
             made["cameras"].append(self)
 
         def open(self, clock, event):
             self._bind(clock, event)
-            playback = FakePlayback(clock, self.n, self.read_s, sleep=lambda s: clock.wait_until(clock.now() + s,
-                                                                                                 self._stop))
-            self._pipeline = self._playback = playback
-            self._period_s, self.depth_scale, self.camera = PERIOD, 1e-4, CAMERA
+            self._pipeline = FakePlayback(clock, self.n, self.read_s, sleep=self._take)
+            self.depth_scale, self.camera = 1e-4, CAMERA
             return CAMERA
+
+        def _take(self, seconds: float) -> None:
+            self.clock.wait_until(self.clock.now() + seconds, self._stop)
+
+        def start(self, push):
+            super().start(lambda frame: (self._take(self.push_s), push(frame)))
 
         def _stop_pipeline(self):
             pass
@@ -229,7 +231,7 @@ def bag_session(tmp_path, monkeypatch):
 
         def __init__(self, n: int = 360, read_s: float = 1.5 * PERIOD):
             super().__init__(trial="unused")
-            self.n, self.read_s = n, read_s
+            self.n, self.read_s, self.push_s = n, read_s, 0.0
             made["cameras"].append(self)
 
         def open(self, clock, event):
@@ -282,11 +284,12 @@ def bag_session(tmp_path, monkeypatch):
 @pytest.mark.parametrize("camera_plugin", ["fakebag", "faketrial"])
 def test_a_slow_tracker_over_a_recording_keeps_a_flat_latency_and_counts_the_drops(tmp_path, bag_session,
                                                                                    camera_plugin):
-    """The issue's bag flow (and the trial player's): reads 1.5 frame periods each (the tracker has
-    the CPU), the tracker four periods a frame, over a 4 s recording at 90 Hz. Each processed frame is
-    at most two periods old when the tracker starts on it, over the whole recording; every frame the
-    tracker did not see is counted, by the camera (stale or never read) or by the tracker's queue.
-    Before the fix the bag flow pushed every frame, later and later: 12 s max, the 4 s in 16 s."""
+    """The issue's bag flow, and the trial player's: the tracker takes four frame periods a frame over a
+    4 s recording at 90 Hz; the RealSense reader's pushes take 2.5 periods (its sinks, on a loaded
+    host), the trial player's decodes 1.5. Each processed frame is at most the camera's own work on it
+    and two periods old when the tracker starts on it, over the whole recording; every frame the
+    tracker did not see is counted, by the camera (stale) or by the tracker's queue. Before, the bag
+    flow pushed every frame, later and later (the trial player pushed frames stale after decoding)."""
     made, mesh_path = bag_session
     n, work_s = 360, 4 * PERIOD
     config = parse_session({
@@ -302,17 +305,16 @@ def test_a_slow_tracker_over_a_recording_keeps_a_flat_latency_and_counts_the_dro
 
     lat = summary["latency_ms"]
     assert lat["n"] == summary["processed"] == tracker.calls > 0
-    # a frame is fresh when pushed (its successor not due), and a newer one comes at most a read and
-    # a period later (the read lands within a period of the frame it aimed at): at most a read and
-    # two periods old when popped, then the tracker's time; first frame to last
-    read_s = camera.read_s
-    assert lat["max"] <= 1e3 * (read_s + 2 * PERIOD + work_s) + 1e-6
-    assert abs(summary["latency_last_ms"]["p99"] - summary["latency_first_ms"]["p99"]) <= 1e3 * PERIOD
-    # the 4 s recording took about 4 s of session time, not n reads' worth (6 s)
+    # a frame is fresh when the camera takes it (its successor not due), then the camera works on it
+    # (decode, push): it is queued at most a period and that work old, and the next one is queued at
+    # most a period and that work later. So the tracker starts on frames at most twice (work +
+    # period) old, then works: first frame to last (before, the bag flow's grew to seconds)
+    camera_s = camera.read_s + camera.push_s
+    assert lat["max"] <= 1e3 * (2 * (camera_s + PERIOD) + work_s) + 1e-6
+    # the 4 s recording took about 4 s of session time, not n frames' worth of the camera's work
     assert summary["seconds"] <= n * PERIOD + 1.0
     # every recorded frame is processed or counted as dropped: by the camera, or in the tracker's queue
     assert summary["frames_skipped_by_camera"] == camera.skipped > 0
-    assert camera_plugin != "fakebag" or camera.seeks > 0
     accepted = summary["frames"]["frames_accepted"]
     assert accepted + camera.skipped == n
     assert accepted - summary["processed"] - summary["frames_skipped_by_tracker"] in (0, 1)
