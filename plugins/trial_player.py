@@ -131,11 +131,13 @@ class RecordedCamera(ThreadedSource):
         Like a real camera, the player never delivers a stale frame: it decodes the frame that will be
         due once decoded (the next one, while it keeps up; on a busy host, where the decode takes
         longer than a period, the frame due when the decode ends, by the last decodes' durations),
-        then pushes it at its time. The frames it passes over are skipped (counted in ``skipped``),
-        so a slow host never builds a backlog of old frames.
+        then pushes it at its time; if the host slept past the next frame's time meanwhile, it
+        decodes that one instead (while a decode is quicker than a period). The frames it passes over
+        are skipped (counted in ``skipped``), so a slow host never builds a backlog of old frames.
         """
         i = 0
-        end = float(host[-1] + np.median(np.diff(host))) if len(host) > 1 else np.inf  # the last frame's slot ends
+        period = float(np.median(np.diff(host))) if len(host) > 1 else np.inf
+        end = float(host[-1] + period)                   # the last frame's slot ends
         while i < len(host):
             now = self.clock.now()
             if now >= end:                                    # even the last frame is stale
@@ -147,6 +149,10 @@ class RecordedCamera(ThreadedSource):
             self._decode_s.append(self.clock.now() - now)
             if not self._sleep_until(host[j]):
                 return False
+            if self._overslept(host, j, period, decode_s):   # a newer frame is due already: that one
+                self.skipped += j + 1 - i
+                i = j + 1
+                continue
             self.skipped += j - i
             self._push(DepthFrame(int(self.reader.frame_ids[j]) + lap * 10_000_000, float(host[j]),
                                   np.asarray(depth, np.float32), self.clock.now(),
@@ -154,6 +160,11 @@ class RecordedCamera(ThreadedSource):
             self.pushed += 1
             i = j + 1
         return True
+
+    def _overslept(self, host: np.ndarray, j: int, period: float, decode_s: float) -> bool:
+        """True when the frame after ``j`` is due already (the host slept past it) and decoding it instead
+        is quicker than a period (else the player would skip every frame of a slow host)."""
+        return j + 1 < len(host) and self.clock.now() >= host[j + 1] and decode_s < period
 
 
 class RecordedRobot(ThreadedSource):

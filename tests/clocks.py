@@ -3,7 +3,9 @@ with the machine's load.
 
 :class:`ManualClock` jumps to whatever time a source sleeps until. :class:`LockstepClock`
 (installed by :func:`lockstep_sessions`) also holds the camera until the live loop has processed
-every frame it pushed, so a live session tracks every frame on any machine.
+every frame it pushed, so a live session tracks every frame on any machine. :class:`PacedClock`
+(installed by :func:`paced_sessions`) lets a slow test tracker's work move the time while the
+sources go on as on a second core, so a session drops frames exactly as the counts say.
 """
 from __future__ import annotations
 

@@ -139,6 +139,28 @@ def test_the_trial_player_decodes_the_frame_due_once_decoded(monkeypatch):
     assert camera.pushed + camera.skipped == 180 and 50 <= camera.pushed <= 65
 
 
+def test_the_trial_player_never_pushes_a_frame_the_host_overslept(monkeypatch):
+    """Decodes take 0.2 periods; the 20th sleep wakes 2.5 periods late (a busy host): the player
+    decodes the frame due then instead of pushing the one it slept for; every frame pushed within its
+    period, the ones passed over counted (as before this change: a guard for it)."""
+    class LateClock(ManualClock):
+        sleeps = 0
+
+        def wait_until(self, t, stop):
+            self.sleeps += 1
+            return super().wait_until(t + (2.5 * PERIOD if self.sleeps == 20 else 0.0), stop)
+
+    clock = LateClock(lead_in_s=0.0)
+    camera = RecordedCamera("unused")
+    camera._bind(clock, lambda *a: None)
+    camera.reader = FakeTrial(90, lambda: clock.advance(0.2 * PERIOD))
+    pushed: list[DepthFrame] = []
+    camera._push = pushed.append
+    camera._run()
+    assert max(f.arrival - f.stamp for f in pushed) < PERIOD
+    assert camera.skipped == 2 and camera.pushed == 88 and len(pushed) == 88   # the two due at the wake-up
+
+
 # ------------------------------------------------------------------------------------------------
 # the session: a tracker four frame periods slow over the recording
 # ------------------------------------------------------------------------------------------------
