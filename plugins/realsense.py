@@ -18,15 +18,21 @@ device (a cleaner calibration board).
 
 Recording (``recording: FILE``): a ``.bag`` (ROS1, written by librealsense up to 2.56 and by the
 RealSense Viewer of that era) or ``.db3`` (ROS2, written by librealsense 2.58 and later) file,
-played in real time: every frame is read (the SDK's non-real-time playback, which drops none) and
-pushed when the host clock reaches its recorded timestamp mapped through the session's replay
-anchor, so a recorded robot trial taken on the same clock lines up.
+played in real time: frames are read in order (the SDK's non-real-time playback, which drops none
+by itself) and pushed when the host clock reaches their recorded timestamp mapped through the
+session's replay anchor, so a recorded robot trial taken on the same clock lines up. Like a live
+camera it never delivers a stale frame and never queues: a frame read after its successor was
+already due (a busy host: the tracker's CPU, the GIL, the sinks of the frame before) is skipped,
+neither converted nor pushed (``skipped``, in the session summary), while the reader reads faster
+than the frame rate, so it catches up by reading on and the latency stays flat however long the
+recording. (Seeking the playback instead hangs the SDK's pipeline for 10 s now and then, 2.59.)
 
 :func:`write_recording` writes depth images to such a file with the SDK's own software device and
 recorder (the tests use it; also a way to turn a trial into a file the RealSense Viewer opens).
 """
 from __future__ import annotations
 
+import collections
 import logging
 import time
 from pathlib import Path
@@ -114,6 +120,11 @@ class RealSenseCamera(ThreadedSource):
         self.camera: PinholeCamera | None = None
         self._pipeline = None
         self._replay_origin = None
+        self._period_s = None       # the recording's frame period: the smallest stamp step read so far
+        self._last_read_t = None    # recorded stamp of the last frame read
+        self._last_done = None      # session time the last recorded frame was pushed or skipped
+        self._read_s = collections.deque(maxlen=8)   # the last reads' durations (session clock)
+        self.skipped = 0            # recorded frames read when already stale, never pushed
 
     # -- setup -----------------------------------------------------------------------------------
     def open(self, clock: SessionClock, event) -> PinholeCamera:
@@ -265,12 +276,10 @@ class RealSenseCamera(ThreadedSource):
         """depth : (timestamp ms, frame number, rs.depth_frame or its (H, W) uint16 array)."""
         device_t = depth[0] * 1e-3
         if self.recording is not None:
-            if self._replay_origin is None:
-                self._replay_origin = device_t
-            stamp = float(self.clock.replay_to_host(device_t, self._replay_origin))
-            if not self._sleep_until(stamp):
+            due = self._when_due(device_t)
+            if due is None:
                 return
-            arrival = self.clock.now()
+            stamp, arrival = due
         else:
             stamp, jump = self.clock_mapper.map(device_t, arrival)
             if jump is not None:
@@ -278,6 +287,45 @@ class RealSenseCamera(ThreadedSource):
         data = depth[2] if isinstance(depth[2], np.ndarray) else np.asanyarray(depth[2].get_data())
         depth_m = data.astype(np.float32) * np.float32(self.depth_scale)
         self._push(DepthFrame(int(depth[1]), stamp, depth_m, arrival, infrared=infrared, color=color))
+        self._last_done = self.clock.now()
+
+    def _when_due(self, device_t: float) -> tuple[float, float] | None:
+        """(host stamp, arrival) of the recorded frame stamped ``device_t`` (s), pushed once its stamp is
+        due; None when stopped meanwhile or when the frame is stale and skipped.
+
+        Stale: the next frame (a period later) is due already. It is skipped while the reader's recent
+        reads were faster than the frame rate (it catches up by reading on: each stale frame costs a
+        read, no conversion, no push). A reader slower than the frame rate pushes it anyway (the
+        newest frame it has; skipping every frame would push none).
+        """
+        if self._last_done is not None:                # this frame's read
+            self._read_s.append(self.clock.now() - self._last_done)
+        read_s = min(self._read_s) if self._read_s else None   # what the next read may cost: the quickest of late
+        if self._replay_origin is None:
+            self._replay_origin = device_t
+        self._learn_period(device_t)
+        stamp = float(self.clock.replay_to_host(device_t, self._replay_origin))
+        if not self._sleep_until(stamp):
+            return None
+        now = self.clock.now()
+        if self._stale(device_t, now) and read_s is not None and read_s < self._period_s:
+            self.skipped += 1
+            self._last_done = now
+            return None
+        return stamp, now
+
+    def _learn_period(self, device_t: float) -> None:
+        """The recording's frame period: the smallest step between the stamps read (the stream profile's
+        fps is what the recorder was told, not always the frames' rate; a dropped frame makes a larger step)."""
+        last, self._last_read_t = self._last_read_t, device_t
+        if last is not None and device_t > last:
+            self._period_s = min(self._period_s or np.inf, device_t - last)
+
+    def _stale(self, device_t: float, now: float) -> bool:
+        """True when the recorded frame after this one (one period later) is already due on the session clock."""
+        if self._period_s is None:
+            return False
+        return float(self.clock.replay_to_host(device_t + self._period_s, self._replay_origin)) <= now
 
     def session_defaults(self) -> dict:
         out = {"camera": self.camera} if self.camera is not None else {}

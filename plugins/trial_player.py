@@ -6,7 +6,8 @@ go through the session's replay anchor (:meth:`app.interfaces.SessionClock.repla
 the trial's earliest stamp as origin, so camera and robot stay on one clock as they were recorded,
 and that clock is the session's: the anchor is fixed when the sources start, however long opening
 them took. Like a real camera the player never delivers a stale frame: behind its schedule (a busy
-host), it pushes the newest frame due and skips the older ones (``skipped``, in the summary).
+host), it decodes the frame that will be due once decoded and skips the older ones (``skipped``, in
+the summary).
 ``loop: true`` plays the trial again and again (a soak, or a session as long as asked).
 
 ``camera: simulated`` / ``robot: simulated`` first simulate a trial (``app.sim.simulate``) into a
@@ -22,6 +23,7 @@ offers them to the session, which uses them for any key its file leaves out.
 """
 from __future__ import annotations
 
+import collections
 import logging
 import tempfile
 import threading
@@ -98,6 +100,7 @@ class RecordedCamera(ThreadedSource):
         self.reader = None
         self.skipped = 0      # frames due while the player was behind its schedule, never pushed
         self.pushed = 0
+        self._decode_s = collections.deque(maxlen=8)   # the last frame decodes' durations (session clock)
 
     def open(self, clock: SessionClock, event):
         self._bind(clock, event)
@@ -125,32 +128,43 @@ class RecordedCamera(ThreadedSource):
     def _play_lap(self, host: np.ndarray, lap: int) -> bool:
         """Push the frames of one lap at their host times ``host``; False if stopped.
 
-        Like a real camera, the player never delivers a stale frame: the next frame is decoded
-        ahead of its time; when the player wakes up behind its schedule (the host was busy), it
-        pushes the newest frame already due and skips the older ones (counted in ``skipped``), so
-        a slow host never builds a backlog of old frames.
+        Like a real camera, the player never delivers a stale frame: it decodes the frame that will be
+        due once decoded (the next one, while it keeps up; on a busy host, where the decode takes
+        longer than a period, the frame due when the decode ends, by the last decodes' durations),
+        then pushes it at its time; if the host slept past the next frame's time meanwhile, it
+        decodes that one instead (while a decode is quicker than a period). The frames it passes over
+        are skipped (counted in ``skipped``), so a slow host never builds a backlog of old frames.
         """
         i = 0
-        end = float(host[-1] + np.median(np.diff(host))) if len(host) > 1 else np.inf  # the last frame's slot ends
-        ready = None
+        period = float(np.median(np.diff(host))) if len(host) > 1 else np.inf
+        end = float(host[-1] + period)                   # the last frame's slot ends
         while i < len(host):
-            if ready is None and self.clock.now() < host[i]:
-                ready = (i, self.reader.read_depth(i))        # decode ahead while there is time
-            if not self._sleep_until(host[i]):
-                return False
             now = self.clock.now()
             if now >= end:                                    # even the last frame is stale
                 self.skipped += len(host) - i
                 break
-            j = max(i, int(np.searchsorted(host, now, side="right")) - 1)
-            depth = ready[1] if ready is not None and ready[0] == j else self.reader.read_depth(j)
+            decode_s = min(self._decode_s) if self._decode_s else 0.0   # the quickest of the last decodes
+            j = max(i, int(np.searchsorted(host, now + decode_s, side="right")) - 1)
+            depth = self.reader.read_depth(j)
+            self._decode_s.append(self.clock.now() - now)
+            if not self._sleep_until(host[j]):
+                return False
+            if self._overslept(host, j, period, decode_s):   # a newer frame is due already: that one
+                self.skipped += j + 1 - i
+                i = j + 1
+                continue
             self.skipped += j - i
             self._push(DepthFrame(int(self.reader.frame_ids[j]) + lap * 10_000_000, float(host[j]),
                                   np.asarray(depth, np.float32), self.clock.now(),
                                   infrared=self.reader.read_infrared(j), color=self.reader.read_color(j)))
             self.pushed += 1
-            i, ready = j + 1, None
+            i = j + 1
         return True
+
+    def _overslept(self, host: np.ndarray, j: int, period: float, decode_s: float) -> bool:
+        """True when the frame after ``j`` is due already (the host slept past it) and decoding it instead
+        is quicker than a period (else the player would skip every frame of a slow host)."""
+        return j + 1 < len(host) and self.clock.now() >= host[j + 1] and decode_s < period
 
 
 class RecordedRobot(ThreadedSource):

@@ -69,3 +69,60 @@ def test_the_refinement_cpu_wrapper_passes_calls_through_and_adds_up_only_their_
     assert total[0] == pytest.approx(0.006, abs=1e-12)
     Tracker.refined_track = None
     assert rate._time_refinement_cpu(Tracker()) == [0.0]
+
+
+# ------------------------------------------------------------------------------------------------
+# --whole: the whole tracker beside the ICP baseline on one trial (app/bench/whole.py)
+# ------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_trial(tmp_path_factory):
+    """A 0.1 s static_clear trial of the default mesh: 9 frames."""
+    from app.sim.simulator import simulate
+
+    out = tmp_path_factory.mktemp("whole") / "trial"
+    simulate(out, scenario_name="static_clear", seconds=0.1, seed=1)
+    return out
+
+
+def test_whole_runs_both_engines_on_the_same_frames_and_its_rows_add_up(tmp_path, tiny_trial):
+    """No time is asserted: the rows exist, both engines timed the same frames, the stage shares are
+    shares of the frame's wall time (sum <= 100 %, the rest is 'other'), and the counts fit."""
+    import json
+
+    from app.cli import main
+
+    out = tmp_path / "whole.json"
+    assert main(["bench-rate", "--whole", "--trial", str(tiny_trial), "--frames", "4", "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    t, i = result["tracker"], result["icp"]
+    assert result["frames"] == t["frames"] == i["frames"] == 4 and result["warmup"] == 3
+    assert t["timed_frames_in_stages"] == 4                   # the tracker's own timings cover the timed frames
+    assert sum(t["status_counts"].values()) == sum(i["status_counts"].values()) == 4
+    for row in (t, i):
+        assert row["fps"] > 0 and row["frame_ms"] == pytest.approx(1e3 * row["wall_s"] / 4)
+        assert row["fps"] == pytest.approx(1e3 / row["frame_ms"])
+    assert result["ratio"] == pytest.approx(t["fps"] / i["fps"])
+    assert result["cpu_ratio"] == pytest.approx(i["cpu_ms"] / t["cpu_ms"])
+    # the default tracker: its filter stages and the refinement, each a share of the frame
+    assert {"predict", "likelihood", "weight", "resample", "estimate", "refine"} <= set(t["stages_ms"])
+    shares = t["stage_shares"]
+    assert all(0 <= v for v in shares.values()) and sum(shares.values()) <= 1.0 + 1e-9
+    assert t["other_share"] == pytest.approx(1.0 - sum(shares.values()))
+    for stage, ms in t["stages_ms"].items():
+        assert shares[stage] == pytest.approx(ms / t["frame_ms"])
+    assert all(k.startswith(f"{t['description'].split(', ')[1].split()[0]}_") for k in t["backend_stages_ms"])
+    assert 0 <= t["refined_frames"] <= 4 and 0 <= t["search_frames"] <= 4
+    assert t["search_share"] == pytest.approx(t["search_frames"] / 4)
+
+
+def test_whole_refuses_bad_input_with_one_line(tmp_path, tiny_trial, capsys):
+    from app.cli import main
+
+    assert main(["bench-rate", "--whole", "--trial", str(tmp_path), "--json", str(tmp_path / "a.json")]) != 0
+    assert "--trial" in capsys.readouterr().err
+    assert main(["bench-rate", "--trial", str(tiny_trial), "--json", str(tmp_path / "b.json")]) != 0
+    assert "--whole" in capsys.readouterr().err
+    assert main(["bench-rate", "--whole", "--trial", str(tiny_trial), "--frames", "4", "--particles", "100",
+                 "--json", str(tmp_path / "c.json")]) != 0
+    assert "--config" in capsys.readouterr().err
+    assert not any((tmp_path / n).exists() for n in ("a.json", "b.json", "c.json"))

@@ -1,0 +1,189 @@
+"""The whole tracker's rate beside the ICP baseline (``osteonav bench-rate --whole``, issue 35).
+
+On one trial (a CT-crest ``static_clear`` trial simulated once into a cache, or the user's), the
+default tracker's whole ``DepthTracker.process`` (filter, refinement, status, and the recovery's
+wide search when it runs) and the Open3D point-to-plane ICP baseline (app/baselines/icp.py, the
+bench's ``icp`` configuration) process the same frames, frame by frame in turn, so a loaded machine
+slows both alike:
+
+- frames/s of each, from the wall time of its ``process`` calls (``fps``), and the process CPU time
+  per frame (``cpu_ms``, all threads: Open3D's and numba's included), which other jobs on the
+  machine do not inflate; the ratios ``tracker fps / ICP fps`` (``ratio``) and ICP's CPU per frame
+  over the tracker's (``cpu_ratio``);
+- the tracker's split per stage from its own timings (``DepthTracker.mean_timings_ms``: the filter's
+  stages, ``refine``, ``recovery_search``; the backend's sub-stages of the likelihood apart), each
+  as ms per frame and as a share of the frame's wall time; the rest (status, bookkeeping) is
+  ``other``;
+- counts: frames timed, frames the refinement ran on, frames that ran a wide search (their share),
+  and each engine's statuses (an ICP that has lost the bone stops costing: its rate says so).
+
+The first ``warmup`` frames (numba's first calls, Open3D's set-up) run for both and are not timed.
+Ratios measured in one run are stable on a noisy machine; absolute rates are not.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from app.config import TrackerConfig, load_config
+
+SCENARIO = "static_clear"
+SEED = 0
+SEARCH_STAGE = "recovery_search"     # DepthTracker's stage for the recovery's wide search
+REFINE_STAGE = "refine"
+
+
+def default_crest() -> Path | None:
+    """The first shared CT crest mesh (``../shared/data/pelvis/crest_*.ply``), or None when absent."""
+    from app.bench.trials import pelvis_crest_meshes
+
+    meshes = pelvis_crest_meshes()
+    return meshes[0] if meshes else None
+
+
+def simulated_trial(mesh: Path, seconds: float, cache: Path) -> Path:
+    """A ``static_clear`` trial of ``mesh``, simulated once into ``cache`` (reused while valid)."""
+    from app.bench.trials import _cache_valid
+    from app.sim.sensors import DEFAULT_SENSOR, parse_sensor, sensor_to_dict
+    from app.sim.simulator import simulate
+
+    out = Path(cache) / f"{Path(mesh).stem}-{SCENARIO}-{seconds:g}s"
+    if not _cache_valid(out, SCENARIO, seconds, SEED, Path(mesh), sensor_to_dict(parse_sensor(DEFAULT_SENSOR))):
+        simulate(out, mesh_path=mesh, scenario_name=SCENARIO, seconds=seconds, seed=SEED, overwrite=True)
+    return out
+
+
+def measure(trial: str | Path, config: TrackerConfig | None = None, frames: int | None = None, warmup: int = 3,
+            progress=None) -> dict:
+    """The rows of one run over ``trial`` (module docstring): ``{'trial', 'frames', 'tracker', 'icp', 'ratio'}``."""
+    from app.baselines.icp import ICPTracker
+    from app.bench.configs import resolve_configs
+    from app.pipeline.replay import known_plan
+    from app.pipeline.tracker import DepthTracker, use_plan
+    from app.trial.reader import open_trial
+
+    config = config or load_config(None)
+    reader = open_trial(trial)
+    if reader.meta.initial_pose is None:
+        raise ValueError(f"{trial}: the trial has no initial_pose to start the trackers from")
+    n = len(reader) if frames is None else min(len(reader), warmup + int(frames))
+    if n <= warmup:
+        raise ValueError(f"{trial}: {len(reader)} frames, not more than the {warmup} warm-up frames")
+    mesh = reader.load_mesh()
+    camera = reader.meta.camera
+    T_base_camera, valid = reader.camera_poses()
+    tracker = DepthTracker(config, mesh, camera)
+    tracker.start(reader.meta.initial_pose)
+    tracker.set_point_prior(reader.meta.point_prior)
+    use_plan(tracker, known_plan(None, mesh)[0])          # as replay: the status's template points
+    icp = ICPTracker(resolve_configs(["icp"])[0].icp, mesh, camera)
+    icp.start(reader.meta.initial_pose)
+    runs = {"tracker": _Timed(tracker), "icp": _Timed(icp)}
+    try:
+        for i in range(n):
+            depth = reader.read_depth(i)
+            pose = T_base_camera[i] if valid[i] else None
+            if i == warmup:                                # the timed frames start here
+                tracker._timings.clear()
+                tracker._frames = 0
+            for run in runs.values():
+                run.process(depth, float(reader.stamps[i]), pose, timed=i >= warmup)
+            if progress:
+                progress(i + 1, n)
+    finally:
+        tracker.release()
+        icp.release()
+    row_t = _tracker_row(runs["tracker"], tracker, config)
+    row_i = runs["icp"].row()
+    return {"trial": str(trial), "mesh": str(reader.mesh_path), "frames": n - warmup, "warmup": warmup,
+            "tracker": row_t, "icp": row_i, "ratio": row_t["fps"] / row_i["fps"] if row_i["fps"] > 0 else None,
+            "cpu_ratio": row_i["cpu_ms"] / row_t["cpu_ms"] if row_t["cpu_ms"] > 0 else None}
+
+
+class _Timed:
+    """One engine's timed ``process`` calls: wall and process CPU seconds, frames, what each returned."""
+
+    def __init__(self, engine):
+        self.engine = engine
+        self.wall = self.cpu = 0.0
+        self.frames = 0
+        self.refined = 0
+        self.searched = 0
+        self.statuses: dict[str, int] = {}
+
+    def _search_s(self) -> float:
+        """The engine's wide-search seconds so far (DepthTracker's own timings; 0 for ICP)."""
+        return getattr(self.engine, "_timings", {}).get(SEARCH_STAGE, 0.0)
+
+    def process(self, depth, stamp, pose, timed: bool) -> None:
+        searched_before = self._search_s()
+        t0, c0 = time.perf_counter(), time.process_time()
+        result = self.engine.process(depth, stamp, pose)
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        if not timed:
+            return
+        self.wall += wall
+        self.cpu += cpu
+        self.frames += 1
+        self.refined += bool(getattr(result, "refined", False))
+        status = str(getattr(result.status, "value", result.status))
+        self.statuses[status] = self.statuses.get(status, 0) + 1
+        self.searched += self._search_s() > searched_before
+
+    def row(self) -> dict:
+        frame_ms = 1e3 * self.wall / max(self.frames, 1)
+        return {"frames": self.frames, "wall_s": self.wall, "frame_ms": frame_ms,
+                "fps": 1e3 / frame_ms if frame_ms > 0 else float("inf"),
+                "cpu_ms": 1e3 * self.cpu / max(self.frames, 1), "status_counts": dict(self.statuses)}
+
+
+def _tracker_row(run: _Timed, tracker, config: TrackerConfig) -> dict:
+    """The tracker's row: rate, counts, and its stage split (ms per frame, share of the frame's wall time)."""
+    row = run.row()
+    stages = tracker.mean_timings_ms()
+    backend = f"{tracker.backend_name}_"
+    top = {k: v for k, v in stages.items() if not k.startswith(backend)}
+    shares = {k: v / row["frame_ms"] for k, v in top.items()} if row["frame_ms"] > 0 else {}
+    row.update({
+        "description": f"{config.particles} particles at {config.resolution[0]}x{config.resolution[1]}, "
+                       f"{tracker.backend_name} backend, refinement {'on' if tracker.refined_track is not None else 'off'}",
+        "timed_frames_in_stages": tracker._frames,
+        "stages_ms": top, "backend_stages_ms": {k: v for k, v in stages.items() if k.startswith(backend)},
+        "stage_shares": shares, "other_share": max(0.0, 1.0 - sum(shares.values())),
+        "refined_frames": run.refined, "search_frames": run.searched,
+        "search_share": run.searched / max(run.frames, 1),
+    })
+    return row
+
+
+def table(result: dict) -> str:
+    """Fixed-width table: the tracker's and ICP's rates and their ratio, then the tracker's stage split."""
+    t, i = result["tracker"], result["icp"]
+    lines = [f"{'engine':<8} {'frames':>6} {'fps':>7} {'frame ms':>9} {'cpu ms':>8}  notes", "-" * 72]
+    lines.append(f"{'tracker':<8} {t['frames']:>6} {t['fps']:>7.1f} {t['frame_ms']:>9.2f} {t['cpu_ms']:>8.2f}  "
+                 f"refined {t['refined_frames']}/{t['frames']}, wide search on {t['search_frames']} "
+                 f"({100 * t['search_share']:.0f} %), status {_counts(t['status_counts'])}")
+    lines.append(f"{'icp':<8} {i['frames']:>6} {i['fps']:>7.1f} {i['frame_ms']:>9.2f} {i['cpu_ms']:>8.2f}  "
+                 f"Open3D point-to-plane, status {_counts(i['status_counts'])}")
+    ratio = result["ratio"]
+    cpu_ratio = result.get("cpu_ratio")
+    lines.append(f"tracker / ICP: {'-' if ratio is None else f'{ratio:.2f}'}x the frames/s on the same "
+                 f"{t['frames']} frames ({'-' if cpu_ratio is None else f'{cpu_ratio:.2f}'}x by CPU time per frame)")
+    lost = i["status_counts"].get("lost", 0)
+    if lost:
+        lines.append(f"note: ICP was lost on {lost} of {i['frames']} frames; a lost ICP stops early (too few points "
+                     "near its pose), so its rate there is not that of a tracking ICP")
+    lines.append("")
+    lines.append(f"{'tracker stage':<18} {'ms/frame':>9} {'share':>7}")
+    lines.append("-" * 36)
+    for stage, ms in sorted(t["stages_ms"].items(), key=lambda kv: -kv[1]):
+        lines.append(f"{stage:<18} {ms:>9.2f} {100 * t['stage_shares'][stage]:>6.1f}%")
+    lines.append(f"{'other (status...)':<18} {t['frame_ms'] * t['other_share']:>9.2f} {100 * t['other_share']:>6.1f}%")
+    return "\n".join(lines)
+
+
+def _counts(counts: dict) -> str:
+    """'ok 12, lost 3' from a status -> frames mapping."""
+    return ", ".join(f"{k} {v}" for k, v in sorted(counts.items(), key=lambda kv: -kv[1])) or "-"
