@@ -78,3 +78,14 @@ def test_the_lifecycle_walks_a_recovery():
 ])
 def test_one_event_per_frame_the_first_that_applies(facts, expected):
     assert lifecycle.event(**facts) == expected
+
+
+def test_the_printed_summary_says_why_the_template_was_not_shown():
+    from app.pipeline.report import summary_rows
+    summary = {"frames": 10, "processing_rate_hz": 30.0, "particles": 200, "resolution": [160, 120],
+               "sampling": "joint", "gl": "cpu", "status_fraction": {"ok": 0.5, "uncertain": 0.5, "lost": 0.0},
+               "blocked_by": {"imprecise": 0.42, "moving": 0.03}}
+    rows = dict(summary_rows(summary))
+    assert rows["not ok because (share of frames)"] == "imprecise 42 %, moving 3 %"
+    del summary["blocked_by"]
+    assert "not ok because (share of frames)" not in dict(summary_rows(summary))

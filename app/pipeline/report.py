@@ -28,6 +28,10 @@ def summary_rows(summary: dict) -> list[tuple[str, str]]:
         rows.append(("recovery", recovery_text(recovery)))
     s = summary["status_fraction"]
     rows.append(("status ok / uncertain / lost", f"{100 * s['ok']:.0f} / {100 * s['uncertain']:.0f} / {100 * s['lost']:.0f} %"))
+    blocked = summary.get("blocked_by") or {}
+    if blocked:   # why the template was not shown (status.csv's reason codes; README's table)
+        rows.append(("not ok because (share of frames)",
+                     ", ".join(f"{code} {100 * share:.0f} %" for code, share in list(blocked.items())[:5])))
     p = summary.get("projector")
     if p and p.get("skipped"):
         rows.append(("projector", f"skipped: {p['skipped']}"))
