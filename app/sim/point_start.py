@@ -21,14 +21,16 @@ def offset_point(point: np.ndarray, distance_m: float, rng: np.random.Generator)
     return np.asarray(point, float) + distance_m * direction / np.linalg.norm(direction)
 
 
-def make_point_only(trial_dir: str | Path, distance_m: float, rng: np.random.Generator) -> np.ndarray:
+def make_point_only(trial_dir: str | Path, distance_m: float, rng: np.random.Generator,
+                    keep_point: bool = True) -> np.ndarray | None:
     """Rewrite the trial's trial.yaml without ``initial_pose`` and with its ``point_prior`` moved
-    ``distance_m`` off (:func:`offset_point`); returns the new point (base frame, m)."""
+    ``distance_m`` off (:func:`offset_point`), or without a point either (``keep_point`` False: a start
+    from nothing); returns the new point (base frame, m) or None."""
     path = Path(trial_dir) / META_FILE
     meta = load_meta(path)
     if meta.point_prior is None:
         raise ValueError(f"{path}: no point_prior to move (a simulated trial has one)")
     meta.initial_pose = None
-    meta.point_prior = offset_point(meta.point_prior, distance_m, rng)
+    meta.point_prior = offset_point(meta.point_prior, distance_m, rng) if keep_point else None
     dump_meta(meta, path)
     return meta.point_prior
