@@ -1,8 +1,10 @@
 """Start from a point on the CT crests (issue 33): found within 1 mm, its work and CPU, and safety.
 
-Import as ``from app.bench.start import run_start``; the command is ``scripts/bench_init.py``. For
-each crest x view x seed: a short ``static_clear`` trial is simulated (app/sim; the view is the
-simulator's seed: the bone's tilt, the tissue, the camera's path), made point-only
+Import as ``from app.bench.start import run_start``; the command is ``osteonav bench-init``. For
+each crest x scenario x view x seed: a short trial is simulated (app/sim; ``static_clear``, and for
+other viewpoints ``static_other_side``, the bone turned 180 deg about its crest-up axis, and
+``static_far``, 0.65 m away; the view is the simulator's seed: the bone's ~8 deg tilt and the
+tissue, the camera's path being the same), made point-only
 (app/sim/point_start.py: no ``initial_pose``, the ``point_prior`` moved ``off`` metres off the
 crest's top, 2-5 mm in a uniform direction, drawn per crest, view and seed) and replayed with the product's default configuration
 (``init.method: auto``: the detector from the point). Per run:
@@ -28,16 +30,18 @@ SAFE_MM = 2.0
 
 
 def simulate_point_trial(out: Path, mesh: Path, view: int, seed: int, seconds: float,
-                         off_range_m: tuple[float, float], keep_point: bool = True) -> float:
-    """The crest's static_clear trial of this view (cached under ``out``'s parent by crest and view),
-    copied to ``out`` and made point-only with a point ``off`` m off (drawn from ``off_range_m`` by
-    ``seed``), or with no point either (``keep_point`` False: the whole image); returns ``off``."""
+                         off_range_m: tuple[float, float], keep_point: bool = True,
+                         scenario: str = "static_clear") -> float:
+    """The crest's ``scenario`` trial of this view (cached under ``out``'s parent by crest, scenario and
+    view), copied to ``out`` and made point-only with a point ``off`` m off (drawn from ``off_range_m``
+    by ``seed``), or with no point either (``keep_point`` False: the whole image); returns ``off``."""
     from app.sim.point_start import make_point_only
     from app.sim.simulator import simulate
 
-    cached = out.parent / f"{mesh.stem}_view{view}_{seconds:g}s"
+    tag = "" if scenario == "static_clear" else f"_{scenario}"
+    cached = out.parent / f"{mesh.stem}{tag}_view{view}_{seconds:g}s"
     if not (cached / "trial.yaml").exists():
-        simulate(cached, mesh_path=mesh, scenario_name="static_clear", seconds=seconds, seed=view, overwrite=True)
+        simulate(cached, mesh_path=mesh, scenario_name=scenario, seconds=seconds, seed=view, overwrite=True)
     if out.exists():
         shutil.rmtree(out)
     shutil.copytree(cached, out)

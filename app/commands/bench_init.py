@@ -7,14 +7,18 @@ from app.cli_types import finite_float, int_at_least, positive_int, positive_sec
 from app.commands.outdir import add_overwrite_argument, results_file
 
 PELVIS_HELP = "../shared/data/pelvis"
+VIEW_SCENARIOS = ("static_clear", "static_other_side", "static_far")
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("bench-init", help="start from a point 2-5 mm off each CT crest with the defaults: "
                               "found within 1 mm, work and CPU to it, frames ok while > 2 mm off")
     p.add_argument("--crests", default="crest_*.ply", help=f"mesh glob in {PELVIS_HELP} (default: crest_*.ply, the 8 crests)")
+    p.add_argument("--scenarios", nargs="+", default=["static_clear"], choices=VIEW_SCENARIOS,
+                   help="simulated scenes, the bone static and unoccluded (default: static_clear; "
+                   "static_other_side and static_far see it from the other side and from 0.65 m)")
     p.add_argument("--views", type=positive_int, default=1,
-                   help="simulator seeds per crest (bone tilt, tissue, camera path), >= 1 (default 1)")
+                   help="simulator seeds per crest and scenario (bone tilt, tissue), >= 1 (default 1)")
     p.add_argument("--seeds", type=positive_int, default=1, help="point draws per view, >= 1 (default 1)")
     p.add_argument("--seconds", type=positive_seconds, default=2.5, help="trial length in seconds, > 0 (default 2.5)")
     p.add_argument("--off-mm", type=finite_float, nargs=2, default=(2.0, 5.0), metavar=("LOW", "HIGH"),
@@ -57,9 +61,10 @@ def run(args) -> int:
     t0 = time.perf_counter()
     rows = []
     for mesh in meshes:
-        for view in range(args.views):
-            for seed in range(args.seeds):
-                rows.extend(_one(args, work, mesh, view, seed, first=not rows))
+        for scenario in args.scenarios:
+            for view in range(args.views):
+                for seed in range(args.seeds):
+                    rows.extend(_one(args, work, mesh, scenario, view, seed, first=not rows))
     if args.samplers:
         report = _samplers_report(rows)
     else:
@@ -73,27 +78,27 @@ def run(args) -> int:
     return 0
 
 
-def _one(args, work, mesh, view: int, seed: int, first: bool) -> list[dict]:
+def _one(args, work, mesh, scenario: str, view: int, seed: int, first: bool) -> list[dict]:
     """One start: its trial (simulated, cached), then the replay's measures or every sampler's run."""
     from dataclasses import asdict
 
     from app.bench import start
 
-    trial = work / f"{mesh.stem}_v{view}_s{seed}{'_nopoint' if args.no_point else ''}"
+    trial = work / f"{mesh.stem}_{scenario}_v{view}_s{seed}{'_nopoint' if args.no_point else ''}"
     off = start.simulate_point_trial(trial, mesh, view, seed, args.seconds, (1e-3 * args.off_mm[0], 1e-3 * args.off_mm[1]),
-                                     not args.no_point)
-    key = {"crest": mesh.stem, "view": view, "seed": seed, "off_mm": 1e3 * off}
+                                     not args.no_point, scenario)
+    key = {"crest": mesh.stem, "scenario": scenario, "view": view, "seed": seed, "off_mm": 1e3 * off}
     if args.samplers:
         runs = [{**key, **asdict(r)} for r in _compare(trial, args.budget, seed)]
         for r in runs:
-            print(f"{mesh.stem} v{view} s{seed} {r['sampler']}: success {r['success']} ({r['evaluations_to_success']} "
+            print(f"{mesh.stem} {scenario} v{view} s{seed} {r['sampler']}: success {r['success']} ({r['evaluations_to_success']} "
                   f"evaluations), ADD {r['add_mm']:.1f} mm, {r['rotation_deg']:.1f} deg, {r['cpu_s']:.2f} s CPU", flush=True)
         return runs
     if first:
         start.run_start(trial, max_frames=3)                   # warm-up: numba compiles, not counted
     row = {**key, **start.run_start(trial)}
     add = row["add_found_mm"]
-    print(f"{mesh.stem} v{view} s{seed}: off {row['off_mm']:.1f} mm, found {row['found']} "
+    print(f"{mesh.stem} {scenario} v{view} s{seed}: off {row['off_mm']:.1f} mm, found {row['found']} "
           f"(ADD {float('nan') if add is None else add:.2f} mm) after {row['attempts']} attempt(s), {row['evaluations']} "
           f"evaluations, {row['refinements']} refinements, {row['cpu_s']:.2f} s CPU; ok > 2 mm off: "
           f"{row['ok_off_2mm']}; first ok {row['first_ok_s']} s", flush=True)
