@@ -175,3 +175,24 @@ def test_a_detected_start_is_ok_only_after_confirm_frames_found_ok_at_it():
     coarse = RecoveryPolicy(config, np.zeros(3), np.zeros(3), refine_enabled=True)
     coarse.set_start(T)
     assert coarse.update(TrackingStatus.OK, True, True, 0.9, T, 0.0, sharp=0.8) == TrackingStatus.OK
+
+
+def test_the_smc_detector_reports_a_pose_only_when_the_refinement_confirms_it(crest_frame):
+    """The one-point SMC behind the same interface, its pose verified as a wide-search candidate (two
+    chains: 5 refinements). On a CT crest its weighted mean lies far off (the known failure,
+    app/filter/smc_init/); such a pose is declined, never returned as found; a returned one is right."""
+    from app.filter.smc_init import smc_config_for
+    from app.tracking.detector import SMCDetector
+
+    tracker, small, depth, T_base_camera, T_true, top = crest_frame
+    smc = smc_config_for(tracker.config, max_evaluations=3000, prior_draws=1000, restarts=1)
+    detector = SMCDetector(tracker.backend, tracker.camera, tracker.mesh_vertices, tracker.mesh_faces, smc,
+                           tracker.wide_search, np.random.default_rng(0))
+    found = detector.detect(small, depth, T_base_camera, top)
+    evaluations, refinements = detector.last_work
+    assert evaluations == detector.last_result.evaluations > 0 and refinements == 5
+    smc_add = 1e3 * metrics.add(detector.last_result.estimate.T_base_bone, T_true, tracker.mesh_vertices)
+    if found is None:
+        assert smc_add > 2.0
+    else:
+        assert 1e3 * metrics.add(found.T_base_bone, T_true, tracker.mesh_vertices) < 1.0

@@ -16,7 +16,10 @@ app/bench/start.py (the frame a point-only trial starts on, its point 2-5 mm off
   Σ π(tries) / Σ π(references), ``TRIES`` - 1 references drawn from the chosen try plus the
   current state (2 ``TRIES`` - 1 evaluations per step);
 - **SMC**: the product's one-point SMC (app/filter/smc_init/) with the same evaluation budget (one run,
-  a third of it on prior draws, as the recovery's);
+  a third of it on prior draws, as the recovery's; its symmetry check is not budgeted, so it spends
+  more than the budget); **smc_verified**: the same, its pose then verified by the refinement as a
+  wide-search candidate (app/tracking/detector.py's SMCDetector: a pose the refinement does not
+  confirm is no detection);
 - **detector**: the wide search around the point, verified by the refinement (app/tracking/detector.py).
 
 Each sampler's estimate is its best pose so far by π (MH, MTM: the maximum a posteriori among the
@@ -47,7 +50,7 @@ TRIES = 5
 POSITION_STEP_M = 0.002
 ROTATION_STEP_RAD = 0.05
 P_GLOBAL = 0.1
-SAMPLERS = ("mh", "mtm", "smc", "detector")
+SAMPLERS = ("mh", "mtm", "smc", "smc_verified", "detector")
 
 
 @dataclass
@@ -184,16 +187,40 @@ def compare(tracker, depth_small, depth_m, T_base_camera, point, T_true, budget:
             runs.append(SamplerRun(name, best.since is not None, best.since, spent, 0, add, rot, cpu, gap))
         elif name == "smc":
             runs.append(_smc(tracker, depth_small, T_base_camera, point, budget, rng, errors, cpu0))
+        elif name == "smc_verified":
+            runs.append(_smc_verified(tracker, depth_small, depth_m, T_base_camera, point, budget, rng, errors, cpu0))
         else:
             runs.append(_detector(tracker, depth_small, depth_m, T_base_camera, point, rng, errors, cpu0))
     return runs
 
 
-def _smc(tracker, depth_small, T_base_camera, point, budget, rng, errors, cpu0) -> SamplerRun:
-    from app.filter.smc_init import OnePointInitialiser, smc_config_for
+def _smc_config(tracker, budget: int):
+    from app.filter.smc_init import smc_config_for
 
-    smc = smc_config_for(tracker.config, max_evaluations=budget, prior_draws=max(budget // 3, 1), restarts=1,
-                         budget_s=3600.0)
+    return smc_config_for(tracker.config, max_evaluations=budget, prior_draws=max(budget // 3, 1), restarts=1,
+                          budget_s=3600.0)
+
+
+def _smc_verified(tracker, depth_small, depth_m, T_base_camera, point, budget, rng, errors, cpu0) -> SamplerRun:
+    from app.tracking.detector import SMCDetector
+
+    detector = SMCDetector(tracker.backend, tracker.camera, tracker.mesh_vertices, tracker.mesh_faces,
+                           _smc_config(tracker, budget), tracker.wide_search, rng)
+    found = detector.detect(depth_small, depth_m, T_base_camera, point)
+    evaluations, refinements = detector.last_work
+    if found is None:
+        return SamplerRun("smc_verified", False, None, evaluations, refinements, np.nan, np.nan,
+                          time.process_time() - cpu0)
+    add, rot = errors(found.T_base_bone)
+    ok = add <= SUCCESS_MM and rot <= SUCCESS_DEG
+    return SamplerRun("smc_verified", ok, evaluations if ok else None, evaluations, refinements, add, rot,
+                      time.process_time() - cpu0)
+
+
+def _smc(tracker, depth_small, T_base_camera, point, budget, rng, errors, cpu0) -> SamplerRun:
+    from app.filter.smc_init import OnePointInitialiser
+
+    smc = _smc_config(tracker, budget)
     result = OnePointInitialiser(tracker.backend, tracker.camera, tracker.mesh_vertices, tracker.mesh_faces, smc,
                                  rng).run(depth_small, T_base_camera, point)
     add, rot = errors(result.estimate.T_base_bone)
