@@ -5,18 +5,18 @@ from __future__ import annotations
 
 from app.cli_types import finite_float, int_at_least, positive_int, positive_seconds
 from app.commands.outdir import add_overwrite_argument, results_file
+from app.sim.scenarios import SCENARIOS
 
 PELVIS_HELP = "../shared/data/pelvis"
-VIEW_SCENARIOS = ("static_clear", "static_other_side", "static_far")
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("bench-init", help="start from a point 2-5 mm off each CT crest with the defaults: "
                               "found within 1 mm, work and CPU to it, frames ok while > 2 mm off")
     p.add_argument("--crests", default="crest_*.ply", help=f"mesh glob in {PELVIS_HELP} (default: crest_*.ply, the 8 crests)")
-    p.add_argument("--scenarios", nargs="+", default=["static_clear"], choices=VIEW_SCENARIOS,
-                   help="simulated scenes, the bone static and unoccluded (default: static_clear; "
-                   "static_other_side and static_far see it from the other side and from 0.65 m)")
+    p.add_argument("--scenarios", nargs="+", default=["static_clear"], choices=sorted(SCENARIOS), metavar="SCENARIO",
+                   help="simulated scenes (default: static_clear; static_other_side and static_far see the bone "
+                   "from the other side and from 0.65 m, static_occluded has a hand and an instrument)")
     p.add_argument("--views", type=positive_int, default=1,
                    help="simulator seeds per crest and scenario (bone tilt, tissue), >= 1 (default 1)")
     p.add_argument("--seeds", type=positive_int, default=1, help="point draws per view, >= 1 (default 1)")
