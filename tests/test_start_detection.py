@@ -123,6 +123,14 @@ def test_auto_is_the_default_and_starts_a_depth_tracker_by_what_it_is_given(cres
         assert fresh.start_report["method"] == "detect_whole_image"
     finally:
         fresh.release()
+    no_search = replace(tracker.config, recovery=replace(tracker.config.recovery, search=False))
+    fresh = DepthTracker(no_search, reader.load_mesh(), reader.meta.camera)
+    try:                                    # the recovery without its search: the start builds one alike
+        assert fresh.wide_search is None
+        start_tracker(fresh, None, top)
+        assert fresh._start_detection.detector.search.config.evaluations == no_search.recovery.search_evaluations
+    finally:
+        fresh.release()
 
 
 def test_a_point_only_trial_replays_with_the_defaults_found_at_once_and_not_ok_before_confirmed(crest_trial, tmp_path):

@@ -30,7 +30,7 @@ from app.filter.status import Reason, RefinementEvidence, TrackingStatus, refine
 from app.tracking.lifecycle import Lifecycle
 from app.geometry.camera import PinholeCamera
 from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD
-from app.pipeline.recovery_runner import make_recovery, usable_frame
+from app.pipeline.recovery_runner import build_wide_search, make_recovery, usable_frame
 from app.tracking.start import StartByDetection
 
 log = logging.getLogger(__name__)
@@ -160,8 +160,8 @@ class DepthTracker:
             return
         prior_kind(point_base)                                        # a clear error for a malformed point
         point = None if point_base is None else np.asarray(point_base, float).reshape(3)
-        search = self.wide_search or _start_search(self.config, self.backend, self.camera, self.refined_track,
-                                                   self.mesh_vertices)
+        search = self.wide_search or build_wide_search(self.config, self.backend, self.camera, self.refined_track,
+                                                       self.mesh_vertices)     # recovery.search off: built alike
         self._start_detection = StartByDetection(SearchDetector(search, self.filter.rng), point)
         if point is not None and self.recovery.point_prior is None:
             self.recovery.set_point_prior(point)
@@ -399,16 +399,6 @@ def refine_params(config: TrackerConfig) -> RefineParams:
     return RefineParams(stride=c.stride, iterations=c.iterations, samples=c.samples, k=lk.k,
                         sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin, outline_ring=c.outline_ring,
                         tissue_border=c.tissue_border)
-
-
-def _start_search(config: TrackerConfig, backend, camera: PinholeCamera, refined_track: RefinedTrack,
-                  vertices: np.ndarray):
-    """The recovery's wide search, built alike for a detected start when the recovery has none (``recovery.search`` off)."""
-    from app.filter.wide_search import SearchConfig, WideSearch
-
-    search = SearchConfig(evaluations=config.recovery.search_evaluations, min_fitness=config.status.min_fitness,
-                          margin=config.refine.nearby_margin, max_behind_excess=config.status.max_behind_excess)
-    return WideSearch(backend, camera, refined_track.refiner, vertices, search)
 
 
 def _refined_track(config: TrackerConfig, mesh: trimesh.Trimesh, camera: PinholeCamera) -> RefinedTrack | None:
