@@ -252,7 +252,10 @@ def sampler_table(rows: list[dict]) -> tuple[str, list[dict]]:
         if not rs:
             continue
         hits = [r["evaluations_to_success"] for r in rs if r["success"]]
-        med = lambda k: float(np.nanmedian([r[k] for r in rs]))  # noqa: E731
+        def med(k):
+            values = [r[k] for r in rs if r[k] is not None and np.isfinite(r[k])]
+            return float(np.median(values)) if values else None
+
         out.append({"sampler": name, "starts": len(rs), "successes": len(hits),
                     "evaluations_to_success_median": float(np.median(hits)) if hits else None,
                     "evaluations_median": med("evaluations"), "refinements_median": med("refinements"),
@@ -265,5 +268,5 @@ def sampler_table(rows: list[dict]) -> tuple[str, list[dict]]:
     for c in out:
         lines.append(f"| {c['sampler']} | {c['successes']} / {c['starts']} | {fmt(c['evaluations_to_success_median'])} | "
                      f"{fmt(c['evaluations_median'])} | {fmt(c['refinements_median'])} | {c['cpu_s_median']:.2f} | "
-                     f"{c['add_mm_median']:.1f} | {fmt(c['log_pi_gap_median'])} |")
+                     f"{fmt(c['add_mm_median'], '{:.1f}')} | {fmt(c['log_pi_gap_median'])} |")
     return "\n".join(lines), out
