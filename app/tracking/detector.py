@@ -42,13 +42,12 @@ from typing import Protocol
 import numpy as np
 
 from app.filter.smc_init.geometry import rotation_between
-from app.filter.wide_search import (ANCHOR_SHARE, RIDGE_POINTS, UP_BASE, SearchConfig, WideSearch,
-                                    image_anchors)
+from app.filter.wide_search import ANCHOR_SHARE, RIDGE_POINTS, TRACK_CLUSTERS, UP_BASE, WideSearch, image_anchors
 from app.geometry import quaternion as quat
 from app.geometry import se3
 
 POINT_RADIUS_M = 0.02       # a point prior's anchors: height maxima within this of the point (2-5 mm pointing error)
-POINT_SPACING_M = 0.01      # their non-maximum suppression (the recovery's 3 cm let a taller neighbour hide the top)
+POINT_SPACING_M = 0.01      # their non-maximum suppression: finer than the recovery's 3 cm (module docstring)
 POINT_ANCHORS = 4           # at most this many of them, the point itself included
 SEARCH = "search"
 SMC = "smc"
@@ -71,8 +70,10 @@ class Detection:
 
 
 class Detector(Protocol):
-    """Find the bone on one frame (module docstring); ``work`` counts evaluations and refinements
-    of every call, found or not (the last call's in ``last_work``)."""
+    """Find the bone on one frame (module docstring); ``last_work``: (likelihood evaluations, refinements)
+    of the last call, found or not."""
+
+    last_work: tuple[int, int]
 
     def detect(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray,
                prior: np.ndarray | None) -> Detection | None: ...
@@ -134,7 +135,7 @@ class SearchDetector:
     def __init__(self, search: WideSearch, rng: np.random.Generator):
         self.search, self.rng = search, rng
         # the point / whole-image form: same backend, refiner, mesh and bar; the track's slots go to the image
-        config = replace(search.config, clusters=search.config.clusters + 2)
+        config = replace(search.config, clusters=search.config.clusters + TRACK_CLUSTERS)
         self.prior_search = PriorSearch(search.backend, search.camera, search.refiner, search.vertices, config)
         self.last_work = (0, 0)
 
