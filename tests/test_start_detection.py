@@ -204,3 +204,40 @@ def test_the_smc_detector_reports_a_pose_only_when_the_refinement_confirms_it(cr
         assert smc_add > 2.0
     else:
         assert 1e3 * metrics.add(found.T_base_bone, T_true, tracker.mesh_vertices) < 1.0
+
+
+class _Declining:
+    """A detector that finds nothing on its first ``misses`` calls, then a fixed pose (10 evaluations,
+    2 refinements a call): the start's retry rule is under test, not a detector."""
+
+    strategy = "fake"
+
+    def __init__(self, misses: int):
+        self.misses, self.calls, self.last_work = misses, 0, (0, 0)
+
+    def detect(self, depth_small, depth_m, T_base_camera, prior):
+        from app.tracking.detector import Detection
+
+        self.calls += 1
+        self.last_work = (10, 2)
+        if self.calls <= self.misses:
+            return None
+        return Detection(np.eye(4), 0.8, 0.9, 10, 2, "fake")
+
+
+def test_a_start_that_finds_nothing_is_retried_after_detect_retry_s_and_counts_every_attempt():
+    from app.tracking.start import DETECT_RETRY_S, StartByDetection
+
+    start = StartByDetection(_Declining(misses=2), np.zeros(3))
+    period = 1.0 / 90.0
+    found_at = None
+    for k in range(200):
+        if start.attempt(None, None, np.eye(4), k * period) is not None:
+            found_at = k * period
+            break
+    assert start.detector.calls == 3 and not start.pending
+    assert found_at == pytest.approx(2 * DETECT_RETRY_S, abs=period)
+    report = start.report()
+    assert report["attempts"] == 3 and report["evaluations"] == 30 and report["refinements"] == 6
+    assert report["found"] and report["found_stamp"] == pytest.approx(found_at) and report["method"] == "detect_point"
+    assert start.attempt(None, None, np.eye(4), 10.0) is None and start.detector.calls == 3   # found: no more attempts
