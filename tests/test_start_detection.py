@@ -150,6 +150,9 @@ def test_a_point_only_trial_replays_with_the_defaults_found_at_once_and_not_ok_b
     assert start["found"] and start["attempts"] == 1 and start["found_stamp"] == pytest.approx(result.stamps[0])
     assert np.max(result.errors["add_mm"]) < 1.0
     assert "ok" not in result.statuses and "lost" not in result.statuses
+    from app.pipeline.report import summary_rows
+
+    assert "detector from the point: found on the frame stamped" in dict(summary_rows(result.summary))["start"]
 
 
 def test_replay_with_init_method_pose_and_no_pose_names_the_key_and_the_fix(crest_trial, tmp_path):
