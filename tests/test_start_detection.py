@@ -244,3 +244,24 @@ def test_a_start_that_finds_nothing_is_retried_after_detect_retry_s_and_counts_e
     assert report["attempts"] == 3 and report["evaluations"] == 30 and report["refinements"] == 6
     assert report["found"] and report["found_stamp"] == pytest.approx(found_at) and report["method"] == "detect_point"
     assert start.attempt(None, None, np.eye(4), 10.0) is None and start.detector.calls == 3   # found: no more attempts
+
+
+def test_a_point_start_that_finds_nothing_reports_lost_initialising_frames_and_does_not_fail(crest_trial, tmp_path):
+    """A point 30 cm beside the bone (out of the image): the detector confirms nothing on the first
+    frame; the frames until its retry are lost and 'initialising' (no particles yet), the replay goes on."""
+    import shutil
+
+    from app.pipeline.replay import replay
+    from app.sim.point_start import make_point_only
+    from app.trial.meta import dump_meta, load_meta
+
+    trial = tmp_path / "far_point"
+    shutil.copytree(crest_trial, trial)
+    make_point_only(trial, 0.0, np.random.default_rng(7))
+    meta = load_meta(trial / "trial.yaml")
+    meta.point_prior = meta.point_prior + np.array([0.3, 0.0, 0.0])
+    dump_meta(meta, trial / "trial.yaml")
+    result = replay(trial, None, _cpu_config(), rrd=False, projector=False, max_frames=4)
+    start = result.summary["start"]
+    assert not start["found"] and start["attempts"] == 1 and start["evaluations"] > 0
+    assert set(result.statuses) == {"lost"}

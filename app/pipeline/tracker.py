@@ -307,8 +307,8 @@ class DepthTracker:
                                             "the detector has not found the bone yet"),))
 
     def particle_positions(self) -> np.ndarray:
-        """(N, 3) particle positions in the base frame (metres)."""
-        return self.filter.state.p
+        """(N, 3) particle positions in the base frame (metres); (0, 3) before the start has set any."""
+        return self.filter.state.p if self.filter.state is not None else np.zeros((0, 3))
 
     def mean_timings_ms(self) -> dict[str, float]:
         return {k: 1e3 * v / max(self._frames, 1) for k, v in self._timings.items()}
