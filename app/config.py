@@ -11,7 +11,7 @@ has eight sections; each key maps to one attribute:
 - ``filter.*``     -> ``config.particles``, ``sampling``, ``resample_threshold``, ``resampling``,
                       ``first_dt``, ``seed``
 - ``init.sigma_p`` / ``init.sigma_r`` -> ``config.init_sigma_p`` / ``init_sigma_r``; ``init.method``
-  ('pose' | 'point'), ``point_sigma``, ``restarts``, ``budget_s`` -> ``config.init_method`` ... (the
+  ('auto' | 'pose' | 'point'), ``point_sigma``, ``restarts``, ``budget_s`` -> ``config.init_method`` ... (the
   one-point initialiser, :mod:`app.filter.smc_init`)
 - ``motion.*``     -> ``config.motion`` (:class:`app.filter.motion.MotionParams`)
 - ``likelihood.*`` -> ``config.likelihood`` (:class:`app.filter.likelihood_ref.LikelihoodParams`)
@@ -45,7 +45,7 @@ from app.filter.recovery import RecoveryConfig
 from app.filter.refine_track import RefineConfig
 from app.filter.resampling import SCHEMES
 
-INIT_METHODS = ("pose", "point")
+INIT_METHODS = ("auto", "pose", "point")
 
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
 
@@ -61,8 +61,11 @@ class TrackerConfig(FilterConfig):
     backend : likelihood backend, 'auto' (cpu on a software GL renderer such as llvmpipe, gl on a
         GPU), 'gl' or 'cpu' (app/render/backends.py)
     seed : seed of the filter's np.random.Generator (a replay with one seed is reproducible)
-    init_method : 'pose' (particles around the coarse initial pose) or 'point' (the one-point SMC
-        initialiser of DESIGN.md on the first frame, from a point on the bone, app/filter/smc_init/)
+    init_method : 'auto' (the default: the coarse initial pose when there is one, else the point prior
+        through the detector, app/tracking/detector.py: the wide search around the point, verified by the
+        refinement, ok only once confirmed; else, experimentally, the detector over the whole image),
+        'pose' (particles around the coarse initial pose) or 'point' (the one-point SMC initialiser of
+        DESIGN.md on the first frame, from a point on the bone, app/filter/smc_init/; never ok)
     init_point_sigma : m, σ_t, how far the pointed point may lie off the bone's surface
     init_restarts, init_budget_s : independent runs of the initialiser (the most likely kept), and
         a wall-time safety net only (s; the budget is counted in likelihood evaluations, smc_init.py)
@@ -86,7 +89,7 @@ class TrackerConfig(FilterConfig):
     cull_back_faces: bool = True
     backend: str = "auto"
     seed: int = 0
-    init_method: str = "pose"
+    init_method: str = "auto"
     init_point_sigma: float = 0.005
     init_restarts: int = 3
     init_budget_s: float = 600.0

@@ -293,6 +293,7 @@ class RecoveryPolicy:
         self._wait = 0                         # frames the next one waits after it (_due)
         self._hold = 0
         self._unconfirmed = False              # a re-initialised pose not yet confirmed (_confirmed)
+        self._confirm_start = False            # a detected start: confirmed by evidence only (set_found_start)
         self._ok_run = 0
         self._track: collections.deque = collections.deque(maxlen=TRACK_FRAMES)   # recent not-lost estimates
         self._unseen = 0                       # not-weighed frames in a row while not ok
@@ -311,6 +312,14 @@ class RecoveryPolicy:
         """The start pose: the confident pose until a frame is ok."""
         self.T_base_bone_confident = np.array(T_base_bone, float)
         self.T_base_bone_start = np.array(T_base_bone, float)
+
+    def set_found_start(self, T_base_bone: np.ndarray) -> None:
+        """A start the detector found (app/tracking/detector.py, no coarse pose given): the start pose, and,
+        as a pose the wide search found, ok only once confirmed ("Honesty": ``confirm_frames`` weighed
+        frames in a row that the rules find ok); agreeing with the start pose is no evidence here, the
+        start being the hypothesis itself."""
+        self.set_start(T_base_bone)
+        self._unconfirmed, self._ok_run, self._confirm_start = True, 0, True
 
     def set_point_prior(self, point_base: np.ndarray | None) -> None:
         """A point on the bone in the base frame (m; trial or session ``point_prior``), or None."""
@@ -417,12 +426,12 @@ class RecoveryPolicy:
             if weighed and status != TrackingStatus.OK:
                 self._ok_run = 0
             return status
-        if not self._far(T_base_bone):
+        if not self._far(T_base_bone) and not self._confirm_start:
             self._unconfirmed = False
             return status
         self._ok_run += 1 if weighed else 0
         if self._ok_run >= self.config.confirm_frames:
-            self._unconfirmed = False
+            self._unconfirmed = self._confirm_start = False
             return status
         return TrackingStatus.UNCERTAIN
 

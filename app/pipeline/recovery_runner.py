@@ -199,10 +199,17 @@ def _policy(config, vertices: np.ndarray, search_bar: float) -> RecoveryPolicy:
 def _wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedTrack | None, vertices: np.ndarray):
     """The recovery's wide search (app/filter/wide_search.py), or None (``recovery.search`` false, or
     no refinement to verify with)."""
-    from app.filter.wide_search import SearchConfig, WideSearch
-
     if not config.recovery.search or refined_track is None:
         return None
+    return build_wide_search(config, backend, camera, refined_track, vertices)
+
+
+def build_wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedTrack, vertices: np.ndarray):
+    """The wide search with the configured budget and bars (``recovery.search_evaluations``,
+    ``status.min_fitness``, ``refine.nearby_margin``, ``status.max_behind_excess``): the recovery's,
+    and the detector's for a start without a pose (app/tracking/detector.py)."""
+    from app.filter.wide_search import SearchConfig, WideSearch
+
     search = SearchConfig(evaluations=config.recovery.search_evaluations, min_fitness=config.status.min_fitness,
                           margin=config.refine.nearby_margin, max_behind_excess=config.status.max_behind_excess)
     return WideSearch(backend, camera, refined_track.refiner, vertices, search)

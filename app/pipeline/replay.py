@@ -2,9 +2,10 @@
 
 For each frame: the joints interpolated at the frame's stamp give ``T_base_camera`` (FK and the
 trial's hand-eye); the depth image is reduced to the filter's resolution; the particle filter
-(started at the trial's ``initial_pose``, or with ``init.method: point`` by the one-point
-initialiser from its ``point_prior`` on the first frame; the summary's ``init`` block gives that
-run) steps; the estimate goes to the sinks. Every frame goes, in order and on the calling thread (no
+(started by ``init.method``: with ``auto``, the default, at the trial's ``initial_pose``, else
+from its ``point_prior`` by the detector, app/tracking/detector.py, the summary's ``start`` block
+giving its work; with ``point`` by the one-point initialiser on the first frame, the summary's
+``init`` block giving that run) steps; the estimate goes to the sinks. Every frame goes, in order and on the calling thread (no
 threads, no drops: deterministic), through the per-frame core the live session uses
 (:class:`app.pipeline.frame_core.FrameCore`) and its sinks (:mod:`app.pipeline.sinks`: ground-truth
 scoring, which ``osteonav bench`` reads through :attr:`ReplayResult.errors`, the trajectory, rerun,
@@ -49,7 +50,7 @@ from app.outputs import OutputError, write_failure, wrote
 from app.pipeline.engine_tracker import EngineTracker
 from app.pipeline.frame_core import FrameCore
 from app.pipeline.sinks import EstimateFiles, GroundTruthScoring, ProjectorEstimates, RerunSink, Trajectory
-from app.pipeline.tracker import DepthTracker, tracker_report, use_plan
+from app.pipeline.tracker import DepthTracker, start_method, start_tracker, tracker_report, use_plan
 from app.tracking.reasons import reason_shares
 
 log = logging.getLogger(__name__)
@@ -80,16 +81,13 @@ def replay(trial_dir: str | Path, out_dir: str | Path | None, config: TrackerCon
 
     config = config or load_config(None)
     reader = open_trial(trial_dir)
-    from_point = make_tracker is None and config.init_method == "point"
-    _check_start(reader, Path(trial_dir), from_point)
+    method = "pose" if make_tracker is not None else \
+        start_method(config.init_method, reader.meta.initial_pose, reader.meta.point_prior)
+    _check_start(reader, Path(trial_dir), method)
     mesh = reader.load_mesh()
     engine = DepthTracker(config, mesh, reader.meta.camera) if make_tracker is None else make_tracker(mesh, reader.meta.camera)
     tracker = EngineTracker(engine)
-    if from_point:
-        engine.start_from_point(reader.meta.point_prior)
-    else:
-        tracker.start(reader.meta.initial_pose)
-    getattr(engine, "set_point_prior", lambda p: None)(reader.meta.point_prior)   # the recovery's point
+    start_tracker(tracker, reader.meta.initial_pose, reader.meta.point_prior)   # by init.method; the recovery's point
     out = Path(out_dir) if out_dir else None
     plan, plan_error = known_plan(projector_config, mesh)
     use_plan(engine, plan)   # the status's template points: the plan's whatever the outputs (issue 34)
@@ -225,16 +223,18 @@ class ReplaySinks:
         self.all.append(ProjectorEstimates(projector, every=options.every, age_s=0.0))
 
 
-def _check_start(reader, trial_dir: Path, from_point: bool) -> None:
-    """The trial holds what the chosen start needs (init.method: 'pose' -> initial_pose, 'point' -> point_prior)."""
+def _check_start(reader, trial_dir: Path, method: str) -> None:
+    """The trial holds what the chosen start needs (:func:`app.pipeline.tracker.start_method`: 'pose' ->
+    initial_pose, 'point' -> point_prior; 'detect', init.method auto without a pose, needs neither)."""
     from app.errors import TrialFormatError
 
-    if from_point and reader.meta.point_prior is None:
+    if method == "point" and reader.meta.point_prior is None:
         raise TrialFormatError(trial_dir / "trial.yaml", "init.method 'point' needs 'point_prior' (a point on the bone, "
-                               "base frame); none given: add it, or use init.method 'pose' with initial_pose")
-    if not from_point and reader.meta.initial_pose is None:
-        raise TrialFormatError(trial_dir / "trial.yaml", "replay needs 'initial_pose' to start the filter (none given); "
-                               "or start from 'point_prior' with init.method 'point' in the --config file")
+                               "base frame); none given: add it, or use init.method 'auto' (the default)")
+    if method == "pose" and reader.meta.initial_pose is None:
+        raise TrialFormatError(trial_dir / "trial.yaml", "init.method 'pose' needs 'initial_pose' to start the filter "
+                               "(none given); or use init.method 'auto' (the default), which starts from "
+                               "'point_prior' or searches the image")
 
 
 def _init_summary(init, reader, points: np.ndarray) -> dict:
@@ -272,5 +272,8 @@ def _summary(reader, config, tracker, trajectory, scoring: GroundTruthScoring, e
     init = getattr(tracker, "init_result", None)
     if init is not None:
         summary["init"] = _init_summary(init, reader, points)
+    start = getattr(tracker, "start_report", None)          # a start by the detector (init.method auto, no pose)
+    if start is not None:
+        summary["start"] = start
     summary.update(scoring.summary())
     return summary

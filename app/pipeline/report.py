@@ -14,6 +14,9 @@ def summary_rows(summary: dict) -> list[tuple[str, str]]:
                 + (f", off by {init['add_mm']:.1f} mm ADD / {init['rotation_deg']:.1f} deg" if "add_mm" in init else "")
                 + " (experimental: never ok)")
         rows.append(("start", text))
+    start = summary.get("start")
+    if start:
+        rows.append(("start", start_text(start)))
     if "add_mm" in summary:
         a, t, r = summary["add_mm"], summary["translation_mm"], summary["rotation_deg"]
         rows += [
@@ -64,3 +67,13 @@ def print_summary(summary: dict) -> None:
     width = max(len(k) for k, _ in rows)
     for key, value in rows:
         print(f"  {key:<{width}}  {value}")
+
+
+def start_text(start: dict) -> str:
+    """The detected start (summary's ``start`` block, init.method auto without a pose) in one line."""
+    where = "from the point" if start["method"] == "detect_point" else "over the whole image (experimental)"
+    work = (f"{start['attempts']} attempt(s), {start['evaluations']} evaluations, {start['refinements']} refinements, "
+            f"{start['cpu_s']:.2f} s CPU")
+    if not start["found"]:
+        return f"detector {where}: the bone not found ({work})"
+    return f"detector {where}: found on the frame stamped {start['found_stamp']:.3f} s ({work}); ok once confirmed"

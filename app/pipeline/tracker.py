@@ -29,7 +29,9 @@ from app.filter.refine_track import RefinedTrack
 from app.filter.status import Reason, RefinementEvidence, TrackingStatus, refinement_reasons, with_refinement
 from app.tracking.lifecycle import Lifecycle
 from app.geometry.camera import PinholeCamera
-from app.pipeline.recovery_runner import make_recovery, usable_frame
+from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD
+from app.pipeline.recovery_runner import build_wide_search, make_recovery, usable_frame
+from app.tracking.start import StartByDetection
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +74,7 @@ class DepthTracker:
         self._pending_point: np.ndarray | None = None
         self._started_from_point = False
         self.init_result = None
+        self._start_detection: StartByDetection | None = None   # init.method auto without a pose (start_by_detection)
         self.recovery_runner = make_recovery(config, self.backend, self.camera, self.filter, self.refined_track,
                                              self.mesh_vertices, self._run_smc)
         self.template_points = "mesh_vertices"
@@ -136,11 +139,57 @@ class DepthTracker:
         if self.recovery is not None and self.recovery.point_prior is None:
             self.recovery.set_point_prior(point)
 
-    def _initialise_from_point(self, depth_small: np.ndarray, T_base_camera: np.ndarray) -> None:
+    def start_by_detection(self, point_base: np.ndarray | None) -> None:
+        """Start without a pose (``init.method: auto``; issue 33): the detector (app/tracking/detector.py,
+        the wide search around the point, verified by the refinement) on the first usable frame, from
+        ``point_base`` (base frame, m) when given, else over the whole image (experimental); retried
+        every DETECT_RETRY_S while it finds nothing (those frames are lost, 'initialising'). A found
+        pose seeds the particles (the recovery's FOUND_SIGMA_M / _RAD about it) and the refined track as
+        a verified fit, and is ok only once confirmed (RecoveryPolicy.set_found_start). Needs the
+        refinement; without it (or without the recovery, which confirms) a point starts the one-point
+        SMC instead (:meth:`start_from_point`, never ok)."""
+        from app.tracking.detector import SearchDetector, prior_kind
+
+        if self.refined_track is None or self.recovery is None:
+            if point_base is None:
+                from app.errors import ConfigError
+
+                raise ConfigError("init.method", "'auto' without a pose or a point searches the whole image, which "
+                                  "needs refine.enabled and recovery.enabled true: enable them or give a pose")
+            self.start_from_point(point_base)
+            return
+        prior_kind(point_base)                                        # a clear error for a malformed point
+        point = None if point_base is None else np.asarray(point_base, float).reshape(3)
+        search = self.wide_search or build_wide_search(self.config, self.backend, self.camera, self.refined_track,
+                                                       self.mesh_vertices)     # recovery.search off: built alike
+        self._start_detection = StartByDetection(SearchDetector(search, self.filter.rng), point)
+        if point is not None and self.recovery.point_prior is None:
+            self.recovery.set_point_prior(point)
+
+    @property
+    def start_report(self) -> dict | None:
+        """The detected start's work for the summaries (None for a start from a pose or the SMC)."""
+        return None if self._start_detection is None else self._start_detection.report()
+
+    def _initialise_from_point(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray,
+                               stamp: float) -> bool:
+        """The pending start on a usable frame: the detector's (True when it found the bone) or the one-point SMC's."""
+        detection = self._start_detection
+        if detection is not None and detection.pending:
+            T_found = detection.attempt(depth_small, depth_m, T_base_camera, stamp)
+            if T_found is None:
+                return False
+            self.filter.set_state(self.recovery.state_around(T_found, self.config.particles, self.filter.rng,
+                                                             FOUND_SIGMA_M, FOUND_SIGMA_RAD))
+            self.motion_gate.reset()
+            self.refined_track.seed(T_found, verified=True)
+            self.recovery.set_found_start(T_found)
+            return True
         from app.filter.smc_init import smc_config_for
 
         self.init_result = self._run_smc(self._pending_point, depth_small, T_base_camera, smc_config_for(self.config))
         self._pending_point = None
+        return True
 
     def _run_smc(self, point_base: np.ndarray, depth_small: np.ndarray, T_base_camera: np.ndarray, smc):
         """The one-point SMC initialiser (app/filter/smc_init/) with config ``smc`` around ``point_base``
@@ -162,10 +211,10 @@ class DepthTracker:
         a point start and of the recovery (hold, confirmation); the lifecycle's state; the timings."""
         width, height = self.config.resolution
         depth_small = downsample_nearest(depth_m, width, height)
-        if self._pending_point is not None:
-            if not usable_frame(depth_small, T_base_camera):
+        if self._pending_point is not None or (self._start_detection is not None and self._start_detection.pending):
+            if not (usable_frame(depth_small, T_base_camera)
+                    and self._initialise_from_point(depth_small, depth_m, T_base_camera, stamp)):
                 return self._not_started(stamp)
-            self._initialise_from_point(depth_small, T_base_camera)
         reinitialised = self._recover(depth_small, depth_m, T_base_camera, stamp)
         result = self.filter.step(depth_small, stamp, T_base_camera)
         if self.refined_track is not None:
@@ -266,16 +315,20 @@ class DepthTracker:
         """A lost result while the one-point initialiser waits for a frame it can use (the pose: the
         pointed point, identity rotation; a lost status blanks every output that would use it)."""
         T_base_bone = np.eye(4)
-        T_base_bone[:3, 3] = self._pending_point
+        point = self._pending_point if self._start_detection is None else self._start_detection.point
+        if point is not None:
+            T_base_bone[:3, 3] = point
         return FilterOutput(T_base_bone=T_base_bone, position_spread=float("inf"),
                             rotation_spread=float("inf"), ess=0.0, ess_ratio=0.0, log_likelihood_max=float("nan"),
                             status=TrackingStatus.LOST, inlier_fraction=float("nan"), covered_pixels=0, n_nan=0,
                             resampled=False, dt=0.0, weighed=False, timings={}, state="initialising",
-                            reasons=(Reason("initialising", "waiting for a frame to start from the point"),))
+                            reasons=(Reason("initialising", "waiting for a frame to start from the point"
+                                            if self._start_detection is None else
+                                            "the detector has not found the bone yet"),))
 
     def particle_positions(self) -> np.ndarray:
-        """(N, 3) particle positions in the base frame (metres)."""
-        return self.filter.state.p
+        """(N, 3) particle positions in the base frame (metres); (0, 3) before the start has set any."""
+        return self.filter.state.p if self.filter.state is not None else np.zeros((0, 3))
 
     def mean_timings_ms(self) -> dict[str, float]:
         return {k: 1e3 * v / max(self._frames, 1) for k, v in self._timings.items()}
@@ -300,14 +353,19 @@ def tracker_report(tracker) -> dict:
 
 
 def start_tracker(tracker, initial_pose: np.ndarray | None, point_prior: np.ndarray | None) -> None:
-    """Start a session's tracker: from the coarse initial pose when given, else from the point prior
-    (the one-point initialiser: never ok, DepthTracker.start_from_point); the point prior is kept for
-    the recovery either way."""
+    """Start a session's or a replay's tracker by its ``init.method`` (:func:`start_method`): from the
+    coarse initial pose, from the point prior through the detector (DepthTracker.start_by_detection),
+    or by the one-point initialiser (``point``: never ok, DepthTracker.start_from_point); the point
+    prior is kept for the recovery either way. A tracker without ``init.method`` (the ICP baseline)
+    starts from the pose."""
     inner = _inner(tracker)
     if point_prior is not None and hasattr(inner, "set_point_prior"):
         inner.set_point_prior(point_prior)
-    if initial_pose is not None:
+    method = start_method(getattr(getattr(inner, "config", None), "init_method", "pose"), initial_pose, point_prior)
+    if method == "pose" and initial_pose is not None:
         tracker.start(np.asarray(initial_pose, float))
+    elif method == "detect" and hasattr(inner, "start_by_detection"):
+        inner.start_by_detection(point_prior)
     elif point_prior is not None and hasattr(inner, "start_from_point"):
         inner.start_from_point(point_prior)
     else:
@@ -315,6 +373,15 @@ def start_tracker(tracker, initial_pose: np.ndarray | None, point_prior: np.ndar
 
         raise ConfigError("bone.initial_pose", "missing: this tracker starts from a coarse 4x4 T_base_bone "
                           "(or give bone.point_prior for the particle filter)")
+
+
+def start_method(init_method: str, initial_pose, point_prior) -> str:
+    """How a tracker starts (``init.method``; issue 33): 'auto' takes the coarse pose when there is one
+    ('pose'), else the detector from the point or, experimentally, over the whole image ('detect');
+    'pose' and 'point' (the one-point SMC) as named."""
+    if init_method != "auto":
+        return init_method
+    return "pose" if initial_pose is not None else "detect"
 
 
 def use_plan(tracker, plan) -> None:

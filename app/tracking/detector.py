@@ -1,0 +1,204 @@
+"""One detector: the bone's pose on one frame, from a prior or from nothing; start is detection.
+
+Import as ``from app.tracking.detector import Detection, make_detector``. Issue 33: the tracker's
+start and its recovery both ask "where is the bone in this image?". A :class:`Detector` answers
+``detect(depth_small, depth_m, T_base_camera, prior) -> Detection | None``:
+
+- ``depth_small``: the depth image at the filter's resolution (the likelihood backend's), ``depth_m``
+  at the sensor's (the refinement's), ``T_base_camera`` its camera pose;
+- ``prior``: a point on the bone (base frame, (3,): the trial's / session's ``point_prior``), a
+  coarse pose ((4, 4) T_base_bone), or None (nothing known: the whole image);
+- the :class:`Detection`: the found ``T_base_bone``, its verification score (the refined fit's
+  consistent sharp share and fitness, :mod:`app.filter.refine_track`) and the work it took
+  (likelihood evaluations, refinements); None when nothing was confirmed (the bone out of view).
+
+Two strategies, wrapped, not rewritten:
+
+- :class:`SearchDetector`, the recovery's wide search (app/filter/wide_search.py: hypothesise from the
+  image's height maxima, score with the likelihood, search locally, verify by the refinement with its
+  ``VERIFY_CHAINS`` and its bar). With a point, only the height maxima within ``POINT_RADIUS_M`` of it
+  (found at ``POINT_SPACING_M``, finer than the recovery's 3 cm, so a taller object nearby does not
+  suppress the crest's own top) and the point itself carry the bone's top; with a pose, the
+  recovery's own form (anchors everywhere, the pose as the track); with nothing, every anchor. The
+  bone's orientation before the turns about up: its top direction (the mesh's +z: the CT's head
+  direction, the crest's top, pelvis README; the simulator stands the bone so) along the base's up,
+  as the wide search assumes for a bone on the table, then ``yaw_steps`` turns about up
+  (``app.filter.wide_search.WideSearch._anchored``). The recovery keeps calling the same
+  :class:`~app.filter.wide_search.WideSearch` object directly (its incumbent and track rules are
+  the recovery's): its results are unchanged.
+- :class:`SMCDetector`, the one-point SMC initialiser (app/filter/smc_init/) from a point (a pose's
+  prior: the surface point nearest the mesh's centroid), its weighted-mean pose then verified by the
+  same refinement chains and bar as a wide-search candidate, so the two strategies are scored alike.
+
+A found pose is no evidence of being right: the tracker's start treats it as the recovery treats a
+found pose (confirmation before ok; app/filter/recovery.py, "Honesty").
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Protocol
+
+import numpy as np
+
+from app.filter.smc_init.geometry import rotation_between
+from app.filter.wide_search import ANCHOR_SHARE, RIDGE_POINTS, TRACK_CLUSTERS, UP_BASE, WideSearch, image_anchors
+from app.geometry import quaternion as quat
+from app.geometry import se3
+
+POINT_RADIUS_M = 0.02       # a point prior's anchors: height maxima within this of the point (2-5 mm pointing error)
+POINT_SPACING_M = 0.01      # their non-maximum suppression: finer than the recovery's 3 cm (module docstring)
+POINT_ANCHORS = 4           # at most this many of them, the point itself included
+SEARCH = "search"
+SMC = "smc"
+STRATEGIES = (SEARCH, SMC)
+BONE_TOP = np.array([0.0, 0.0, 1.0])   # the mesh's top direction: the CT's head direction, the crest's top
+
+
+@dataclass
+class Detection:
+    """A found pose: T_base_bone (base frame), score (its refined fit's consistent sharp share, the
+    wide search's ranking), fitness (the share of the expected visible surface confirmed within 3 σ),
+    evaluations (poses scored by the likelihood backend), refinements (refiner calls), strategy."""
+
+    T_base_bone: np.ndarray
+    score: float
+    fitness: float
+    evaluations: int
+    refinements: int
+    strategy: str
+
+
+class Detector(Protocol):
+    """Find the bone on one frame (module docstring); ``last_work``: (likelihood evaluations, refinements)
+    of the last call, found or not."""
+
+    last_work: tuple[int, int]
+
+    def detect(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray,
+               prior: np.ndarray | None) -> Detection | None: ...
+
+
+def prior_kind(prior) -> str:
+    """'point' ((3,)), 'pose' ((4, 4)) or 'none'; anything else is refused with the shapes accepted."""
+    if prior is None:
+        return "none"
+    a = np.asarray(prior, float)
+    if a.shape == (3,) and np.all(np.isfinite(a)):
+        return "point"
+    if a.shape == (4, 4) and np.all(np.isfinite(a)):
+        return "pose"
+    raise ValueError(f"a detector's prior is a point (3 finite numbers, base frame), a 4x4 T_base_bone or "
+                     f"None; got shape {a.shape}")
+
+
+def up_orientation() -> np.ndarray:
+    """T_base_bone's rotation with the bone's top direction (mesh +z, ``BONE_TOP``) along the base's up:
+    the orientation a bone on the table is searched from (then turned about up) when nothing else is known."""
+    return quat.to_matrix(rotation_between(BONE_TOP[None], UP_BASE)[0])
+
+
+class PriorSearch(WideSearch):
+    """The wide search with its image candidates restricted to a point prior's neighbourhood (or every
+    anchor without one) and no track candidates (module docstring). ``point``: set per call."""
+
+    point: np.ndarray | None = None
+
+    def _candidates(self, depth_small, T_base_camera, T_base_bone_ok, track, rng):
+        anchors = self._prior_anchors(depth_small, T_base_camera)
+        n_image = int(self.config.evaluations * ANCHOR_SHARE)
+        per_hypothesis = max(n_image // max(len(anchors) * self.config.yaw_steps * RIDGE_POINTS, 1), 1)
+        p, q = self._anchored(anchors, T_base_bone_ok, per_hypothesis, rng)
+        return p, q, np.array(["image"] * len(p))
+
+    def _prior_anchors(self, depth_small, T_base_camera) -> np.ndarray:
+        """The point (when given) and the image's height maxima near it (POINT_RADIUS_M, at
+        POINT_SPACING_M), or the recovery's anchors over the whole image."""
+        if self.point is None:
+            return image_anchors(depth_small, self.camera, T_base_camera, self.config.anchors)
+        peaks = image_anchors(depth_small, self.camera, T_base_camera, 64, spacing=POINT_SPACING_M)
+        near = peaks[np.linalg.norm(peaks - self.point, axis=1) <= POINT_RADIUS_M] if len(peaks) else peaks
+        return np.vstack([self.point[None], near[:POINT_ANCHORS - 1]])
+
+
+class SearchDetector:
+    """The wide search behind the :class:`Detector` interface (module docstring).
+
+    Parameters
+    ----------
+    search : app.filter.wide_search.WideSearch (the recovery's, or one built alike)
+    rng : np.random.Generator (the tracker's filter's: one stream, deterministic replays)
+    """
+
+    strategy = SEARCH
+
+    def __init__(self, search: WideSearch, rng: np.random.Generator):
+        self.search, self.rng = search, rng
+        # the point / whole-image form: same backend, refiner, mesh and bar; the track's slots go to the image
+        config = replace(search.config, clusters=search.config.clusters + TRACK_CLUSTERS)
+        self.prior_search = PriorSearch(search.backend, search.camera, search.refiner, search.vertices, config)
+        self.last_work = (0, 0)
+
+    def detect(self, depth_small, depth_m, T_base_camera, prior) -> Detection | None:
+        kind = prior_kind(prior)
+        if kind == "pose":
+            T = np.asarray(prior, float)
+            result = self.search.run(depth_small, depth_m, T_base_camera, T, [T], self.rng)
+        else:
+            self.prior_search.point = None if kind == "none" else np.asarray(prior, float)
+            start = np.eye(4)
+            start[:3, :3] = up_orientation()
+            result = self.prior_search.run(depth_small, depth_m, T_base_camera, start, [], self.rng)
+        self.last_work = (result.evaluations, result.refinements)
+        if result.T_base_bone is None:
+            return None
+        return Detection(result.T_base_bone, result.sharp, result.fitness, result.evaluations, result.refinements,
+                         SEARCH)
+
+
+class SMCDetector:
+    """The one-point SMC initialiser behind the :class:`Detector` interface, its pose verified as a
+    wide-search candidate (module docstring).
+
+    Parameters
+    ----------
+    backend, camera : the filter's likelihood backend and its camera
+    vertices, faces : the tracking mesh
+    smc : app.filter.smc_init.SMCInitConfig
+    verifier : a WideSearch whose refinement chains and bar verify the result
+    rng : np.random.Generator
+    """
+
+    strategy = SMC
+
+    def __init__(self, backend, camera, vertices, faces, smc, verifier: WideSearch, rng: np.random.Generator):
+        self.backend, self.camera, self.vertices, self.faces = backend, camera, vertices, faces
+        self.smc, self.verifier, self.rng = smc, verifier, rng
+        self.last_result = None
+        self.last_work = (0, 0)
+
+    def detect(self, depth_small, depth_m, T_base_camera, prior) -> Detection | None:
+        from app.filter.smc_init import OnePointInitialiser
+
+        kind = prior_kind(prior)
+        if kind == "none":
+            raise ValueError("the one-point SMC needs a point (or a pose) as its prior")
+        point = np.asarray(prior, float) if kind == "point" else _surface_point(np.asarray(prior, float), self.vertices)
+        initialiser = OnePointInitialiser(self.backend, self.camera, self.vertices, self.faces, self.smc, self.rng)
+        result = initialiser.run(depth_small, T_base_camera, point)
+        self.last_result = result
+        q, p = se3.to_quat_trans(result.estimate.T_base_bone)
+        found = self.verifier._verify([(math.nan, np.asarray(p, float), np.asarray(q, float), "image")], depth_m,
+                                      T_base_camera, int(result.evaluations))
+        self.last_work = (found.evaluations, found.refinements)
+        if found.T_base_bone is None:
+            return None
+        return Detection(found.T_base_bone, found.sharp, found.fitness, found.evaluations, found.refinements, SMC)
+
+
+def _surface_point(T_base_bone: np.ndarray, vertices: np.ndarray) -> np.ndarray:
+    """The mesh vertex nearest its centroid, in the base frame at ``T_base_bone`` (the recovery's SMC point)."""
+    centroid = vertices.mean(axis=0)
+    v = vertices[np.argmin(np.linalg.norm(vertices - centroid, axis=1))]
+    return T_base_bone[:3, :3] @ v + T_base_bone[:3, 3]
+
