@@ -393,7 +393,7 @@ class RefinedTrack:
             competitor_fitness = fits[1][2].fitness
             dist, angle = pose_gap(T_best, fits[1][1])
             apart = dist > c.competitor_distance or angle > c.competitor_angle
-            competitor = apart and fits[1][2].sharp >= best.sharp - c.competitor_margin * np.sqrt(max(best.correlation, 1.0))
+            competitor = apart and fits[1][2].sharp >= best.sharp - c.competitor_margin
         std = template_std(best.H, self.plan_points, self.inflation)
         if self.prior is not None and best.fitness >= c.keep_fitness:
             source, T_best, best, std = self._held(fits, source, T_best, best, std)
