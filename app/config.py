@@ -192,6 +192,7 @@ KEYS: dict[str, _Key] = {
     "refine.tissue_border": _Key(("refine", "tissue_border"), "bool"),
     "refine.behind_frames": _i("refine.behind_frames", 1, 100_000),
     "refine.behind_z": _f("refine.behind_z", 0.0, 10.0),
+    "refine.noise_window_px": _i("refine.noise_window_px", 3, 1000),
     "refine.nearby_every": _i("refine.nearby_every", 0, 100_000),
     "refine.nearby_starts": _i("refine.nearby_starts", 0, 1_000),
     "refine.nearby_sigma_p": _f("refine.nearby_sigma_p", 0.0, 0.05, lo_open=True),

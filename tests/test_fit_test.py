@@ -102,3 +102,26 @@ def test_the_local_means_share_is_given_back(rng, s, window):
     assert noise == pytest.approx(sigma, rel=0.12)
     assert f == pytest.approx(expected_f, rel=0.2)
     assert fit_test.surface_noise(field) < noise or s == 0.0      # uncorrected, correlated noise looks smaller
+
+
+def test_the_detrending_window_comes_from_the_configuration():
+    from app.config import load_config
+    from app.pipeline.tracker import refine_params
+    assert fit_test.window_cells(2) == 7 and fit_test.window_cells(1) == 15          # 15 px, odd cells
+    assert fit_test.window_cells(2, 31) == 15 and fit_test.window_cells(1, 4) == 5
+    assert refine_params(load_config(None)).noise_window_px == fit_test.WINDOW_PX
+
+
+def test_the_separable_form_equals_the_two_dimensional_filter():
+    """detrended_correlation forms R − 2 M∗R + M∗M∗R from 1-D sequences; the same on a 2-D grid."""
+    for rho, window in [((0.0, 0.0), 7), ((0.3, 0.8), 7), ((0.95, 0.6), 15)]:
+        k = np.arange(-2 * window, 2 * window + 1, dtype=float)
+        seq = [r ** (k * k) if r > 0 else (k == 0).astype(float) for r in (rho[1], rho[0])]
+        R = np.outer(*seq)
+        MR = ndimage.uniform_filter(R, window, mode="constant")
+        Rd = R - 2 * MR + ndimage.uniform_filter(MR, window, mode="constant")
+        c = 2 * window
+        var, (rho_u, rho_v) = fit_test.detrended_correlation(rho, window)
+        assert var == pytest.approx(Rd[c, c], abs=1e-12)
+        assert rho_u == pytest.approx(Rd[c, c + 1] / Rd[c, c], abs=1e-12)
+        assert rho_v == pytest.approx(Rd[c + 1, c] / Rd[c, c], abs=1e-12)

@@ -113,7 +113,8 @@ class RefineParams:
     moved the model more than this (translation, or rotation x 5 cm); re-association is every step;
     outline_ring : the z-buffer's hole fill also grows the silhouette by a pixel (:func:`fill_holes`);
     tissue_border : a measurement next to a buried one (its 8 neighbouring cells) is left out of the
-    fit (step 5).
+    fit (step 5); noise_window_px : the detrending window of the noise's scale and correlation (px,
+    step 7; app/tracking/fit_test.py).
     """
 
     stride: int = 2
@@ -138,6 +139,7 @@ class RefineParams:
     backend: str = "numba"
     outline_ring: bool = False
     tissue_border: bool = True
+    noise_window_px: int = fit_test.WINDOW_PX
 
 
 @dataclass
@@ -431,8 +433,8 @@ class Refiner:
         """The statistics of step 7 at ``T_camera_bone`` as it is (no Gauss-Newton step; H is zero):
         fitness, sharp and behind shares of this pose on this image."""
         T = np.array(T_camera_bone, dtype=float)
-        stride, _ = self.choose_stride(T)
-        return self._finish(depth, T, np.zeros((6, 6)), 0, float("nan"), False, stride)
+        stride, rendered = self.choose_stride(T)
+        return self._finish(depth, T, np.zeros((6, 6)), 0, float("nan"), False, stride, rendered)
 
     def _increment(self, delta: np.ndarray) -> np.ndarray:
         """exp(δ) about the model's centre c (the Jacobian's origin): p ↦ c + R (p − c) + v."""
@@ -440,9 +442,10 @@ class Refiner:
         M[:3, 3] += self.center - M[:3, :3] @ self.center
         return M
 
-    def _finish(self, depth, T, H, used, rms, ok, stride) -> RefineResult:
-        """Fitness, counts and the information matrix at the final pose."""
-        y, z_model, nbrs = self._measure(depth, T, stride)
+    def _finish(self, depth, T, H, used, rms, ok, stride, rendered=None) -> RefineResult:
+        """Fitness, counts and the information matrix at the final pose (``rendered``: its z-buffer at
+        ``stride`` when already drawn)."""
+        y, z_model, nbrs = self._measure(depth, T, stride, rendered)
         if len(y) == 0:
             return RefineResult(T, H, float("nan"), 0, 0, used, rms, ok, stride=stride)
         p, x, n, d = self._associate(y, T)
@@ -480,7 +483,7 @@ class Refiner:
             cols = np.rint(y[:, 0] / y[:, 2] * cam.fx + cam.cx) // max(stride, 1)
             rows = np.rint(y[:, 1] / y[:, 2] * cam.fy + cam.cy) // max(stride, 1)
         cells = np.column_stack([np.nan_to_num(cols), np.nan_to_num(rows)]).astype(np.int64)
-        window = fit_test.window_cells(stride)
+        window = fit_test.window_cells(stride, self.params.noise_window_px)
         return fit_test.noise_and_factor(fit_test.noise_field(cells, u, self.sigma(y[:, 2]), window), window)
 
 

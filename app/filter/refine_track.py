@@ -123,6 +123,7 @@ class RefineConfig:
     tissue_border: bool = True
     behind_frames: int = 30
     behind_z: float = 3.0
+    noise_window_px: int = 15
     nearby_every: int = 10
     nearby_starts: int = 4
     nearby_sigma_p: float = 0.002

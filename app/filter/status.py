@@ -306,11 +306,22 @@ def uncertain_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
         reasons.append(Reason("nan", f"{s.n_nan} NaN log-likelihoods"))
     if s.ess_ratio < t.min_ess_ratio:
         reasons.append(Reason("ess", f"ESS ratio {s.ess_ratio:.3f}"))
-    if s.speed > t.uncertain_speed or s.angular_speed > t.uncertain_angular_speed:
-        reasons.append(Reason("moving", f"bone moving ({1e3 * s.speed:.0f} mm/s, {math.degrees(s.angular_speed):.0f} deg/s)"))
-    elif s.seconds_since_motion < t.settle_s:
-        reasons.append(Reason("moving", f"bone settling ({s.seconds_since_motion:.2f} s after moving)"))
+    motion = motion_reason(s.speed, s.angular_speed, s.seconds_since_motion, t)
+    if motion is not None:
+        reasons.append(motion)
     return reasons
+
+
+def motion_reason(speed: float, angular_speed: float, seconds_since_motion: float,
+                  t: StatusThresholds) -> Reason | None:
+    """The steady test (app/filter/motion_gate.py's speeds): the bone moving faster than
+    ``uncertain_speed`` (m/s) or ``uncertain_angular_speed`` (rad/s), or less than ``settle_s`` since it
+    did or since the start; None when it is still."""
+    if speed > t.uncertain_speed or angular_speed > t.uncertain_angular_speed:
+        return Reason("moving", f"bone moving ({1e3 * speed:.0f} mm/s, {math.degrees(angular_speed):.0f} deg/s)")
+    if seconds_since_motion < t.settle_s:
+        return Reason("moving", f"bone settling ({seconds_since_motion:.2f} s after moving or the start)")
+    return None
 
 
 @dataclass

@@ -26,7 +26,9 @@ from app.filter.motion_gate import MotionGate
 from app.filter.particle_filter import FilterOutput, ParticleFilter
 from app.filter.refine import Refiner, RefineParams
 from app.filter.refine_track import RefinedTrack
-from app.filter.status import Reason, RefinementEvidence, TrackingStatus, refinement_reasons, with_refinement
+from app.filter.status import (Reason, RefinementEvidence, TrackingStatus, motion_reason, refinement_reasons,
+                               with_refinement)
+from app.metrics import STATUS_CODE
 from app.tracking.lifecycle import Lifecycle
 from app.geometry.camera import PinholeCamera
 from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD
@@ -97,6 +99,7 @@ class DepthTracker:
         """Spread the particles around a coarse initial pose (the surgeon's alignment)."""
         self.filter.initialise(T_base_bone)
         self.motion_gate.reset()
+        self.lifecycle = Lifecycle()
         if self.refined_track is not None:
             self.refined_track.seed(T_base_bone, (self.config.init_sigma_p, self.config.init_sigma_r))
         if self.recovery is not None:
@@ -135,6 +138,7 @@ class DepthTracker:
         if not np.all(np.isfinite(point)):
             raise ValueError(f"the point on the bone must be 3 finite numbers, got {point_base!r}")
         self._pending_point = point
+        self.lifecycle = Lifecycle()
         self._started_from_point = True
         if self.recovery is not None and self.recovery.point_prior is None:
             self.recovery.set_point_prior(point)
@@ -162,6 +166,7 @@ class DepthTracker:
         point = None if point_base is None else np.asarray(point_base, float).reshape(3)
         search = self.wide_search or build_wide_search(self.config, self.backend, self.camera, self.refined_track,
                                                        self.mesh_vertices)     # recovery.search off: built alike
+        self.lifecycle = Lifecycle()
         self._start_detection = StartByDetection(SearchDetector(search, self.filter.rng), point)
         if point is not None and self.recovery.point_prior is None:
             self.recovery.set_point_prior(point)
@@ -241,7 +246,7 @@ class DepthTracker:
         """The lifecycle's caps on ok: a point start is never ok; the recovery holds the frames after a
         re-initialisation and a found pose until it is confirmed (app/filter/recovery.py)."""
         if self._started_from_point:
-            result = replace(result, status=min(result.status, TrackingStatus.UNCERTAIN, key=STATUS_RANK.get),
+            result = replace(result, status=_at_most_uncertain(result.status),
                              reasons=result.reasons + (Reason("point_start", "started from a point: never ok"),))
         if self.recovery is None:
             return result
@@ -293,16 +298,10 @@ class DepthTracker:
         ``status.settle_s`` since it did or since the start, keeps the status below ok. With the
         refinement this replaces the filter's gate on its particle mean, which read the cloud's
         convergence from the coarse start as motion (0.2-0.5 s more not ok on every clean start)."""
-        speed, angular, since = self.motion_gate.update(stamp, result.T_base_bone)
-        st = self.config.status
-        if speed > st.uncertain_speed or angular > st.uncertain_angular_speed:
-            reason = Reason("moving", f"bone moving ({1e3 * speed:.0f} mm/s, {np.degrees(angular):.0f} deg/s)")
-        elif since < st.settle_s:
-            reason = Reason("moving", f"bone settling ({since:.2f} s after moving or the start)")
-        else:
+        reason = motion_reason(*self.motion_gate.update(stamp, result.T_base_bone), self.config.status)
+        if reason is None:
             return result
-        status = min(result.status, TrackingStatus.UNCERTAIN, key=STATUS_RANK.get)
-        return replace(result, status=status, reasons=result.reasons + (reason,))
+        return replace(result, status=_at_most_uncertain(result.status), reasons=result.reasons + (reason,))
 
     def report(self) -> dict:
         """For the summaries: the re-initialisations (count, stamps, kinds, reasons) and which points
@@ -321,7 +320,8 @@ class DepthTracker:
         return FilterOutput(T_base_bone=T_base_bone, position_spread=float("inf"),
                             rotation_spread=float("inf"), ess=0.0, ess_ratio=0.0, log_likelihood_max=float("nan"),
                             status=TrackingStatus.LOST, inlier_fraction=float("nan"), covered_pixels=0, n_nan=0,
-                            resampled=False, dt=0.0, weighed=False, timings={}, state="initialising",
+                            resampled=False, dt=0.0, weighed=False, timings={},
+                            state=self.lifecycle.step("waiting").value,
                             reasons=(Reason("initialising", "waiting for a frame to start from the point"
                                             if self._start_detection is None else
                                             "the detector has not found the bone yet"),))
@@ -337,7 +337,11 @@ class DepthTracker:
         self.backend.release()
 
 
-STATUS_RANK = {TrackingStatus.LOST: 0, TrackingStatus.UNCERTAIN: 1, TrackingStatus.OK: 2}   # min() is the worse
+def _at_most_uncertain(status: TrackingStatus) -> TrackingStatus:
+    """``status`` capped at uncertain (a lost frame stays lost; app/metrics.py ranks them)."""
+    return max(status, TrackingStatus.UNCERTAIN, key=STATUS_CODE.get)
+
+
 PLAN_POINTS = 300   # mesh vertices standing in for the template's points in the status's error bound
 
 
@@ -426,7 +430,7 @@ def refine_params(config: TrackerConfig) -> RefineParams:
     c, lk = config.refine, config.likelihood
     return RefineParams(stride=c.stride, iterations=c.iterations, samples=c.samples, k=lk.k,
                         sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin, outline_ring=c.outline_ring,
-                        tissue_border=c.tissue_border, behind_z=c.behind_z)
+                        tissue_border=c.tissue_border, behind_z=c.behind_z, noise_window_px=c.noise_window_px)
 
 
 def _refined_track(config: TrackerConfig, mesh: trimesh.Trimesh, camera: PinholeCamera) -> RefinedTrack | None:

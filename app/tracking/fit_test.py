@@ -11,12 +11,15 @@ Two quantities make it transfer between sensors (issue 32: the second difference
 stereo camera's image, whose noise is correlated over the matching window, underestimated its noise
 by half, and its 0.2 % fixed margin then blocked right poses on 99.8 % of the frames):
 
-1. **The noise's scale from the fitted surface** (:func:`surface_noise`). Each residual, divided by
-   |cos θ_i| = |n_i · r̂_i| (the ray's angle to the surface), is the depth noise along the ray,
-   u_i = r_i / |cos θ_i|. Its front half is contaminated (tissue), its back half is not: under a
-   right pose the back half is half-normal, whose median is Φ⁻¹(0.75) σ_n = 0.6745 σ_n, so
-   σ̂_n = 1.4826 median(|u_i| : u_i < 0). It holds the model's own error (segmentation,
-   discretisation) too: what this image and this mesh leave, not what a datasheet says.
+1. **The noise's scale from the fitted surface** (:func:`noise_field`, :func:`surface_noise`). Each
+   residual, divided by |cos θ_i| = |n_i · r̂_i| (the ray's angle to the surface), is the depth noise
+   along the ray, u_i = r_i / |cos θ_i|. Their local mean over ``refine.noise_window_px`` is taken
+   off: a wrong pose leaves a smooth residual field, the sensor a rough one. The front half of what
+   remains is contaminated (tissue), the back half is not: under a right pose it is half-normal,
+   whose median is Φ⁻¹(0.75) σ_n = 0.6745 σ_n, so σ̂_d = 1.4826 median(|d_i| : d_i < 0). The local
+   mean took a share of the noise with it; :func:`noise_and_factor` gives it back (exactly for a
+   Gaussian correlation, :func:`detrended_correlation`). σ̂_n holds the model's own error
+   (segmentation, discretisation) too: what this image and this mesh leave, not a datasheet's figure.
 2. **An effective number of independent measurements** (:func:`correlation_factor`). n pixels whose
    noise is correlated carry the evidence of n / f independent ones, with f = Σ_d ρ(d) over the
    lags d of the residual field (the variance of a sum of a stationary field, e.g. Cressie 1993,
@@ -39,8 +42,9 @@ MIN_PAIRS = 30            # neighbouring pairs needed to estimate the correlatio
 MAX_RHO = 0.98            # the lag-one correlation is capped here (f <= ~155): a perfectly smooth field is a model error, not noise
 FRONT_SIGMAS = 2.0        # residuals up to this many σ(z) in front of the model enter the noise field (tissue further out does not)
 BACK_SIGMAS = 4.0         # ... and up to this many behind (the background seen past the silhouette does not)
-WINDOW_PX = 15            # px, the detrending window (10 mm at 0.42 m): wider let a fit slid 1.5 mm onto a tissue patch raise the scale it is judged by (tests/test_refine.py)
+WINDOW_PX = 15            # px, the default of refine.noise_window_px (the detrending window, 10 mm at 0.42 m): wider let a fit slid 1.5 mm onto a tissue patch raise the scale it is judged by (tests/test_refine.py)
 MIN_WINDOW_CELLS = 9      # a cell's local mean needs this many core cells in its window
+FIXED_POINT_TOL = 1e-10   # the correction's fixed point stops once a round moves ρ by less
 
 
 def depth_residuals(r: np.ndarray, cos: np.ndarray, min_cos: float = 0.3) -> np.ndarray:
@@ -124,7 +128,8 @@ def gaussian_sum(rho: float) -> float:
 
 
 def correlation_factor(field: np.ndarray) -> float:
-    """f = n / n_eff >= 1 of the rough residual field (module docstring, 2); 1 when unknown."""
+    """f = n / n_eff >= 1 of a residual field as it is (module docstring, 2); 1 when unknown. The
+    refinement uses :func:`noise_and_factor`, which also gives back what a local mean took."""
     field = np.asarray(field, float)
     if field.ndim != 2 or np.count_nonzero(np.isfinite(field)) < MIN_PAIRS:
         return 1.0
@@ -135,17 +140,23 @@ def correlation_factor(field: np.ndarray) -> float:
 
 def detrended_correlation(rho: tuple[float, float], window: int) -> tuple[float, tuple[float, float]]:
     """(variance share, (ρ_d along the rows, along the columns)) of d = u − mean_W(u) for a unit-variance
-    field of Gaussian correlation R(a, b) = ρ_u^(a²) ρ_v^(b²): R_d = R − 2 M∗R + M∗M∗R with M the
-    ``window`` x ``window`` box average (symmetric), evaluated on a grid of lags."""
+    field of Gaussian correlation R(a, b) = ρ_v^(a²) ρ_u^(b²): R_d = R − 2 M∗R + M∗M∗R with M the
+    ``window`` x ``window`` box average (symmetric). R and M are separable, so each term is an outer
+    product of 1-D sequences (r, m∗r, m∗m∗r per axis) and only the three lags needed are formed."""
     half = 2 * window
     k = np.arange(-half, half + 1, dtype=float)
-    ru, rv = (float(np.clip(r, 0.0, MAX_RHO)) for r in rho)
-    R = np.outer(rv ** (k * k) if rv > 0 else (k == 0).astype(float), ru ** (k * k) if ru > 0 else (k == 0).astype(float))
-    MR = ndimage.uniform_filter(R, window, mode="constant")
-    Rd = R - 2.0 * MR + ndimage.uniform_filter(MR, window, mode="constant")
+    axes = []
+    for r in (float(np.clip(rho[1], 0.0, MAX_RHO)), float(np.clip(rho[0], 0.0, MAX_RHO))):   # rows (v), columns (u)
+        seq = r ** (k * k) if r > 0 else (k == 0).astype(float)
+        once = ndimage.uniform_filter1d(seq, window, mode="constant")
+        axes.append((seq, once, ndimage.uniform_filter1d(once, window, mode="constant")))
+    (rv, mrv, mmrv), (ru, mru, mmru) = axes
+
+    def rd(a: int, b: int) -> float:
+        return float(rv[a] * ru[b] - 2.0 * mrv[a] * mru[b] + mmrv[a] * mmru[b])
     c = half
-    var = float(Rd[c, c])
-    return var, (float(Rd[c, c + 1] / var), float(Rd[c + 1, c] / var))
+    var = rd(c, c)
+    return var, (rd(c, c + 1) / var, rd(c + 1, c) / var)
 
 
 def noise_and_factor(field: np.ndarray, window: int, rounds: int = 12) -> tuple[float, float]:
@@ -161,12 +172,15 @@ def noise_and_factor(field: np.ndarray, window: int, rounds: int = 12) -> tuple[
     rho = target.copy()
     for _ in range(rounds):
         _, got = detrended_correlation(tuple(rho), window)
-        rho = np.clip(rho + (target - np.array(got)), 0.0, MAX_RHO)
+        step = target - np.array(got)
+        rho = np.clip(rho + step, 0.0, MAX_RHO)
+        if np.max(np.abs(step)) < FIXED_POINT_TOL:
+            break
     share, _ = detrended_correlation(tuple(rho), window)
     return noise_d / np.sqrt(max(share, 0.25)), gaussian_sum(rho[0]) * gaussian_sum(rho[1])
 
 
-def window_cells(stride: int) -> int:
-    """The detrending window in cells of a grid of step ``stride`` px: WINDOW_PX, odd."""
-    cells = max(3, int(round(WINDOW_PX / max(stride, 1))))
+def window_cells(stride: int, window_px: int = WINDOW_PX) -> int:
+    """The detrending window in cells of a grid of step ``stride`` px: ``window_px`` (refine.noise_window_px), odd."""
+    cells = max(3, int(round(window_px / max(stride, 1))))
     return cells + 1 - cells % 2

@@ -99,13 +99,12 @@ class Lifecycle:
         return nxt
 
     def update(self, result, recovery, reinitialised: bool) -> State:
-        """The frame's state from the tracker's result (status, weighed, reasons) and the recovery policy
-        (its pending re-initialisation, its cap on ok, its confirmation under way)."""
-        waiting = getattr(result, "state", "") == State.INITIALISING.value
+        """The state of a tracked frame from the tracker's result (status, weighed) and the recovery policy
+        (its pending re-initialisation, its cap on ok); a frame before the start steps ``waiting``."""
         pending = recovery is not None and recovery.pending is not None
         capped = recovery is not None and bool(recovery.capped)
         return self.step(event(str(result.status), bool(result.weighed), bool(reinitialised), pending, capped,
-                               waiting))
+                               waiting=False))
 
 
 def mermaid() -> str:
