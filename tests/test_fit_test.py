@@ -88,9 +88,9 @@ def test_behind_count_of_correlated_noise_stays_within_the_inflated_bound(rng):
     assert inflated <= 0.02 * n_frames
 
 
-@pytest.mark.parametrize("s, window", [(0.0, 7), (1.3, 7), (2.6, 15)])
+@pytest.mark.parametrize("s, window", [(0.0, 9), (1.3, 9), (2.6, 15)])
 def test_the_local_means_share_is_given_back(rng, s, window):
-    """Detrended over the window (7 cells at stride 2, 15 at stride 1: WINDOW_PX), correlated noise loses
+    """Detrended over the window (9 cells at stride 2, 15 at stride 1: WINDOW_PX), correlated noise loses
     part of its variance and of its correlation to the local mean; noise_and_factor returns the field's
     own σ and f. s: a 9 px matching window's correlation at stride 2 and 1 (a box of 9 px has the
     Gaussian's std 9 / sqrt(12) px)."""
@@ -107,8 +107,8 @@ def test_the_local_means_share_is_given_back(rng, s, window):
 def test_the_detrending_window_comes_from_the_configuration():
     from app.config import load_config
     from app.pipeline.tracker import refine_params
-    assert fit_test.window_cells(2) == 7 and fit_test.window_cells(1) == 15          # 15 px, odd cells
-    assert fit_test.window_cells(2, 31) == 15 and fit_test.window_cells(1, 4) == 5
+    assert fit_test.window_cells(2) == 9 and fit_test.window_cells(1) == 15          # 15 px: 7.5 -> 8 -> odd 9 cells
+    assert fit_test.window_cells(2, 31) == 17 and fit_test.window_cells(1, 4) == 5
     assert refine_params(load_config(None)).noise_window_px == fit_test.WINDOW_PX
 
 
