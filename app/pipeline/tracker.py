@@ -29,7 +29,7 @@ from app.filter.refine_track import RefinedTrack
 from app.filter.status import (Reason, RefinementEvidence, TrackingStatus, motion_reason, refinement_reasons,
                                with_refinement)
 from app.metrics import STATUS_CODE
-from app.tracking.lifecycle import Lifecycle
+from app.tracking.lifecycle import Lifecycle, State, frame_event
 from app.geometry.camera import PinholeCamera
 from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD
 from app.pipeline.recovery_runner import build_wide_search, make_recovery, usable_frame
@@ -81,7 +81,7 @@ class DepthTracker:
                                              self.mesh_vertices, self._run_smc)
         self.template_points = "mesh_vertices"
         self._T_base_bone_last: np.ndarray | None = None
-        self.lifecycle = Lifecycle()
+        self._lifecycle = Lifecycle()        # without the recovery; with it, the recovery's (it drives the transitions)
         st = config.status
         self.motion_gate = MotionGate(st.motion_window_s, st.uncertain_speed, st.uncertain_angular_speed)
 
@@ -89,6 +89,19 @@ class DepthTracker:
     def recovery(self):
         """The recovery policy (app/filter/recovery.py), or None with ``recovery.enabled`` false."""
         return self.recovery_runner.policy if self.recovery_runner is not None else None
+
+    @property
+    def lifecycle(self) -> Lifecycle:
+        """The tracker's lifecycle (app/tracking/lifecycle.py): the recovery's, which its triggers and
+        attempts move, or the tracker's own without the recovery (moved by the frames' events alone)."""
+        return self.recovery.lifecycle if self.recovery is not None else self._lifecycle
+
+    def _new_lifecycle(self) -> None:
+        """A start begins a fresh lifecycle: no search due, no hypothesis, never ok yet."""
+        if self.recovery is not None:
+            self.recovery.lifecycle, self.recovery.due_code = Lifecycle(), ""
+        else:
+            self._lifecycle = Lifecycle()
 
     @property
     def wide_search(self):
@@ -99,7 +112,7 @@ class DepthTracker:
         """Spread the particles around a coarse initial pose (the surgeon's alignment)."""
         self.filter.initialise(T_base_bone)
         self.motion_gate.reset()
-        self.lifecycle = Lifecycle()
+        self._new_lifecycle()
         if self.refined_track is not None:
             self.refined_track.seed(T_base_bone, (self.config.init_sigma_p, self.config.init_sigma_r))
         if self.recovery is not None:
@@ -138,7 +151,7 @@ class DepthTracker:
         if not np.all(np.isfinite(point)):
             raise ValueError(f"the point on the bone must be 3 finite numbers, got {point_base!r}")
         self._pending_point = point
-        self.lifecycle = Lifecycle()
+        self._new_lifecycle()
         self._started_from_point = True
         if self.recovery is not None and self.recovery.point_prior is None:
             self.recovery.set_point_prior(point)
@@ -166,7 +179,7 @@ class DepthTracker:
         point = None if point_base is None else np.asarray(point_base, float).reshape(3)
         search = self.wide_search or build_wide_search(self.config, self.backend, self.camera, self.refined_track,
                                                        self.mesh_vertices)     # recovery.search off: built alike
-        self.lifecycle = Lifecycle()
+        self._new_lifecycle()
         self._start_detection = StartByDetection(SearchDetector(search, self.filter.rng), point)
         if point is not None and self.recovery.point_prior is None:
             self.recovery.set_point_prior(point)
@@ -227,7 +240,7 @@ class DepthTracker:
                 self.motion_gate.reset()
             result = self._steady(self._refine(result, depth_m, T_base_camera), stamp)
         result = self._caps(result, stamp, reinitialised)
-        state = self.lifecycle.update(result, self.recovery, reinitialised)
+        state = self._state(result)
         result = replace(result, state=state.value,
                          reasons=result.reasons if result.status != TrackingStatus.OK else ())
         self._account(result)
@@ -254,7 +267,17 @@ class DepthTracker:
                                       result.T_base_bone, stamp, sharp=result.refine_sharp)
         cap = self.recovery.capped
         reasons = result.reasons + ((Reason(cap, f"{cap} after a re-initialisation"),) if cap else ())
+        if self.recovery.lifecycle.state == State.SEARCHING:
+            trigger = self.recovery.due_code if self.recovery.pending else "retrying"
+            reasons += (Reason("searching", f"searching ({trigger or 'due'})"),)
         return replace(result, status=status, reinitialised=reinitialised, reasons=reasons)
+
+    def _state(self, result: FilterOutput):
+        """The frame's lifecycle state: the recovery stepped its lifecycle in ``_caps``; without it the
+        frame's own event steps the tracker's."""
+        if self.recovery is not None:
+            return self.lifecycle.state
+        return self._lifecycle.frame(frame_event(str(result.status), bool(result.weighed), False, False))
 
     def _account(self, result: FilterOutput) -> None:
         """Remember the frame's pose and add its stage timings."""
@@ -321,7 +344,7 @@ class DepthTracker:
                             rotation_spread=float("inf"), ess=0.0, ess_ratio=0.0, log_likelihood_max=float("nan"),
                             status=TrackingStatus.LOST, inlier_fraction=float("nan"), covered_pixels=0, n_nan=0,
                             resampled=False, dt=0.0, weighed=False, timings={},
-                            state=self.lifecycle.step("waiting").value,
+                            state=self.lifecycle.frame("waiting").value,
                             reasons=(Reason("initialising", "waiting for a frame to start from the point"
                                             if self._start_detection is None else
                                             "the detector has not found the bone yet"),))
