@@ -124,6 +124,69 @@ def test_a_knocked_off_track_is_found_again_within_2_s_and_never_ok_while_off(tr
     assert report["template_points"] == "mesh_vertices"
 
 
+def test_a_search_on_the_worker_never_stops_the_frames_and_its_result_is_taken_later(trial):
+    """recovery.search_worker thread (a live session's): the due search is handed to the worker and the
+    frames go on, searching and never ok; its result is taken on the first frame after it is ready
+    and finds the knocked-off track again. The worker's search is held by an event the test releases
+    after HELD frames (no wall time: the test waits for the worker, never for a clock)."""
+    import threading
+
+    from app.pipeline.tracker import DepthTracker
+    from app.trial.reader import open_trial
+
+    HELD = 4
+    config = _enabled()
+    config = replace(config, recovery=replace(config.recovery, search_worker="thread"))
+    reader = open_trial(trial)
+    mesh = reader.load_mesh()
+    points = np.asarray(mesh.vertices)
+    tracker = DepthTracker(config, mesh, reader.meta.camera)
+    worker = tracker.recovery_runner.worker
+    assert worker is not None and DepthTracker(_enabled(), mesh, reader.meta.camera).recovery_runner.worker is None
+    release, build = threading.Event(), worker._build
+
+    class HeldSearch:
+        def __init__(self):
+            self.search = build()                       # the worker's own backend and refiner, on its thread
+            self.backend = self.search.backend
+
+        def run(self, *args, **kw):
+            release.wait()
+            return self.search.run(*args, **kw)
+
+    worker._build = HeldSearch
+    tracker.start(reader.meta.initial_pose)
+    T_base_camera, valid = reader.camera_poses()
+    held, taken, found, results, knocked = [], None, None, [], False
+    for frame in reader.iter_frames():
+        i = frame.index
+        if i % EVERY:
+            continue
+        t = frame.stamp - reader.stamps[0]
+        if t >= KNOCK_S and not knocked:
+            _knock(tracker, results[-1].T_base_bone)
+            knocked = True
+        result = tracker.process(frame.depth_m, frame.stamp, T_base_camera[i] if valid[i] else None)
+        add = 1e3 * metrics.add(result.T_base_bone, reader.groundtruth[i], points)
+        results.append(result)
+        assert not (result.status == "ok" and add > 5.0)
+        if tracker.recovery_runner.searching and taken is None:
+            held.append((result.state, result.status))
+            if len(held) == HELD:
+                release.set()
+                worker._future.result()                 # the worker finishes; the next frame takes it
+        elif held and taken is None:
+            taken = result
+        if taken is not None and found is None and add < 2.0:
+            found = t
+    tracker.release()
+    assert len(held) >= HELD and all(state == "searching" and status != "ok" for state, status in held)
+    assert taken is not None and taken.reinitialised and taken.state == "confirming"
+    assert found is not None and found - KNOCK_S <= 2.0
+    report = tracker.report()["recovery"]
+    assert report["events"][0]["kind"] == "search" and report["search"]["found"] >= 1
+
+
 def test_recovery_disabled_keeps_a_knocked_off_track_off(trial):
     config = load_config(None)
     config = replace(config, recovery=replace(config.recovery, enabled=False))

@@ -227,6 +227,7 @@ class RecoveryConfig:
     start_sigmas: float = START_SIGMAS
     still_window_s: float = STILL_WINDOW_S
     max_backoff_doublings: int = MAX_BACKOFF_DOUBLINGS
+    search_worker: str = "auto"
 
 
 class FramePeriod:

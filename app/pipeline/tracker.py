@@ -33,6 +33,7 @@ from app.tracking.lifecycle import Lifecycle, State, frame_event
 from app.geometry.camera import PinholeCamera
 from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD
 from app.pipeline.recovery_runner import build_wide_search, make_recovery, usable_frame
+from app.tracking.search_worker import THREAD, SearchWorker, search_worker_mode
 from app.tracking.start import StartByDetection
 
 log = logging.getLogger(__name__)
@@ -50,7 +51,7 @@ class DepthTracker:
     """
 
     def __init__(self, config: TrackerConfig, mesh: trimesh.Trimesh, camera: PinholeCamera,
-                 T_flange_camera: np.ndarray | None = None):
+                 T_flange_camera: np.ndarray | None = None, live: bool = False):
         from app.mesh import outward_wound, prepare_mesh
         from app.render.backends import make_backend
 
@@ -62,6 +63,7 @@ class DepthTracker:
         width, height = config.resolution
         self.camera = camera.resized(width, height)
         cull = config.cull_back_faces and outward_wound(tracking_mesh)
+        self._mesh, self._camera_full, self._cull = mesh, camera, cull     # the search worker builds its own parts
         if config.cull_back_faces and not cull:
             log.warning("the mesh's triangles are not consistently wound outwards: back-face culling disabled (slower)")
         # gl_description names the backend that runs (and the GL renderer for gl); the summary and rerun show it
@@ -79,6 +81,9 @@ class DepthTracker:
         self._start_detection: StartByDetection | None = None   # init.method auto without a pose (start_by_detection)
         self.recovery_runner = make_recovery(config, self.backend, self.camera, self.filter, self.refined_track,
                                              self.mesh_vertices, self._run_smc)
+        if self.wide_search is not None and search_worker_mode(config.recovery.search_worker, live) == THREAD:
+            self.recovery_runner.worker = SearchWorker(self._worker_search,
+                                                       np.random.default_rng(self.filter.rng.integers(2**63)))
         self.template_points = "mesh_vertices"
         self._T_base_bone_last: np.ndarray | None = None
         self._lifecycle = Lifecycle()        # without the recovery; with it, the recovery's (it drives the transitions)
@@ -177,8 +182,8 @@ class DepthTracker:
             return
         prior_kind(point_base)                                        # a clear error for a malformed point
         point = None if point_base is None else np.asarray(point_base, float).reshape(3)
-        search = self.wide_search or build_wide_search(self.config, self.backend, self.camera, self.refined_track,
-                                                       self.mesh_vertices)     # recovery.search off: built alike
+        search = self.wide_search or build_wide_search(self.config, self.backend, self.camera,
+                                                       self.refined_track.refiner, self.mesh_vertices)     # recovery.search off: built alike
         self._new_lifecycle()
         self._start_detection = StartByDetection(SearchDetector(search, self.filter.rng), point)
         if point is not None and self.recovery.point_prior is None:
@@ -247,9 +252,15 @@ class DepthTracker:
         return result
 
     def _recover(self, depth_small, depth_m, T_base_camera, stamp: float) -> bool:
-        """Run a due re-initialisation (app/pipeline/recovery_runner.py); whether one ran."""
+        """Run a due re-initialisation (app/pipeline/recovery_runner.py), or take the worker's finished
+        search (app/tracking/search_worker.py); whether the track was re-initialised."""
         runner = self.recovery_runner
-        if runner is None or not runner.may_run(depth_small, depth_m, T_base_camera):
+        if runner is None:
+            return False
+        taken = runner.take_search(stamp)
+        if taken is not None:
+            return taken[1]
+        if not runner.may_run(depth_small, depth_m, T_base_camera):
             return False
         seconds, reinitialised = runner.run(depth_small, depth_m, T_base_camera, stamp, self._T_base_bone_last)
         self._timings["recovery_search"] += seconds
@@ -267,9 +278,10 @@ class DepthTracker:
                                       result.T_base_bone, stamp, sharp=result.refine_sharp)
         cap = self.recovery.capped
         reasons = result.reasons + ((Reason(cap, f"{cap} after a re-initialisation"),) if cap else ())
-        if self.recovery.lifecycle.state == State.SEARCHING:
+        if self.recovery.lifecycle.state == State.SEARCHING:        # ok only in tracking: a due search caps it
             trigger = self.recovery.due_code if self.recovery.pending else "retrying"
             reasons += (Reason("searching", f"searching ({trigger or 'due'})"),)
+            status = _at_most_uncertain(status)
         return replace(result, status=status, reinitialised=reinitialised, reasons=reasons)
 
     def _state(self, result: FilterOutput):
@@ -356,7 +368,22 @@ class DepthTracker:
     def mean_timings_ms(self) -> dict[str, float]:
         return {k: 1e3 * v / max(self._frames, 1) for k, v in self._timings.items()}
 
+    def _worker_search(self):
+        """The search worker's own wide search, built on its thread: its own likelihood backend (a GL
+        context belongs to its thread) and refiner, on the same mesh, cameras and configuration."""
+        from app.render.backends import make_backend
+
+        c = self.config
+        backend, _ = make_backend(c.backend, self.mesh_vertices, self.mesh_faces, self.camera, c.particles,
+                                  c.likelihood, near=c.near, far=c.far, cull_back_faces=self._cull)
+        mesh = self._mesh
+        refiner = Refiner(np.asarray(mesh.vertices, float), np.asarray(mesh.faces), self._camera_full,
+                          refine_params(c), seed=c.seed)
+        return build_wide_search(c, backend, self.camera, refiner, self.mesh_vertices)
+
     def release(self) -> None:
+        if self.recovery_runner is not None and self.recovery_runner.worker is not None:
+            self.recovery_runner.worker.close()
         self.backend.release()
 
 
