@@ -1165,3 +1165,27 @@ def test_a_fit_leaving_more_behind_the_model_than_the_status_allows_is_not_found
     replaced = WideSearch(None, None, _BehindRefiner(scores_inc, {9: 0.060, 20: 0.005, 4: 0.050}), np.zeros((3, 3)),
                           SearchConfig())._verify(wrong_incumbent, None, np.eye(4), 0)
     assert not replaced.kept and replaced.T_base_bone[0, 3] == pytest.approx(0.020)
+
+
+def test_a_track_ok_again_far_from_the_last_ok_pose_needs_confirming_frames():
+    """A track that slid with a moved bone while not ok and is ok again 36 mm away (device trials,
+    or_fast_reposition crest_right_02 seed 2) is a hypothesis: ok only after confirm_frames ok frames in
+    a row; near the last ok pose ok at once; off with recovery.confirm_moved false."""
+    ok, unc = TrackingStatus.OK, TrackingStatus.UNCERTAIN
+    far = se3.from_rotvec_trans(np.zeros(3), np.array([0.036, 0.0, 0.0]))
+    near = se3.from_rotvec_trans(np.zeros(3), np.array([0.002, 0.0, 0.0]))
+    for confirm_moved in (True, False):
+        policy = _policy(after_uncertain_s=0.0, confirm_frames=5, confirm_moved=confirm_moved)
+        assert policy.update(ok, True, True, 0.9, np.eye(4), 0.0) == ok
+        assert policy.update(unc, True, True, 0.9, near, 0.0) == unc                 # moving: not ok
+        assert policy.update(ok, True, True, 0.9, near, 0.0) == ok                   # near: no hypothesis
+        policy.update(unc, True, True, 0.9, far, 0.0)
+        got = [policy.update(ok, True, True, 0.9, far, 0.0) for _ in range(6)]
+        if confirm_moved:
+            assert got == [unc] * 4 + [ok, ok] and policy.capped == ""
+            states = policy.lifecycle.counts
+            assert states["confirming"] == 4 and policy.lifecycle.state == "tracking"
+        else:
+            assert got == [ok] * 6
+    policy = _policy(after_uncertain_s=0.0, confirm_frames=5)                          # before any ok: the start
+    assert policy.update(ok, True, True, 0.9, far, 0.0) == ok                         # is no ok pose
