@@ -55,7 +55,8 @@ def test_the_lifecycle_table_is_the_contract():
     assert all(set(row) <= set(lifecycle.EVENTS) for row in T.values())
     assert all(row["ok"] == S.TRACKING for row in T.values())                     # ok (confirmed) from every state
     for name in lifecycle.RECOVERY_EVENTS:                                         # only searching runs an attempt
-        assert [s for s, row in T.items() if name in row] == ([S.INITIALISING] if name == "detected" else [S.SEARCHING])
+        where = {"detected": [S.INITIALISING], "moved": [S.TRACKING, S.OCCLUDED, S.SUSPECT, S.SEARCHING]}.get(name, [S.SEARCHING])
+        assert [s for s, row in T.items() if name in row] == where
     for state in (S.SEARCHING, S.CONFIRMING):                                      # a hand does not end a search
         assert T[state]["unseen"] == T[state]["not_ok"] == state
     assert [s for s, row in T.items() if "capped" in row] == [S.SEARCHING, S.CONFIRMING]   # only with a hypothesis

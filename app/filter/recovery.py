@@ -228,6 +228,7 @@ class RecoveryConfig:
     still_window_s: float = STILL_WINDOW_S
     max_backoff_doublings: int = MAX_BACKOFF_DOUBLINGS
     search_worker: str = "auto"
+    confirm_moved: bool = True
 
 
 class FramePeriod:
@@ -433,7 +434,16 @@ class RecoveryPolicy:
     def _confirmed(self, status: TrackingStatus, weighed: bool, T_base_bone: np.ndarray) -> TrackingStatus:
         """After a re-initialisation (module docstring, "Honesty"): ok only at a pose that agrees with
         the last ok pose (within FAR_M / FAR_RAD: the bone is usually static in the base frame), or
-        after ``confirm_frames`` weighed frames in a row that the rules find ok."""
+        after ``confirm_frames`` weighed frames in a row that the rules find ok. A track that comes back
+        to ok far from the last ok pose without any re-initialisation (it followed or slid with a
+        moved bone while not ok) is such a hypothesis too (``recovery.confirm_moved``): on the
+        device's or_fast_reposition trials two tracks slid 36 and 51 mm off with the bone and were ok
+        there for 77 and 46 frames (the rules found the wrong fit consistent; 2026-11-27, BENCHMARKS.md
+        "Recovery"). The start is no ok pose: this applies once the track has been ok."""
+        if (status == TrackingStatus.OK and not self._unconfirmed and self.lifecycle.ever_ok
+                and self.config.confirm_moved and self._far(T_base_bone)):
+            self.lifecycle.moved()             # back to ok far from the last ok pose without a detection
+            self._ok_run = 0
         if not self._unconfirmed or status != TrackingStatus.OK:
             if weighed and status != TrackingStatus.OK:
                 self._ok_run = 0

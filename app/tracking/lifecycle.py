@@ -25,7 +25,9 @@ Events: per frame, one of ``waiting`` (before the start), ``search_due`` (a sear
 weighed), ``not_ok`` (:func:`frame_event`); within a frame, the recovery's: ``search_due`` (a trigger
 fired), ``reinitialised`` (a search found a pose, or a re-spread / SMC ran), ``kept`` (a search kept
 the track, which was ok before: retried), ``kept_once`` (a never-ok track's one search kept it),
-``declined`` (a search found nothing: retried), ``detected`` (a start without a pose found the bone).
+``declined`` (a search found nothing: retried), ``detected`` (a start without a pose found the bone),
+``moved`` (the rules find the track ok again far from the last ok pose without a re-initialisation:
+a hypothesis too).
 A pair the table does not hold raises: the tests run every scenario through it.
 """
 from __future__ import annotations
@@ -44,11 +46,12 @@ class State(enum.StrEnum):
 
 
 FRAME_EVENTS = ("waiting", "search_due", "capped", "ok", "unseen", "not_ok")
-RECOVERY_EVENTS = ("reinitialised", "kept", "kept_once", "declined", "detected")
+RECOVERY_EVENTS = ("reinitialised", "kept", "kept_once", "declined", "detected", "moved")
 EVENTS = FRAME_EVENTS + RECOVERY_EVENTS
 
 S = State
-_SEEN = {"search_due": S.SEARCHING, "ok": S.TRACKING, "unseen": S.OCCLUDED, "not_ok": S.SUSPECT}
+_SEEN = {"search_due": S.SEARCHING, "ok": S.TRACKING, "unseen": S.OCCLUDED, "not_ok": S.SUSPECT,
+         "moved": S.CONFIRMING}
 # TRANSITIONS[state][event] -> next state. An absent pair is a transition the lifecycle does not have.
 TRANSITIONS: dict[State, dict[str, State]] = {
     S.INITIALISING: {"waiting": S.INITIALISING, "detected": S.CONFIRMING, "search_due": S.SEARCHING,
@@ -56,7 +59,7 @@ TRANSITIONS: dict[State, dict[str, State]] = {
     S.TRACKING: dict(_SEEN),
     S.OCCLUDED: dict(_SEEN),
     S.SUSPECT: dict(_SEEN),
-    S.SEARCHING: {"search_due": S.SEARCHING, "reinitialised": S.CONFIRMING, "kept": S.SEARCHING,
+    S.SEARCHING: {"search_due": S.SEARCHING, "reinitialised": S.CONFIRMING, "kept": S.SEARCHING, "moved": S.SEARCHING,
                   "kept_once": S.CONFIRMING, "declined": S.SEARCHING, "capped": S.SEARCHING, "ok": S.TRACKING,
                   "unseen": S.SEARCHING, "not_ok": S.SEARCHING},
     S.CONFIRMING: {"search_due": S.SEARCHING, "capped": S.CONFIRMING, "ok": S.TRACKING,
@@ -143,6 +146,12 @@ class Lifecycle:
         """The due search found nothing: nothing changed, retried."""
         self.step("declined")
         self.due = None
+
+    def moved(self) -> None:
+        """The rules found the track ok again far from the last ok pose, with no re-initialisation (it
+        followed or slid with a moved bone while not ok): that pose is a hypothesis too."""
+        self.step("moved")
+        self.hypothesis = Hypothesis()
 
     def detected(self) -> None:
         """A start without a pose found the bone: the found pose is a hypothesis, by evidence only."""
