@@ -87,7 +87,7 @@ from scipy.spatial import cKDTree
 
 from app.filter import refine_kernels as kernels
 from app.filter.behind_noise import behind_moments, noise_bound
-from app.tracking import fit_test
+from app.tracking import fit_kernels, fit_test
 from app.geometry import se3
 from app.geometry.camera import PinholeCamera
 
@@ -239,6 +239,7 @@ class Refiner:
         self.normals = np.asarray(mesh.face_normals[face_idx], float)
         self.tree = cKDTree(self.points) if self.params.backend == "numpy" else None
         self.center = self.points.mean(axis=0)
+        self.normal_offsets = np.einsum("ij,ij->i", self.normals, self.points)   # n_j · x_j (the z-buffer's facing test)
         self.grid = kernels.build_grid(self.points, self.normals, GRID_CELL) if self.params.backend == "numba" else None
 
     def sigma(self, z: np.ndarray) -> np.ndarray:
@@ -264,7 +265,8 @@ class Refiner:
         cam = self.camera
         R, t = T_camera_bone[:3, :3], T_camera_bone[:3, 3]
         if self.grid is not None:
-            return kernels.zbuffer(self.points, self.normals, np.ascontiguousarray(R), np.ascontiguousarray(t),
+            return kernels.zbuffer(self.points, self.normals, self.normal_offsets, np.ascontiguousarray(R),
+                                   np.ascontiguousarray(t),
                                    cam.fx, cam.fy, cam.cx, cam.cy, 1, cam.width, cam.height,
                                    self.params.outline_ring)
         p_cam = self.points @ R.T + t
@@ -474,16 +476,19 @@ class Refiner:
     def _residual_noise(self, y, p, n, r, camera_bone, stride) -> tuple[float, float]:
         """(σ̂_n, f): the depth noise's scale from the fitted surface's rough residual field and its
         correlation factor on the refinement's grid (app/tracking/fit_test.py; step 7)."""
+        cam = self.camera
+        window = fit_test.window_cells(stride, self.params.noise_window_px)
+        if self.grid is not None:
+            return fit_kernels.residual_noise(y, p, n, r, camera_bone, int(stride), cam.fx, cam.fy, cam.cx, cam.cy,
+                                              self.sigma(y[:, 2]), window)
         ray = p - camera_bone
         with np.errstate(invalid="ignore", divide="ignore"):
             cos = np.einsum("ij,ij->i", n, ray) / np.linalg.norm(ray, axis=1)
         u = fit_test.depth_residuals(r, cos)
-        cam = self.camera
         with np.errstate(invalid="ignore", divide="ignore"):
             cols = np.rint(y[:, 0] / y[:, 2] * cam.fx + cam.cx) // max(stride, 1)
             rows = np.rint(y[:, 1] / y[:, 2] * cam.fy + cam.cy) // max(stride, 1)
         cells = np.column_stack([np.nan_to_num(cols), np.nan_to_num(rows)]).astype(np.int64)
-        window = fit_test.window_cells(stride, self.params.noise_window_px)
         return fit_test.noise_and_factor(fit_test.noise_field(cells, u, self.sigma(y[:, 2]), window), window)
 
 

@@ -33,6 +33,9 @@ from scipy import ndimage
 
 from app.render.cpu_raster import _njit
 
+FACING_SLACK = 1e-9   # m: samples facing away by less than this take the exact camera-frame test (:func:`zbuffer`)
+GAP_SLACK = 1e-9   # m: a cell nearer than the best distance by less than this is opened all the same (:func:`_axis_gap`)
+
 
 @dataclass
 class SampleGrid:
@@ -75,15 +78,25 @@ def build_grid(points: np.ndarray, normals: np.ndarray, cell: float, max_cells: 
                       order.astype(np.int64), start, empty, lo.astype(float), float(cell), dims)
 
 
-@_njit()
-def zbuffer(points, normals, R, t, fx, fy, cx, cy, stride, w_grid, h_grid, ring=False):
-    """(zbuf (h, w) with inf where empty, c0, r0) on the crop grid; zbuf.size == 0 when nothing projects."""
+@_njit(nogil=True)
+def zbuffer(points, normals, normal_offsets, R, t, fx, fy, cx, cy, stride, w_grid, h_grid, ring=False):
+    """(zbuf (h, w) with inf where empty, c0, r0) on the crop grid; zbuf.size == 0 when nothing projects.
+
+    ``normal_offsets`` (S,): n_j · x_j of each sample in the bone frame. A sample faces the camera when
+    (R n)·(R x + t) < 0, i.e. n·x + n·(Rᵀt) < 0: that cheap form skips the samples that clearly face
+    away (by more than ``FACING_SLACK``), the others take the camera-frame test as before, so the
+    samples kept are the same."""
     n = points.shape[0]
     cols = np.empty(n, np.int64)
     rows = np.empty(n, np.int64)
     zs = np.empty(n)
+    qx = R[0, 0] * t[0] + R[1, 0] * t[1] + R[2, 0] * t[2]     # Rᵀ t
+    qy = R[0, 1] * t[0] + R[1, 1] * t[1] + R[2, 1] * t[2]
+    qz = R[0, 2] * t[0] + R[1, 2] * t[1] + R[2, 2] * t[2]
     m = 0
     for i in range(n):
+        if normal_offsets[i] + normals[i, 0] * qx + normals[i, 1] * qy + normals[i, 2] * qz > FACING_SLACK:
+            continue
         px = R[0, 0] * points[i, 0] + R[0, 1] * points[i, 1] + R[0, 2] * points[i, 2] + t[0]
         py = R[1, 0] * points[i, 0] + R[1, 1] * points[i, 1] + R[1, 2] * points[i, 2] + t[1]
         pz = R[2, 0] * points[i, 0] + R[2, 1] * points[i, 1] + R[2, 2] * points[i, 2] + t[2]
@@ -109,7 +122,7 @@ def zbuffer(points, normals, R, t, fx, fy, cx, cy, stride, w_grid, h_grid, ring=
     return _fill_holes(zbuf, ring), c0, r0
 
 
-@_njit()
+@_njit(nogil=True)
 def _fill_holes(zbuf, ring):
     """Empty cells take the minimum of their 3x3 neighbourhood: with ``ring``, every empty cell next to
     a covered one (the outline grown by a cell all round, scipy's minimum_filter); without, only the
@@ -138,7 +151,7 @@ def _fill_holes(zbuf, ring):
     return out
 
 
-@_njit()
+@_njit(nogil=True)
 def measurements(depth, zbuf, x0, y0, stride, fx, fy, cx, cy, occluder_margin):
     """(y (M, 3) camera-frame points, z* (M,)) of the crop cells with a model depth and a usable
     measurement (finite, > 0, not an occluder: z >= z* − margin); row-major order like np.nonzero."""
@@ -163,14 +176,14 @@ def measurements(depth, zbuf, x0, y0, stride, fx, fy, cx, cy, occluder_margin):
     return y[:m], zstar[:m]
 
 
-@_njit()
+@_njit(nogil=True)
 def _usable(zm, z, occluder_margin):
     """A crop cell gives a measurement: the model covers it (z* finite) and its depth z is valid and not
     an occluder (z >= z* − margin; refine.py step 2)."""
     return zm != np.inf and np.isfinite(z) and z > 0.0 and z >= zm - occluder_margin
 
 
-@_njit()
+@_njit(nogil=True)
 def neighbours(depth, zbuf, x0, y0, stride, occluder_margin):
     """(M, 8) int64: for each of :func:`measurements`' points (same order), the indices of the
     measurements in its 8 neighbouring cells of the crop grid, -1 where that cell has none."""
@@ -201,7 +214,7 @@ def neighbours(depth, zbuf, x0, y0, stride, occluder_margin):
     return out
 
 
-@_njit()
+@_njit(nogil=True)
 def nearest(query, points, start, empty, origin, cell, dims, radius):
     """(j (Q,) index into the grid's sorted points, d (Q,)) of each query's nearest point; d = inf,
     j = -1 where none lies within ``radius`` (module docstring). ``empty`` (C,): shells of cells
@@ -209,41 +222,75 @@ def nearest(query, points, start, empty, origin, cell, dims, radius):
     nq = query.shape[0]
     out_j = np.full(nq, -1, np.int64)
     out_d = np.full(nq, np.inf)
-    max_shell = int(math.ceil(radius / cell))
     for q in range(nq):
-        qx, qy, qz = query[q, 0], query[q, 1], query[q, 2]
-        ix = int(math.floor((qx - origin[0]) / cell))
-        iy = int(math.floor((qy - origin[1]) / cell))
-        iz = int(math.floor((qz - origin[2]) / cell))
-        outside = max(-ix, ix - dims[0] + 1, -iy, iy - dims[1] + 1, -iz, iz - dims[2] + 1, 0)
-        if outside == 0:
-            first = empty[ix + dims[0] * (iy + dims[1] * iz)]
-        else:
-            first = outside
-        best, best_j = np.inf, -1
-        for r in range(first, max_shell + 1):
-            for cz in range(max(iz - r, 0), min(iz + r + 1, dims[2])):
-                for cy in range(max(iy - r, 0), min(iy + r + 1, dims[1])):
-                    on_face = abs(cz - iz) == r or abs(cy - iy) == r
-                    step = 1 if on_face else 2 * r
-                    cx = ix - r
-                    while cx <= ix + r:
-                        if 0 <= cx < dims[0]:
+        out_j[q], out_d[q] = _nearest_one(query[q, 0], query[q, 1], query[q, 2], points, start, empty, origin, cell,
+                                          dims, radius)
+    return out_j, out_d
+
+
+@_njit(nogil=True)
+def _nearest_one(qx, qy, qz, points, start, empty, origin, cell, dims, radius):
+    """(j, d) of one query (:func:`nearest`). A cell whose box lies at least the best distance so far
+    from the query is not opened: none of its points could replace the best (the comparison is
+    strict), so the result is the one of opening every cell, in the same order. The best distance
+    starts just above ``radius`` (1e-12 relative, far more than sqrt's rounding): a point further than
+    that would be refused at the end anyway."""
+    max_shell = int(math.ceil(radius / cell))
+    ix = int(math.floor((qx - origin[0]) / cell))
+    iy = int(math.floor((qy - origin[1]) / cell))
+    iz = int(math.floor((qz - origin[2]) / cell))
+    outside = max(-ix, ix - dims[0] + 1, -iy, iy - dims[1] + 1, -iz, iz - dims[2] + 1, 0)
+    if outside == 0:
+        first = empty[ix + dims[0] * (iy + dims[1] * iz)]
+    else:
+        first = outside
+    best, best_j = radius * radius * (1.0 + 1e-12), -1
+    for r in range(first, max_shell + 1):
+        for cz in range(max(iz - r, 0), min(iz + r + 1, dims[2])):
+            gz = _axis_gap(qz, origin[2], cell, cz)
+            if gz * gz >= best:
+                continue
+            for cy in range(max(iy - r, 0), min(iy + r + 1, dims[1])):
+                gy = _axis_gap(qy, origin[1], cell, cy)
+                gzy = gz * gz + gy * gy
+                if gzy >= best:
+                    continue
+                on_face = abs(cz - iz) == r or abs(cy - iy) == r
+                step = 1 if on_face else 2 * r
+                cx = ix - r
+                while cx <= ix + r:
+                    if 0 <= cx < dims[0]:
+                        gx = _axis_gap(qx, origin[0], cell, cx)
+                        if gzy + gx * gx < best:
                             c = cx + dims[0] * (cy + dims[1] * cz)
                             for k in range(start[c], start[c + 1]):
                                 dx, dy, dz = points[k, 0] - qx, points[k, 1] - qy, points[k, 2] - qz
                                 d2 = dx * dx + dy * dy + dz * dz
                                 if d2 < best:
                                     best, best_j = d2, k
-                        cx += max(step, 1)
-            if best_j >= 0 and math.sqrt(best) <= _cube_clearance(qx, qy, qz, ix, iy, iz, r, origin, cell):
-                break
-        if best_j >= 0 and math.sqrt(best) <= radius:
-            out_j[q], out_d[q] = best_j, math.sqrt(best)
-    return out_j, out_d
+                    cx += max(step, 1)
+        if best_j >= 0 and math.sqrt(best) <= _cube_clearance(qx, qy, qz, ix, iy, iz, r, origin, cell):
+            break
+    if best_j >= 0 and math.sqrt(best) <= radius:
+        return best_j, math.sqrt(best)
+    return -1, np.inf
 
 
-@_njit()
+@_njit(nogil=True)
+def _axis_gap(q, origin, cell, i):
+    """Distance along one axis from the coordinate ``q`` to the slab of cell ``i`` (0 inside it), less
+    ``GAP_SLACK`` so that rounding (of the slab's bounds, of a point's cell) can only open a cell more,
+    never less."""
+    lo = origin + i * cell
+    hi = lo + cell
+    if q < lo:
+        return max(lo - q - GAP_SLACK, 0.0)
+    if q > hi:
+        return max(q - hi - GAP_SLACK, 0.0)
+    return 0.0
+
+
+@_njit(nogil=True)
 def gather(j, points, normals):
     """(x, n) (Q, 3): the samples and normals of :func:`nearest`'s indices ``j``; NaN where j = -1."""
     x = np.full((j.shape[0], 3), np.nan)
@@ -256,7 +303,7 @@ def gather(j, points, normals):
     return x, n
 
 
-@_njit()
+@_njit(nogil=True)
 def _cube_clearance(qx, qy, qz, ix, iy, iz, r, origin, cell):
     """Distance from the query to the outside of the cube of cells within r of its cell: no point
     outside the searched cube can be nearer than this (>= r · cell)."""
@@ -265,7 +312,7 @@ def _cube_clearance(qx, qy, qz, ix, iy, iz, r, origin, cell):
     return min(qx - lo_x, hi_x - qx, qy - lo_y, hi_y - qy, qz - lo_z, hi_z - qz)
 
 
-@_njit()
+@_njit(nogil=True)
 def normal_equations(p, x, n, d, sigma, in_front, center, width, tukey_c, front_sigmas, nbrs):
     """(H (6, 6), g (6,), used, Σ w σ² r², Σ w σ²) of the robust GN system (module docstring); a pair is
     used when |r| < s, d < 3 s and the measurement is not buried (z* − z <= max(front σ, width)),
