@@ -405,6 +405,8 @@ class Refiner:
         T = np.array(T_camera_bone, dtype=float)
         H, used, rms, ok = np.zeros((6, 6)), 0, float("nan"), False
         stride, rendered = self.choose_stride(T)
+        if self.grid is not None:
+            return self._refine_kernel(depth, T, start_width, stride, rendered)
         y, last = None, None
         for it in range(prm.iterations):
             if y is None:                          # re-render after a step that moved the model visibly
@@ -430,6 +432,36 @@ class Refiner:
         if last is not None:
             return self._result(depth, T, H, used, rms, ok, *last, stride=stride)
         return self._finish(depth, T if ok else np.array(T_camera_bone, float), H, used, rms, ok, stride)
+
+    def _refine_kernel(self, depth, T, start_width, stride, rendered) -> RefineResult:
+        """:meth:`refine`'s iterations in :func:`app.filter.refine_kernels.gauss_newton` (the numba
+        backend): the kernel runs until it must measure again, declines, stops or has no iteration left."""
+        prm, g = self.params, self.grid
+        T0 = T.copy()
+        H, used, rms, ok, it, last = np.zeros((6, 6)), 0, float("nan"), False, 0, None
+        while it < prm.iterations:
+            y, z_model, nbrs = self._measure(depth, T, stride, rendered)
+            rendered = None
+            if len(y) < prm.min_points:
+                break
+            sigma = self.sigma(y[:, 2])
+            T_new, H, used, rms, state, it, p, x, n, d = kernels.gauss_newton(
+                y, sigma, z_model - y[:, 2], nbrs, T, it, prm.iterations, float(start_width), self.center,
+                g.points, g.normals, g.start, g.empty, g.origin, g.cell, g.dims, prm.pair_radius, PAIR_WIDTHS,
+                prm.tukey_c, prm.front_sigmas, prm.min_points, prm.stop_rotation, prm.stop_translation,
+                prm.rerender_step, RENDER_LEVER)
+            if state == kernels.GN_DECLINED:
+                break
+            ok, T = True, T_new
+            if state == kernels.GN_STOPPED:
+                if start_width * 0.5 ** it <= prm.front_sigmas * sigma.min():
+                    last = (y, p, x, n, d, sigma)
+                break
+            if state == kernels.GN_DONE:
+                break
+        if last is not None:
+            return self._result(depth, T, H, used, rms, ok, *last, stride=stride)
+        return self._finish(depth, T if ok else T0, H, used, rms, ok, stride)
 
     def score(self, depth: np.ndarray, T_camera_bone: np.ndarray) -> RefineResult:
         """The statistics of step 7 at ``T_camera_bone`` as it is (no Gauss-Newton step; H is zero):

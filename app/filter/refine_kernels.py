@@ -357,3 +357,108 @@ def normal_equations(p, x, n, d, sigma, in_front, center, width, tukey_c, front_
         for b in range(a):
             H[a, b] = H[b, a]
     return H, g, used, num, den
+
+
+@_njit(nogil=True)
+def to_bone(y, T):
+    """p = T⁻¹ y (M, 3): camera-frame points into the bone frame, T⁻¹ = [Rᵀ, −Rᵀ t] (refine.py step 2)."""
+    p = np.empty_like(y)
+    tx = -(T[0, 0] * T[0, 3] + T[1, 0] * T[1, 3] + T[2, 0] * T[2, 3])
+    ty = -(T[0, 1] * T[0, 3] + T[1, 1] * T[1, 3] + T[2, 1] * T[2, 3])
+    tz = -(T[0, 2] * T[0, 3] + T[1, 2] * T[1, 3] + T[2, 2] * T[2, 3])
+    for i in range(y.shape[0]):
+        p[i, 0] = y[i, 0] * T[0, 0] + y[i, 1] * T[1, 0] + y[i, 2] * T[2, 0] + tx
+        p[i, 1] = y[i, 0] * T[0, 1] + y[i, 1] * T[1, 1] + y[i, 2] * T[2, 1] + ty
+        p[i, 2] = y[i, 0] * T[0, 2] + y[i, 1] * T[1, 2] + y[i, 2] * T[2, 2] + tz
+    return p
+
+
+@_njit(nogil=True)
+def increment_inverse(delta, center):
+    """exp(δ)⁻¹ (4, 4) for δ = (ω, v) applied about the model's centre c (refine.py step 6):
+    exp(δ) maps p ↦ c + R (p − c) + v with R = exp([ω]ₓ) from the unit quaternion
+    (cos(|ω|/2), ω/|ω| sin(|ω|/2)) (app/geometry/quaternion.py ``exp_map``, ``to_matrix``); its inverse
+    is [Rᵀ, −Rᵀ t] with t = v + c − R c."""
+    wx, wy, wz = delta[0], delta[1], delta[2]
+    angle = math.sqrt(wx * wx + wy * wy + wz * wz)
+    half = 0.5 * angle
+    if angle < 1e-8:                       # quaternion._SMALL: sin(|ω|/2)/|ω| by its series
+        k = 0.5 - angle ** 2 / 48.0
+    else:
+        k = math.sin(half) / angle
+    w, x, y, z = math.cos(half), k * wx, k * wy, k * wz
+    R = np.empty((3, 3))
+    R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    t = np.empty(3)
+    for a in range(3):
+        t[a] = delta[3 + a] + (center[a] - (R[a, 0] * center[0] + R[a, 1] * center[1] + R[a, 2] * center[2]))
+    M = np.zeros((4, 4))
+    for a in range(3):
+        for b in range(3):
+            M[a, b] = R[b, a]
+        M[a, 3] = -(R[0, a] * t[0] + R[1, a] * t[1] + R[2, a] * t[2])
+    M[3, 3] = 1.0
+    return M
+
+
+@_njit(nogil=True)
+def _matmul4(A, B):
+    C = np.zeros((4, 4))
+    for a in range(4):
+        for b in range(4):
+            s = 0.0
+            for k in range(4):
+                s += A[a, k] * B[k, b]
+            C[a, b] = s
+    return C
+
+
+GN_DONE, GN_DECLINED, GN_STOPPED, GN_RERENDER = 0, 1, 2, 3
+
+
+@_njit(nogil=True)
+def gauss_newton(y, sigma, in_front, nbrs, T, it0, iterations, start_width, center,
+                 points, normals, start, empty, origin, cell, dims,
+                 pair_radius, pair_widths, tukey_c, front_sigmas, min_points,
+                 stop_rotation, stop_translation, rerender_step, render_lever):
+    """The Gauss-Newton iterations ``it0`` .. ``iterations`` − 1 of refine.py (steps 3-6) on one set of
+    measurements y (M, 3) (camera frame; σ(z_i), z*_i − z_i and the tissue border's neighbours with
+    them), from T = T_camera_bone (4, 4). Each iteration: the Tukey width w = start_width 2^−it;
+    p_i = T⁻¹ y_i; the nearest sample x_i, n_i within max(pair_radius, pair_widths w) (:func:`nearest`);
+    H = Σ w_i J_iᵀJ_i, g = Σ w_i J_iᵀ r_i (:func:`normal_equations`); (H + 10⁻¹² I) δ = −g; T ← T exp(δ)⁻¹.
+
+    Returns (T, H, used, rms, state, it, p, x, n, d): ``state`` GN_DECLINED (fewer than ``min_points``
+    pairs: T, p... of before the step; H, used of the declined system, rms NaN), GN_STOPPED (a step
+    under ``stop_rotation`` / ``stop_translation``: ``it`` is the last iteration, and p, x, n, d its
+    association), GN_RERENDER (a step that moved the model more than ``rerender_step``, the rotation
+    at ``render_lever``: the caller measures again and goes on at ``it``), or GN_DONE (no iteration
+    left). The numpy reference is the loop of :meth:`app.filter.refine.Refiner.refine`."""
+    H = np.zeros((6, 6))
+    used, rms = 0, np.nan
+    p = np.empty((0, 3))
+    x = np.empty((0, 3))
+    n = np.empty((0, 3))
+    d = np.empty(0)
+    for it in range(it0, iterations):
+        width = start_width * 0.5 ** it
+        p = to_bone(y, T)
+        j, d = nearest(p, points, start, empty, origin, cell, dims, max(pair_radius, pair_widths * width))
+        x, n = gather(j, points, normals)
+        H, g, used, num, den = normal_equations(p, x, n, d, sigma, in_front, center, width, tukey_c, front_sigmas, nbrs)
+        if used < min_points:
+            return T, H, used, np.nan, GN_DECLINED, it, p, x, n, d
+        A = H.copy()
+        for a in range(6):
+            A[a, a] += 1e-12
+        delta = -np.linalg.solve(A, g)
+        rms = math.sqrt(num / max(den, 1e-30))
+        T = _matmul4(T, increment_inverse(delta, center))
+        step_r = math.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2)
+        step_t = math.sqrt(delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2)
+        if step_r < stop_rotation and step_t < stop_translation:
+            return T, H, used, rms, GN_STOPPED, it, p, x, n, d
+        if step_r * render_lever > rerender_step or step_t > rerender_step:
+            return T, H, used, rms, GN_RERENDER, it + 1, p, x, n, d
+    return T, H, used, rms, GN_DONE, iterations, p, x, n, d
