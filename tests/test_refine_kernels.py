@@ -170,16 +170,22 @@ def test_refine_numba_equals_numpy_on_random_poses(refiners, distance, border, s
 
 
 def test_refine_numba_equals_numpy_when_it_declines(refiners, rng, monkeypatch):
-    """Too few pairs after the first steps (min_points above what a far-off pose associates): both paths
-    decline alike, the same pose back, the same H and counts."""
+    """Too few pairs in the first step (min_points one above what it uses): both paths decline alike,
+    the start pose back, the declined system's H and count."""
     T = _pose(rng)
     depth = _depth(refiners["numpy"], T, rng)
-    T0 = T @ se3.from_rotvec_trans(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 0.012]))
-    used = refiners["numpy"].refine(depth, T0, 0.0).used
-    for ref in refiners.values():
-        monkeypatch.setattr(ref.params, "min_points", used + 1)
+    T0 = T @ se3.from_rotvec_trans(rng.normal(0, 0.03, 3), rng.normal(0, 0.002, 3))
+    ref = refiners["numpy"]
+    stride, rendered = ref.choose_stride(T0)
+    y, z_model, nbrs = ref._measure(depth, T0, stride, rendered)
+    p, x, n, d = ref._associate(y, T0)
+    used = ref._gn_step(p, x, n, d, ref.sigma(y[:, 2]), 0.0, z_model - y[:, 2], nbrs)[2]
+    assert 0 < used < len(y)
+    for r in refiners.values():
+        monkeypatch.setattr(r.params, "min_points", used + 1)
     a, b = (refiners[k].refine(depth, T0, 0.0) for k in ("numpy", "numba"))
-    assert not a.converged and a.used > 0
+    assert not a.converged and a.used == used
+    np.testing.assert_array_equal(a.T_camera_bone, T0)
     _assert_same_result(a, b)
 
 

@@ -219,22 +219,31 @@ def nearest(query, points, start, empty, origin, cell, dims, radius):
     """(j (Q,) index into the grid's sorted points, d (Q,)) of each query's nearest point; d = inf,
     j = -1 where none lies within ``radius`` (module docstring). ``empty`` (C,): shells of cells
     around each cell known to hold no point (:class:`SampleGrid`), skipped."""
+    return nearest_from(query, np.full(query.shape[0], -1, np.int64), points, start, empty, origin, cell, dims, radius)
+
+
+@_njit(nogil=True)
+def nearest_from(query, hint, points, start, empty, origin, cell, dims, radius):
+    """:func:`nearest` with a first guess per query, ``hint`` (Q,) an index into the grid's points (-1:
+    none; the previous Gauss-Newton iteration's association of the same measurement): the search
+    starts from its distance, so fewer cells are opened. The result is :func:`nearest`'s unless another
+    sample lies at exactly the hint's distance (then either may be returned)."""
     nq = query.shape[0]
     out_j = np.full(nq, -1, np.int64)
     out_d = np.full(nq, np.inf)
     for q in range(nq):
-        out_j[q], out_d[q] = _nearest_one(query[q, 0], query[q, 1], query[q, 2], points, start, empty, origin, cell,
-                                          dims, radius)
+        out_j[q], out_d[q] = _nearest_one(query[q, 0], query[q, 1], query[q, 2], hint[q], points, start, empty, origin,
+                                          cell, dims, radius)
     return out_j, out_d
 
 
 @_njit(nogil=True)
-def _nearest_one(qx, qy, qz, points, start, empty, origin, cell, dims, radius):
-    """(j, d) of one query (:func:`nearest`). A cell whose box lies at least the best distance so far
+def _nearest_one(qx, qy, qz, hint, points, start, empty, origin, cell, dims, radius):
+    """(j, d) of one query (:func:`nearest_from`). A cell whose box lies at least the best distance so far
     from the query is not opened: none of its points could replace the best (the comparison is
     strict), so the result is the one of opening every cell, in the same order. The best distance
     starts just above ``radius`` (1e-12 relative, far more than sqrt's rounding): a point further than
-    that would be refused at the end anyway."""
+    that would be refused at the end anyway; or at the hint's distance when that is nearer."""
     max_shell = int(math.ceil(radius / cell))
     ix = int(math.floor((qx - origin[0]) / cell))
     iy = int(math.floor((qy - origin[1]) / cell))
@@ -245,6 +254,11 @@ def _nearest_one(qx, qy, qz, points, start, empty, origin, cell, dims, radius):
     else:
         first = outside
     best, best_j = radius * radius * (1.0 + 1e-12), -1
+    if hint >= 0:
+        dx, dy, dz = points[hint, 0] - qx, points[hint, 1] - qy, points[hint, 2] - qz
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 < best:
+            best, best_j = d2, hint
     for r in range(first, max_shell + 1):
         for cz in range(max(iz - r, 0), min(iz + r + 1, dims[2])):
             gz = _axis_gap(qz, origin[2], cell, cz)
@@ -441,10 +455,11 @@ def gauss_newton(y, sigma, in_front, nbrs, T, it0, iterations, start_width, cent
     x = np.empty((0, 3))
     n = np.empty((0, 3))
     d = np.empty(0)
+    j = np.full(y.shape[0], -1, np.int64)
     for it in range(it0, iterations):
         width = start_width * 0.5 ** it
         p = to_bone(y, T)
-        j, d = nearest(p, points, start, empty, origin, cell, dims, max(pair_radius, pair_widths * width))
+        j, d = nearest_from(p, j, points, start, empty, origin, cell, dims, max(pair_radius, pair_widths * width))
         x, n = gather(j, points, normals)
         H, g, used, num, den = normal_equations(p, x, n, d, sigma, in_front, center, width, tukey_c, front_sigmas, nbrs)
         if used < min_points:
