@@ -133,10 +133,18 @@ def vertex_gap_mm(T_a: np.ndarray, T_b: np.ndarray, vertices: np.ndarray) -> flo
     return float(1e3 * np.max(np.linalg.norm(a - b, axis=1)))
 
 
-def compare(ref, new, vertices) -> dict:
+def compare(ref, new, vertices, center) -> dict:
+    """The differences between two RefineResults of one call (the numpy reference's ``ref``): the pose
+    (largest vertex displacement, mm), H (largest entry difference over the largest entry), the
+    template's predicted error from H (relative; the mesh's vertices as the template, inflation 1),
+    the status's inputs (absolute) and whether each count differs (0 / 1)."""
+    from app.filter.refine import template_std
+
     out = {"pose_mm": vertex_gap_mm(ref.T_camera_bone, new.T_camera_bone, vertices)}
     scale = max(np.abs(ref.H).max(), 1e-30)
     out["H_rel"] = float(np.abs(new.H - ref.H).max() / scale)
+    a, b = (template_std(r.H, vertices[::20] - center) for r in (ref, new))
+    out["template_std_rel"] = 0.0 if a == b else float(abs(a - b) / a)
     for f in FIELDS:
         a, b = getattr(ref, f), getattr(new, f)
         out[f] = 0.0 if (np.isnan(a) and np.isnan(b)) else float(abs(a - b))
@@ -145,7 +153,8 @@ def compare(ref, new, vertices) -> dict:
     return out
 
 
-def main(argv=None) -> int:
+def main(argv=None) -> list[dict]:
+    """The rows (one per crest; module docstring), printed as JSON lines and written to --out."""
     from app.filter.refine import Refiner
     from dataclasses import replace
 
@@ -195,14 +204,14 @@ def main(argv=None) -> int:
         for backend in args.backends:
             if backend == "numpy" or "numpy" not in results:
                 continue
-            diffs = [compare(a, b, mesh_vertices) for a, b in zip(results["numpy"], results[backend])]
+            diffs = [compare(a, b, mesh_vertices, refiner.center) for a, b in zip(results["numpy"], results[backend])]
             row[backend] = {k: max(d[k] for d in diffs) for k in diffs[0]}
         rows.append(row)
         print(json.dumps(row))
     if args.out:
         args.out.write_text(json.dumps(rows, indent=1))
-    return 0
+    return rows
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    main()

@@ -9,9 +9,11 @@ resolution) inside the bone's projected bounding box. A small silhouette, fewer 
 (BENCHMARKS.md §6d).
 
 Model: the mesh sampled once, densely (``samples`` points x_j with normals n_j, bone frame; ~2.5 per
-mm² on a CT crest, 0.6 mm apart), sorted into a grid of 1 mm cells for the nearest-sample search
-(app/filter/refine_kernels.py; ``backend="numpy"`` keeps the cKDTree reference path, equal within
-float tolerance: tests/test_refine_kernels.py). Per iteration, at the current pose:
+mm² on a CT crest, 0.6 mm apart), sorted into a grid of 2 mm cells for the nearest-sample search
+(app/filter/refine_kernels.py, whose :func:`~app.filter.refine_kernels.gauss_newton` runs steps 3-6 in
+one numba kernel; ``backend="numpy"`` keeps the cKDTree reference path, equal within float tolerance:
+tests/test_refine_kernels.py, and on the eight CT crests' replays scripts/refine_calls.py, BENCHMARKS.md
+"Filter rate and CPU"). Per iteration, at the current pose:
 
 1. Expected visible surface (again after any step over ``rerender_step``; the association in
    step 3 is redone every iteration): the samples that face the camera, projected into a z-buffer on the

@@ -1,27 +1,36 @@
-"""numba kernels of the local refinement's per-iteration work (app/filter/refine.py).
+"""numba kernels of the local refinement (app/filter/refine.py; DESIGN.md "Local refinement and the
+estimate's uncertainty").
 
-Import as ``from app.filter import refine_kernels``. Each kernel computes exactly what the numpy
-reference path of :class:`app.filter.refine.Refiner` (``backend="numpy"``) computes, in one pass
-without temporaries (tests/test_refine_kernels.py compares both on random poses):
+Import as ``from app.filter import refine_kernels``. Each kernel computes what the numpy reference
+path of :class:`app.filter.refine.Refiner` (``backend="numpy"``) computes, in one pass without
+temporaries (tests/test_refine_kernels.py compares both on random poses; scripts/refine_calls.py on
+the refinement calls of replays of the eight CT crests):
 
 - :func:`zbuffer`: the model's z-buffer on the crop grid (refine.py step 1): the camera-facing
   samples (n·p < 0, z > 0) projected with u = fx x / z + cx, rounded to the grid of step ``stride``,
   the nearest depth per cell, then the empty cells filled by the 3x3 minimum of the buffer (every
   one next to a covered cell, or only those between covered cells: ``ring``);
 - :func:`measurements`: the silhouette's usable pixels back-projected, y = z K⁻¹ (u, v, 1) (step 2);
-- :func:`nearest`: the exact nearest model sample of each point (step 3) on a uniform grid of
-  cells (:class:`SampleGrid`): shells of cells at Chebyshev distance r = 0, 1, ... around the
-  query's cell are searched until the best distance is at most the query's distance to the outside
-  of the searched cube (no point outside it can be nearer) or the cube holds the ball of ``radius``
-  (then j = -1, d = inf: not associated, as the k-d tree's ``distance_upper_bound``); shells that
-  the grid's distance transform shows empty are skipped;
+- :func:`nearest`, :func:`nearest_from`: the exact nearest model sample of each point (step 3) on a
+  uniform grid of cells (:class:`SampleGrid`): shells of cells at Chebyshev distance r = 0, 1, ...
+  around the query's cell are searched until the best distance is at most the query's distance to the
+  outside of the searched cube (no point outside it can be nearer) or the cube holds the ball of
+  ``radius`` (then j = -1, d = inf: not associated, as the k-d tree's ``distance_upper_bound``);
+  shells that the grid's distance transform shows empty are skipped, and so is every cell whose box
+  lies further than the best distance so far (which starts at ``radius``, or at a first guess's);
 - :func:`neighbours`: each measurement's 8 neighbouring measurements on the crop grid (step 5's
   tissue border);
 - :func:`normal_equations`: the robust point-to-plane Gauss-Newton system (step 4-6):
   r_i = n_iᵀ(p_i − x_i), Tukey's w_i = (1 − (r_i/s_i)²)² / σ_i², J_i = [((p_i − c) × n_i)ᵀ, n_iᵀ],
-  H = Σ w_i J_iᵀJ_i, g = Σ w_i J_iᵀ r_i.
+  H = Σ w_i J_iᵀJ_i, g = Σ w_i J_iᵀ r_i;
+- :func:`gauss_newton`: the iterations of steps 3-6 on one set of measurements, in the kernel: the
+  association (each from the previous iteration's sample), the normal equations, the 6x6 solve
+  (H + 10⁻¹² I) δ = −g, T ← T exp(δ)⁻¹ about the centre (:func:`increment_inverse`), and the stopping
+  and re-render rules of :meth:`app.filter.refine.Refiner.refine`; it returns to Python only to
+  render and measure again.
 
-Numbers: float64, ``fastmath=False`` (results equal to the numpy path up to summation order).
+Numbers: float64, ``fastmath=False`` (results equal to the numpy path up to summation order); the
+kernels release the GIL (``nogil``), so a refinement can run beside other work in another thread.
 """
 from __future__ import annotations
 
