@@ -241,7 +241,6 @@ class Refiner:
         self.normals = np.asarray(mesh.face_normals[face_idx], float)
         self.tree = cKDTree(self.points) if self.params.backend == "numpy" else None
         self.center = self.points.mean(axis=0)
-        self.normal_offsets = np.einsum("ij,ij->i", self.normals, self.points)   # n_j · x_j (the z-buffer's facing test)
         self.grid = kernels.build_grid(self.points, self.normals, GRID_CELL) if self.params.backend == "numba" else None
 
     def sigma(self, z: np.ndarray) -> np.ndarray:
@@ -267,8 +266,7 @@ class Refiner:
         cam = self.camera
         R, t = T_camera_bone[:3, :3], T_camera_bone[:3, 3]
         if self.grid is not None:
-            return kernels.zbuffer(self.points, self.normals, self.normal_offsets, np.ascontiguousarray(R),
-                                   np.ascontiguousarray(t),
+            return kernels.zbuffer(self.points, self.normals, np.ascontiguousarray(R), np.ascontiguousarray(t),
                                    cam.fx, cam.fy, cam.cx, cam.cy, 1, cam.width, cam.height,
                                    self.params.outline_ring)
         p_cam = self.points @ R.T + t

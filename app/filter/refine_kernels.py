@@ -42,7 +42,6 @@ from scipy import ndimage
 
 from app.render.cpu_raster import _njit
 
-FACING_SLACK = 1e-9   # m: samples facing away by less than this take the exact camera-frame test (:func:`zbuffer`)
 GAP_SLACK = 1e-9   # m: a cell nearer than the best distance by less than this is opened all the same (:func:`_axis_gap`)
 
 
@@ -88,24 +87,14 @@ def build_grid(points: np.ndarray, normals: np.ndarray, cell: float, max_cells: 
 
 
 @_njit(nogil=True)
-def zbuffer(points, normals, normal_offsets, R, t, fx, fy, cx, cy, stride, w_grid, h_grid, ring=False):
-    """(zbuf (h, w) with inf where empty, c0, r0) on the crop grid; zbuf.size == 0 when nothing projects.
-
-    ``normal_offsets`` (S,): n_j · x_j of each sample in the bone frame. A sample faces the camera when
-    (R n)·(R x + t) < 0, i.e. n·x + n·(Rᵀt) < 0: that cheap form skips the samples that clearly face
-    away (by more than ``FACING_SLACK``), the others take the camera-frame test as before, so the
-    samples kept are the same."""
+def zbuffer(points, normals, R, t, fx, fy, cx, cy, stride, w_grid, h_grid, ring=False):
+    """(zbuf (h, w) with inf where empty, c0, r0) on the crop grid; zbuf.size == 0 when nothing projects."""
     n = points.shape[0]
     cols = np.empty(n, np.int64)
     rows = np.empty(n, np.int64)
     zs = np.empty(n)
-    qx = R[0, 0] * t[0] + R[1, 0] * t[1] + R[2, 0] * t[2]     # Rᵀ t
-    qy = R[0, 1] * t[0] + R[1, 1] * t[1] + R[2, 1] * t[2]
-    qz = R[0, 2] * t[0] + R[1, 2] * t[1] + R[2, 2] * t[2]
     m = 0
     for i in range(n):
-        if normal_offsets[i] + normals[i, 0] * qx + normals[i, 1] * qy + normals[i, 2] * qz > FACING_SLACK:
-            continue
         px = R[0, 0] * points[i, 0] + R[0, 1] * points[i, 1] + R[0, 2] * points[i, 2] + t[0]
         py = R[1, 0] * points[i, 0] + R[1, 1] * points[i, 1] + R[1, 2] * points[i, 2] + t[1]
         pz = R[2, 0] * points[i, 0] + R[2, 1] * points[i, 1] + R[2, 2] * points[i, 2] + t[2]
