@@ -230,3 +230,13 @@ def test_fill_holes_with_and_without_the_outline_ring(rng):
         for _ in range(20):
             sparse = np.where(rng.random((30, 40)) < 0.6, rng.uniform(0.3, 0.5, (30, 40)), np.inf)
             np.testing.assert_array_equal(kernels._fill_holes(sparse, ring), fill_holes(sparse, ring))
+
+
+def test_ndtr_matches_scipy(rng):
+    """The behind moments' Φ (refine_kernels._ndtr, Cephes' form) against scipy.special.ndtr, in the
+    centre, the tails and at ±inf."""
+    from scipy.special import ndtr
+
+    a = np.concatenate([rng.normal(0, 3, 2000), [-40.0, -8.0, -0.70710678, 0.0, 0.70710678, 8.0, -np.inf, np.inf]])
+    got = np.array([kernels._ndtr(v) for v in a])
+    np.testing.assert_allclose(got, ndtr(a), rtol=1e-14, atol=1e-300)

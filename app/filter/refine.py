@@ -492,6 +492,15 @@ class Refiner:
         """Fitness, sharp and behind shares of one association (steps 7-8); unassociated points
         (none within ``pair_radius``: d = inf, NaN residual) count as neither confirmed nor behind."""
         prm = self.params
+        if self.grid is not None:
+            cam = self.camera
+            confirmed, sharp, behind, noise, factor, mean, var = kernels.statistics(
+                y, p, x, n, d, sigma, T, prm.confirm_sigmas, prm.sharp_sigmas, prm.behind_sigmas, int(stride),
+                cam.fx, cam.fy, cam.cx, cam.cy, fit_test.window_cells(stride, prm.noise_window_px))
+            var *= factor
+            allowed = noise_bound(mean, var, len(p), prm.behind_z)
+            return RefineResult(T, H, confirmed / len(p), len(p), confirmed, used, rms, ok, sharp, behind, allowed,
+                                noise, stride, mean, var, factor)
         confirmed = int(np.sum(d < prm.confirm_sigmas * sigma))
         sharp = float(np.mean(d < prm.sharp_sigmas * sigma))
         r = np.einsum("ij,ij->i", n, p - x)

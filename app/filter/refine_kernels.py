@@ -41,6 +41,9 @@ import numpy as np
 from scipy import ndimage
 
 from app.render.cpu_raster import _njit
+from app.tracking import fit_kernels
+
+SQRT1_2 = math.sqrt(0.5)
 
 GAP_SLACK = 1e-9   # m: a cell nearer than the best distance by less than this is opened all the same (:func:`_axis_gap`)
 
@@ -475,3 +478,52 @@ def gauss_newton(y, sigma, in_front, nbrs, T, it0, iterations, start_width, cent
         if step_r * render_lever > rerender_step or step_t > rerender_step:
             return T, H, used, rms, GN_RERENDER, it + 1, p, x, n, d
     return T, H, used, rms, GN_DONE, iterations, p, x, n, d
+
+
+@_njit(nogil=True)
+def _ndtr(a):
+    """Φ(a), the standard normal CDF, as scipy.special.ndtr computes it (Cephes: 0.5 + 0.5 erf(a/√2)
+    near 0, 0.5 erfc(|a|/√2) in the tails)."""
+    x = a * SQRT1_2
+    z = abs(x)
+    if z < SQRT1_2:
+        return 0.5 + 0.5 * math.erf(x)
+    y = 0.5 * math.erfc(z)
+    return 1.0 - y if x > 0 else y
+
+
+@_njit(nogil=True)
+def statistics(y, p, x, n, d, sigma, T, confirm_sigmas, sharp_sigmas, behind_sigmas, stride, fx, fy, cx, cy, window):
+    """The statistics of one association (refine.py steps 7-8; the numpy reference is
+    ``Refiner._result``): (confirmed, sharp, behind, σ̂_n, f, Σ e_i, Σ e_i (1 − e_i)) with
+    confirmed = #{d_i < confirm_sigmas σ_i}, sharp = #{d_i < sharp_sigmas σ_i} / M, behind =
+    #{r_i < −behind_sigmas σ_i} / M (r_i = n_iᵀ(p_i − x_i); an unassociated point, NaN, counts as
+    neither), (σ̂_n, f) from :func:`app.tracking.fit_kernels.residual_noise`, and the moments of the
+    count the noise alone puts behind, e_i = Φ(−behind_sigmas σ_i / (σ̂_n |cos θ_i|)) with θ_i the ray's
+    angle to the normal (app/filter/behind_noise.py ``behind_moments``; NaN when σ̂_n is unknown)."""
+    m = p.shape[0]
+    cbx = -(T[0, 0] * T[0, 3] + T[1, 0] * T[1, 3] + T[2, 0] * T[2, 3])      # the camera's centre, bone frame
+    cby = -(T[0, 1] * T[0, 3] + T[1, 1] * T[1, 3] + T[2, 1] * T[2, 3])
+    cbz = -(T[0, 2] * T[0, 3] + T[1, 2] * T[1, 3] + T[2, 2] * T[2, 3])
+    camera_bone = np.array([cbx, cby, cbz])
+    r = np.empty(m)
+    confirmed, sharp, behind = 0, 0, 0
+    for i in range(m):
+        r[i] = n[i, 0] * (p[i, 0] - x[i, 0]) + n[i, 1] * (p[i, 1] - x[i, 1]) + n[i, 2] * (p[i, 2] - x[i, 2])
+        confirmed += d[i] < confirm_sigmas * sigma[i]
+        sharp += d[i] < sharp_sigmas * sigma[i]
+        behind += r[i] < -behind_sigmas * sigma[i]
+    noise, factor = fit_kernels.residual_noise(y, p, n, r, camera_bone, stride, fx, fy, cx, cy, sigma, window)
+    mean, var = np.nan, np.nan
+    if np.isfinite(noise) and m > 0:
+        mean, var = 0.0, 0.0
+        for i in range(m):
+            rx, ry, rz = p[i, 0] - cbx, p[i, 1] - cby, p[i, 2] - cbz
+            cos = abs(n[i, 0] * rx + n[i, 1] * ry + n[i, 2] * rz) / math.sqrt(rx * rx + ry * ry + rz * rz)
+            if not np.isfinite(cos):
+                continue                                    # not associated: e = 0
+            scale = noise * max(cos, 1e-6)
+            e = _ndtr(-(behind_sigmas * sigma[i]) / scale) if scale > 0 else 0.0   # σ̂_n = 0: nothing behind
+            mean += e
+            var += e * (1.0 - e)
+    return confirmed, sharp / m, behind / m, noise, factor, mean, var
