@@ -27,7 +27,10 @@ the refinement calls of replays of the eight CT crests):
   association (each from the previous iteration's sample), the normal equations, the 6x6 solve
   (H + 10⁻¹² I) δ = −g, T ← T exp(δ)⁻¹ about the centre (:func:`increment_inverse`), and the stopping
   and re-render rules of :meth:`app.filter.refine.Refiner.refine`; it returns to Python only to
-  render and measure again.
+  render and measure again;
+- :func:`statistics`: step 7 of one association: the confirmed, sharp and behind counts, the noise's
+  scale and correlation factor (app/tracking/fit_kernels.py) and the moments of the count the noise
+  puts behind the model (app/filter/behind_noise.py, with Φ in Cephes' form, :func:`_ndtr`).
 
 Numbers: float64, ``fastmath=False`` (results equal to the numpy path up to summation order); the
 kernels release the GIL (``nogil``), so a refinement can run beside other work in another thread.
