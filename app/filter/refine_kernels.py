@@ -33,7 +33,8 @@ the refinement calls of replays of the eight CT crests):
   puts behind the model (app/filter/behind_noise.py, with Φ in Cephes' form, :func:`_ndtr`).
 
 Numbers: float64, ``fastmath=False`` (results equal to the numpy path up to summation order); the
-kernels release the GIL (``nogil``), so a refinement can run beside other work in another thread.
+kernels release the GIL (app/render/cpu_raster.py ``_njit``), so a refinement can run beside other work
+in another thread.
 """
 from __future__ import annotations
 
@@ -92,7 +93,7 @@ def build_grid(points: np.ndarray, normals: np.ndarray, cell: float, max_cells: 
                       order.astype(np.int64), start, empty, lo.astype(float), float(cell), dims)
 
 
-@_njit(nogil=True)
+@_njit()
 def zbuffer(points, normals, R, t, fx, fy, cx, cy, stride, w_grid, h_grid, ring=False):
     """(zbuf (h, w) with inf where empty, c0, r0) on the crop grid; zbuf.size == 0 when nothing projects."""
     n = points.shape[0]
@@ -126,7 +127,7 @@ def zbuffer(points, normals, R, t, fx, fy, cx, cy, stride, w_grid, h_grid, ring=
     return _fill_holes(zbuf, ring), c0, r0
 
 
-@_njit(nogil=True)
+@_njit()
 def _fill_holes(zbuf, ring):
     """Empty cells take the minimum of their 3x3 neighbourhood: with ``ring``, every empty cell next to
     a covered one (the outline grown by a cell all round, scipy's minimum_filter); without, only the
@@ -155,7 +156,7 @@ def _fill_holes(zbuf, ring):
     return out
 
 
-@_njit(nogil=True)
+@_njit()
 def measurements(depth, zbuf, x0, y0, stride, fx, fy, cx, cy, occluder_margin):
     """(y (M, 3) camera-frame points, z* (M,)) of the crop cells with a model depth and a usable
     measurement (finite, > 0, not an occluder: z >= z* − margin); row-major order like np.nonzero."""
@@ -180,14 +181,14 @@ def measurements(depth, zbuf, x0, y0, stride, fx, fy, cx, cy, occluder_margin):
     return y[:m], zstar[:m]
 
 
-@_njit(nogil=True)
+@_njit()
 def _usable(zm, z, occluder_margin):
     """A crop cell gives a measurement: the model covers it (z* finite) and its depth z is valid and not
     an occluder (z >= z* − margin; refine.py step 2)."""
     return zm != np.inf and np.isfinite(z) and z > 0.0 and z >= zm - occluder_margin
 
 
-@_njit(nogil=True)
+@_njit()
 def neighbours(depth, zbuf, x0, y0, stride, occluder_margin):
     """(M, 8) int64: for each of :func:`measurements`' points (same order), the indices of the
     measurements in its 8 neighbouring cells of the crop grid, -1 where that cell has none."""
@@ -218,7 +219,7 @@ def neighbours(depth, zbuf, x0, y0, stride, occluder_margin):
     return out
 
 
-@_njit(nogil=True)
+@_njit()
 def nearest(query, points, start, empty, origin, cell, dims, radius):
     """(j (Q,) index into the grid's sorted points, d (Q,)) of each query's nearest point; d = inf,
     j = -1 where none lies within ``radius`` (module docstring). ``empty`` (C,): shells of cells
@@ -226,7 +227,7 @@ def nearest(query, points, start, empty, origin, cell, dims, radius):
     return nearest_from(query, np.full(query.shape[0], -1, np.int64), points, start, empty, origin, cell, dims, radius)
 
 
-@_njit(nogil=True)
+@_njit()
 def nearest_from(query, hint, points, start, empty, origin, cell, dims, radius):
     """:func:`nearest` with a first guess per query, ``hint`` (Q,) an index into the grid's points (-1:
     none; the previous Gauss-Newton iteration's association of the same measurement): the search
@@ -241,7 +242,7 @@ def nearest_from(query, hint, points, start, empty, origin, cell, dims, radius):
     return out_j, out_d
 
 
-@_njit(nogil=True)
+@_njit()
 def _nearest_one(qx, qy, qz, hint, points, start, empty, origin, cell, dims, radius):
     """(j, d) of one query (:func:`nearest_from`). A cell whose box lies at least the best distance so far
     from the query is not opened: none of its points could replace the best (the comparison is
@@ -294,7 +295,7 @@ def _nearest_one(qx, qy, qz, hint, points, start, empty, origin, cell, dims, rad
     return -1, np.inf
 
 
-@_njit(nogil=True)
+@_njit()
 def _axis_gap(q, origin, cell, i):
     """Distance along one axis from the coordinate ``q`` to the slab of cell ``i`` (0 inside it), less
     ``GAP_SLACK`` so that rounding (of the slab's bounds, of a point's cell) can only open a cell more,
@@ -308,7 +309,7 @@ def _axis_gap(q, origin, cell, i):
     return 0.0
 
 
-@_njit(nogil=True)
+@_njit()
 def gather(j, points, normals):
     """(x, n) (Q, 3): the samples and normals of :func:`nearest`'s indices ``j``; NaN where j = -1."""
     x = np.full((j.shape[0], 3), np.nan)
@@ -321,7 +322,7 @@ def gather(j, points, normals):
     return x, n
 
 
-@_njit(nogil=True)
+@_njit()
 def _cube_clearance(qx, qy, qz, ix, iy, iz, r, origin, cell):
     """Distance from the query to the outside of the cube of cells within r of its cell: no point
     outside the searched cube can be nearer than this (>= r · cell)."""
@@ -330,7 +331,7 @@ def _cube_clearance(qx, qy, qz, ix, iy, iz, r, origin, cell):
     return min(qx - lo_x, hi_x - qx, qy - lo_y, hi_y - qy, qz - lo_z, hi_z - qz)
 
 
-@_njit(nogil=True)
+@_njit()
 def normal_equations(p, x, n, d, sigma, in_front, center, width, tukey_c, front_sigmas, nbrs):
     """(H (6, 6), g (6,), used, Σ w σ² r², Σ w σ²) of the robust GN system (module docstring); a pair is
     used when |r| < s, d < 3 s and the measurement is not buried (z* − z <= max(front σ, width)),
@@ -377,7 +378,7 @@ def normal_equations(p, x, n, d, sigma, in_front, center, width, tukey_c, front_
     return H, g, used, num, den
 
 
-@_njit(nogil=True)
+@_njit()
 def to_bone(y, T):
     """p = T⁻¹ y (M, 3): camera-frame points into the bone frame, T⁻¹ = [Rᵀ, −Rᵀ t] (refine.py step 2)."""
     p = np.empty_like(y)
@@ -391,7 +392,7 @@ def to_bone(y, T):
     return p
 
 
-@_njit(nogil=True)
+@_njit()
 def increment_inverse(delta, center):
     """exp(δ)⁻¹ (4, 4) for δ = (ω, v) applied about the model's centre c (refine.py step 6):
     exp(δ) maps p ↦ c + R (p − c) + v with R = exp([ω]ₓ) from the unit quaternion
@@ -421,7 +422,7 @@ def increment_inverse(delta, center):
     return M
 
 
-@_njit(nogil=True)
+@_njit()
 def _matmul4(A, B):
     C = np.zeros((4, 4))
     for a in range(4):
@@ -436,7 +437,7 @@ def _matmul4(A, B):
 GN_DONE, GN_DECLINED, GN_STOPPED, GN_RERENDER = 0, 1, 2, 3
 
 
-@_njit(nogil=True)
+@_njit()
 def gauss_newton(y, sigma, in_front, nbrs, T, it0, iterations, start_width, center,
                  points, normals, start, empty, origin, cell, dims,
                  pair_radius, pair_widths, tukey_c, front_sigmas, min_points,
@@ -483,7 +484,7 @@ def gauss_newton(y, sigma, in_front, nbrs, T, it0, iterations, start_width, cent
     return T, H, used, rms, GN_DONE, iterations, p, x, n, d
 
 
-@_njit(nogil=True)
+@_njit()
 def _ndtr(a):
     """Φ(a), the standard normal CDF, as scipy.special.ndtr computes it (Cephes: 0.5 + 0.5 erf(a/√2)
     near 0, 0.5 erfc(|a|/√2) in the tails)."""
@@ -495,7 +496,7 @@ def _ndtr(a):
     return 1.0 - y if x > 0 else y
 
 
-@_njit(nogil=True)
+@_njit()
 def statistics(y, p, x, n, d, sigma, T, confirm_sigmas, sharp_sigmas, behind_sigmas, stride, fx, fy, cx, cy, window):
     """The statistics of one association (refine.py steps 7-8; the numpy reference is
     ``Refiner._result``): (confirmed, sharp, behind, σ̂_n, f, Σ e_i, Σ e_i (1 − e_i)) with

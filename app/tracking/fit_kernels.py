@@ -27,7 +27,7 @@ from app.tracking.fit_test import (BACK_SIGMAS, FIXED_POINT_TOL, FRONT_SIGMAS, M
 MIN_COS = 0.3             # fit_test.depth_residuals' default: grazing rays give no depth residual
 
 
-@_njit(nogil=True)
+@_njit()
 def _box_line(src, dst, size):
     """dst = the mean of src over a centred window of ``size`` (zeros outside): scipy's uniform_filter1d
     with mode "constant", in its running-sum form (1-D views, same length)."""
@@ -48,7 +48,7 @@ def _box_line(src, dst, size):
         dst[k] = tmp / size
 
 
-@_njit(nogil=True)
+@_njit()
 def box_mean(img, size):
     """scipy.ndimage.uniform_filter(img, size, mode="constant") of a 2-D float64 array: along the rows'
     axis (0) first, then along axis 1, as scipy does."""
@@ -68,7 +68,7 @@ def box_mean(img, size):
     return out
 
 
-@_njit(nogil=True)
+@_njit()
 def detrended(grid, window):
     """fit_test.detrended(grid, isfinite(grid), window): the field less its local mean over the finite
     cells of each ``window`` x ``window`` window; NaN outside them and where fewer than
@@ -91,7 +91,7 @@ def detrended(grid, window):
     return out
 
 
-@_njit(nogil=True)
+@_njit()
 def surface_noise(field):
     """fit_test.surface_noise: 1.4826 median(|d| : d < 0), NaN with fewer than MIN_BEHIND."""
     flat = field.ravel()
@@ -110,7 +110,7 @@ def surface_noise(field):
     return 1.4826 * ((s[m // 2 - 1] + s[m // 2]) / 2.0)
 
 
-@_njit(nogil=True)
+@_njit()
 def lag_one_correlation(grid, axis):
     """fit_test.lag_one_correlation: (ρ₁, pairs) of the field with itself one cell along ``axis``."""
     h, w = grid.shape
@@ -140,12 +140,12 @@ def lag_one_correlation(grid, axis):
     return (sxy / denom if denom > 0 else 0.0), pairs
 
 
-@_njit(nogil=True)
+@_njit()
 def _clip_rho(rho):
     return min(max(rho, 0.0), MAX_RHO)
 
 
-@_njit(nogil=True)
+@_njit()
 def gaussian_sum(rho):
     """fit_test.gaussian_sum: S = Σ_{k ∈ ℤ} ρ^(k²), 1 at ρ = 0."""
     rho = _clip_rho(rho)
@@ -157,7 +157,7 @@ def gaussian_sum(rho):
     return 1.0 + 2.0 * total
 
 
-@_njit(nogil=True)
+@_njit()
 def _axis_terms(rho, window):
     """(r, M∗r, M∗M∗r) of one axis: the Gaussian correlation ρ^(k²) on k = −2 window .. 2 window and
     its box means (fit_test.detrended_correlation)."""
@@ -178,7 +178,7 @@ def _axis_terms(rho, window):
     return seq, once, twice
 
 
-@_njit(nogil=True)
+@_njit()
 def detrended_correlation(rho_u, rho_v, window):
     """fit_test.detrended_correlation((ρ_u, ρ_v), window): (variance share, ρ_d along the rows (u),
     along the columns (v)) of the detrended field, R_d = R − 2 M∗R + M∗M∗R."""
@@ -191,7 +191,7 @@ def detrended_correlation(rho_u, rho_v, window):
     return var, along_u / var, along_v / var
 
 
-@_njit(nogil=True)
+@_njit()
 def noise_and_factor(field, window, rounds=12):
     """fit_test.noise_and_factor: (σ̂_n, f) of the rough residual field, the local mean's share given back
     by the damped fixed point on the lag-one correlations."""
@@ -216,7 +216,7 @@ def noise_and_factor(field, window, rounds=12):
     return noise_d / math.sqrt(max(share, 0.25)), gaussian_sum(rho_u) * gaussian_sum(rho_v)
 
 
-@_njit(nogil=True)
+@_njit()
 def noise_field(cols, rows, u, sigma_model, window):
     """fit_test.noise_field from the cells' columns and rows (M,) int64: the residuals within
     FRONT_SIGMAS σ in front and BACK_SIGMAS σ behind, on the grid spanned by all the cells, detrended."""
@@ -234,7 +234,7 @@ def noise_field(cols, rows, u, sigma_model, window):
     return detrended(grid, window)
 
 
-@_njit(nogil=True)
+@_njit()
 def residual_noise(y, p, n, r, camera_bone, stride, fx, fy, cx, cy, sigma_model, window):
     """(σ̂_n, f) of one fit (refine.py ``Refiner._residual_noise``, step 7): y (M, 3) the camera-frame
     measurements, p (M, 3) them in the bone frame, n (M, 3) the associated normals (NaN: none), r (M,)
