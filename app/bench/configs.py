@@ -15,6 +15,7 @@ REPO = Path(__file__).resolve().parents[2]
 BUILTIN_DIR = REPO / "configs" / "bench"
 BUILTIN_ORDER = ("osteonav_default", "A_cpu", "A_cadaver", "thesis_blockwise", "thesis_joint", "thesis_complex", "icp")
 TRACKERS = ("particle_filter", "icp")
+ICP_ZERO_OK = ("silhouette_px",)     # integer ICP keys that may be 0 (the others must be >= 1)
 
 
 @dataclass
@@ -129,8 +130,9 @@ def load_icp_params(data: Any, source: str | None = None):
                 raise ConfigError(key, f"expected [width, height], two integers in [8, 4096], got {value!r}", source)
             value = (int(value[0]), int(value[1]))
         elif isinstance(default, int):
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ConfigError(key, f"expected an integer >= 1, got {value!r}", source)
+            low = 0 if name in ICP_ZERO_OK else 1
+            if not isinstance(value, int) or isinstance(value, bool) or value < low:
+                raise ConfigError(key, f"expected an integer >= {low}, got {value!r}", source)
         else:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
                 raise ConfigError(key, f"expected a number > 0, got {value!r}", source)

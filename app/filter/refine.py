@@ -9,9 +9,11 @@ resolution) inside the bone's projected bounding box. A small silhouette, fewer 
 (BENCHMARKS.md §6d).
 
 Model: the mesh sampled once, densely (``samples`` points x_j with normals n_j, bone frame; ~2.5 per
-mm² on a CT crest, 0.6 mm apart), sorted into a grid of 1 mm cells for the nearest-sample search
-(app/filter/refine_kernels.py; ``backend="numpy"`` keeps the cKDTree reference path, equal within
-float tolerance: tests/test_refine_kernels.py). Per iteration, at the current pose:
+mm² on a CT crest, 0.6 mm apart), sorted into a grid of 2 mm cells for the nearest-sample search
+(app/filter/refine_kernels.py, whose :func:`~app.filter.refine_kernels.gauss_newton` runs steps 3-6 in
+one numba kernel; ``backend="numpy"`` keeps the cKDTree reference path, equal within float tolerance:
+tests/test_refine_kernels.py, and on the eight CT crests' replays scripts/refine_calls.py, BENCHMARKS.md
+"Filter rate and CPU"). Per iteration, at the current pose:
 
 1. Expected visible surface (again after any step over ``rerender_step``; the association in
    step 3 is redone every iteration): the samples that face the camera, projected into a z-buffer on the
@@ -87,7 +89,7 @@ from scipy.spatial import cKDTree
 
 from app.filter import refine_kernels as kernels
 from app.filter.behind_noise import behind_moments, noise_bound
-from app.tracking import fit_test
+from app.tracking import fit_kernels, fit_test
 from app.geometry import se3
 from app.geometry.camera import PinholeCamera
 
@@ -403,6 +405,8 @@ class Refiner:
         T = np.array(T_camera_bone, dtype=float)
         H, used, rms, ok = np.zeros((6, 6)), 0, float("nan"), False
         stride, rendered = self.choose_stride(T)
+        if self.grid is not None:
+            return self._refine_kernel(depth, T, start_width, stride, rendered)
         y, last = None, None
         for it in range(prm.iterations):
             if y is None:                          # re-render after a step that moved the model visibly
@@ -428,6 +432,36 @@ class Refiner:
         if last is not None:
             return self._result(depth, T, H, used, rms, ok, *last, stride=stride)
         return self._finish(depth, T if ok else np.array(T_camera_bone, float), H, used, rms, ok, stride)
+
+    def _refine_kernel(self, depth, T, start_width, stride, rendered) -> RefineResult:
+        """:meth:`refine`'s iterations in :func:`app.filter.refine_kernels.gauss_newton` (the numba
+        backend): the kernel runs until it must measure again, declines, stops or has no iteration left."""
+        prm, g = self.params, self.grid
+        T0 = T.copy()
+        H, used, rms, ok, it, last = np.zeros((6, 6)), 0, float("nan"), False, 0, None
+        while it < prm.iterations:
+            y, z_model, nbrs = self._measure(depth, T, stride, rendered)
+            rendered = None
+            if len(y) < prm.min_points:
+                break
+            sigma = self.sigma(y[:, 2])
+            T_new, H, used, rms, state, it, p, x, n, d = kernels.gauss_newton(
+                y, sigma, z_model - y[:, 2], nbrs, T, it, prm.iterations, float(start_width), self.center,
+                g.points, g.normals, g.start, g.empty, g.origin, g.cell, g.dims, prm.pair_radius, PAIR_WIDTHS,
+                prm.tukey_c, prm.front_sigmas, prm.min_points, prm.stop_rotation, prm.stop_translation,
+                prm.rerender_step, RENDER_LEVER)
+            if state == kernels.GN_DECLINED:
+                break
+            ok, T = True, T_new
+            if state == kernels.GN_STOPPED:
+                if start_width * 0.5 ** it <= prm.front_sigmas * sigma.min():
+                    last = (y, p, x, n, d, sigma)
+                break
+            if state == kernels.GN_DONE:
+                break
+        if last is not None:
+            return self._result(depth, T, H, used, rms, ok, *last, stride=stride)
+        return self._finish(depth, T if ok else T0, H, used, rms, ok, stride)
 
     def score(self, depth: np.ndarray, T_camera_bone: np.ndarray) -> RefineResult:
         """The statistics of step 7 at ``T_camera_bone`` as it is (no Gauss-Newton step; H is zero):
@@ -458,6 +492,15 @@ class Refiner:
         """Fitness, sharp and behind shares of one association (steps 7-8); unassociated points
         (none within ``pair_radius``: d = inf, NaN residual) count as neither confirmed nor behind."""
         prm = self.params
+        if self.grid is not None:
+            cam = self.camera
+            confirmed, sharp, behind, noise, factor, mean, var = kernels.statistics(
+                y, p, x, n, d, sigma, T, prm.confirm_sigmas, prm.sharp_sigmas, prm.behind_sigmas, int(stride),
+                cam.fx, cam.fy, cam.cx, cam.cy, fit_test.window_cells(stride, prm.noise_window_px))
+            var *= factor
+            allowed = noise_bound(mean, var, len(p), prm.behind_z)
+            return RefineResult(T, H, confirmed / len(p), len(p), confirmed, used, rms, ok, sharp, behind, allowed,
+                                noise, stride, mean, var, factor)
         confirmed = int(np.sum(d < prm.confirm_sigmas * sigma))
         sharp = float(np.mean(d < prm.sharp_sigmas * sigma))
         r = np.einsum("ij,ij->i", n, p - x)
@@ -474,16 +517,19 @@ class Refiner:
     def _residual_noise(self, y, p, n, r, camera_bone, stride) -> tuple[float, float]:
         """(σ̂_n, f): the depth noise's scale from the fitted surface's rough residual field and its
         correlation factor on the refinement's grid (app/tracking/fit_test.py; step 7)."""
+        cam = self.camera
+        window = fit_test.window_cells(stride, self.params.noise_window_px)
+        if self.grid is not None:
+            return fit_kernels.residual_noise(y, p, n, r, camera_bone, int(stride), cam.fx, cam.fy, cam.cx, cam.cy,
+                                              self.sigma(y[:, 2]), window)
         ray = p - camera_bone
         with np.errstate(invalid="ignore", divide="ignore"):
             cos = np.einsum("ij,ij->i", n, ray) / np.linalg.norm(ray, axis=1)
         u = fit_test.depth_residuals(r, cos)
-        cam = self.camera
         with np.errstate(invalid="ignore", divide="ignore"):
             cols = np.rint(y[:, 0] / y[:, 2] * cam.fx + cam.cx) // max(stride, 1)
             rows = np.rint(y[:, 1] / y[:, 2] * cam.fy + cam.cy) // max(stride, 1)
         cells = np.column_stack([np.nan_to_num(cols), np.nan_to_num(rows)]).astype(np.int64)
-        window = fit_test.window_cells(stride, self.params.noise_window_px)
         return fit_test.noise_and_factor(fit_test.noise_field(cells, u, self.sigma(y[:, 2]), window), window)
 
 

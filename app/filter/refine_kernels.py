@@ -1,27 +1,40 @@
-"""numba kernels of the local refinement's per-iteration work (app/filter/refine.py).
+"""numba kernels of the local refinement (app/filter/refine.py; DESIGN.md "Local refinement and the
+estimate's uncertainty").
 
-Import as ``from app.filter import refine_kernels``. Each kernel computes exactly what the numpy
-reference path of :class:`app.filter.refine.Refiner` (``backend="numpy"``) computes, in one pass
-without temporaries (tests/test_refine_kernels.py compares both on random poses):
+Import as ``from app.filter import refine_kernels``. Each kernel computes what the numpy reference
+path of :class:`app.filter.refine.Refiner` (``backend="numpy"``) computes, in one pass without
+temporaries (tests/test_refine_kernels.py compares both on random poses; scripts/refine_calls.py on
+the refinement calls of replays of the eight CT crests):
 
 - :func:`zbuffer`: the model's z-buffer on the crop grid (refine.py step 1): the camera-facing
   samples (n·p < 0, z > 0) projected with u = fx x / z + cx, rounded to the grid of step ``stride``,
   the nearest depth per cell, then the empty cells filled by the 3x3 minimum of the buffer (every
   one next to a covered cell, or only those between covered cells: ``ring``);
 - :func:`measurements`: the silhouette's usable pixels back-projected, y = z K⁻¹ (u, v, 1) (step 2);
-- :func:`nearest`: the exact nearest model sample of each point (step 3) on a uniform grid of
-  cells (:class:`SampleGrid`): shells of cells at Chebyshev distance r = 0, 1, ... around the
-  query's cell are searched until the best distance is at most the query's distance to the outside
-  of the searched cube (no point outside it can be nearer) or the cube holds the ball of ``radius``
-  (then j = -1, d = inf: not associated, as the k-d tree's ``distance_upper_bound``); shells that
-  the grid's distance transform shows empty are skipped;
+- :func:`nearest`, :func:`nearest_from`: the exact nearest model sample of each point (step 3) on a
+  uniform grid of cells (:class:`SampleGrid`): shells of cells at Chebyshev distance r = 0, 1, ...
+  around the query's cell are searched until the best distance is at most the query's distance to the
+  outside of the searched cube (no point outside it can be nearer) or the cube holds the ball of
+  ``radius`` (then j = -1, d = inf: not associated, as the k-d tree's ``distance_upper_bound``);
+  shells that the grid's distance transform shows empty are skipped, and so is every cell whose box
+  lies further than the best distance so far (which starts at ``radius``, or at a first guess's);
 - :func:`neighbours`: each measurement's 8 neighbouring measurements on the crop grid (step 5's
   tissue border);
 - :func:`normal_equations`: the robust point-to-plane Gauss-Newton system (step 4-6):
   r_i = n_iᵀ(p_i − x_i), Tukey's w_i = (1 − (r_i/s_i)²)² / σ_i², J_i = [((p_i − c) × n_i)ᵀ, n_iᵀ],
-  H = Σ w_i J_iᵀJ_i, g = Σ w_i J_iᵀ r_i.
+  H = Σ w_i J_iᵀJ_i, g = Σ w_i J_iᵀ r_i;
+- :func:`gauss_newton`: the iterations of steps 3-6 on one set of measurements, in the kernel: the
+  association (each from the previous iteration's sample), the normal equations, the 6x6 solve
+  (H + 10⁻¹² I) δ = −g, T ← T exp(δ)⁻¹ about the centre (:func:`increment_inverse`), and the stopping
+  and re-render rules of :meth:`app.filter.refine.Refiner.refine`; it returns to Python only to
+  render and measure again;
+- :func:`statistics`: step 7 of one association: the confirmed, sharp and behind counts, the noise's
+  scale and correlation factor (app/tracking/fit_kernels.py) and the moments of the count the noise
+  puts behind the model (app/filter/behind_noise.py, with Φ in Cephes' form, :func:`_ndtr`).
 
-Numbers: float64, ``fastmath=False`` (results equal to the numpy path up to summation order).
+Numbers: float64, ``fastmath=False`` (results equal to the numpy path up to summation order); the
+kernels release the GIL (app/render/cpu_raster.py ``_njit``), so a refinement can run beside other work
+in another thread.
 """
 from __future__ import annotations
 
@@ -32,6 +45,11 @@ import numpy as np
 from scipy import ndimage
 
 from app.render.cpu_raster import _njit
+from app.tracking import fit_kernels
+
+SQRT1_2 = math.sqrt(0.5)
+
+GAP_SLACK = 1e-9   # m: a cell nearer than the best distance by less than this is opened all the same (:func:`_axis_gap`)
 
 
 @dataclass
@@ -206,41 +224,89 @@ def nearest(query, points, start, empty, origin, cell, dims, radius):
     """(j (Q,) index into the grid's sorted points, d (Q,)) of each query's nearest point; d = inf,
     j = -1 where none lies within ``radius`` (module docstring). ``empty`` (C,): shells of cells
     around each cell known to hold no point (:class:`SampleGrid`), skipped."""
+    return nearest_from(query, np.full(query.shape[0], -1, np.int64), points, start, empty, origin, cell, dims, radius)
+
+
+@_njit()
+def nearest_from(query, hint, points, start, empty, origin, cell, dims, radius):
+    """:func:`nearest` with a first guess per query, ``hint`` (Q,) an index into the grid's points (-1:
+    none; the previous Gauss-Newton iteration's association of the same measurement): the search
+    starts from its distance, so fewer cells are opened. The result is :func:`nearest`'s unless another
+    sample lies at exactly the hint's distance (then either may be returned)."""
     nq = query.shape[0]
     out_j = np.full(nq, -1, np.int64)
     out_d = np.full(nq, np.inf)
-    max_shell = int(math.ceil(radius / cell))
     for q in range(nq):
-        qx, qy, qz = query[q, 0], query[q, 1], query[q, 2]
-        ix = int(math.floor((qx - origin[0]) / cell))
-        iy = int(math.floor((qy - origin[1]) / cell))
-        iz = int(math.floor((qz - origin[2]) / cell))
-        outside = max(-ix, ix - dims[0] + 1, -iy, iy - dims[1] + 1, -iz, iz - dims[2] + 1, 0)
-        if outside == 0:
-            first = empty[ix + dims[0] * (iy + dims[1] * iz)]
-        else:
-            first = outside
-        best, best_j = np.inf, -1
-        for r in range(first, max_shell + 1):
-            for cz in range(max(iz - r, 0), min(iz + r + 1, dims[2])):
-                for cy in range(max(iy - r, 0), min(iy + r + 1, dims[1])):
-                    on_face = abs(cz - iz) == r or abs(cy - iy) == r
-                    step = 1 if on_face else 2 * r
-                    cx = ix - r
-                    while cx <= ix + r:
-                        if 0 <= cx < dims[0]:
+        out_j[q], out_d[q] = _nearest_one(query[q, 0], query[q, 1], query[q, 2], hint[q], points, start, empty, origin,
+                                          cell, dims, radius)
+    return out_j, out_d
+
+
+@_njit()
+def _nearest_one(qx, qy, qz, hint, points, start, empty, origin, cell, dims, radius):
+    """(j, d) of one query (:func:`nearest_from`). A cell whose box lies at least the best distance so far
+    from the query is not opened: none of its points could replace the best (the comparison is
+    strict), so the result is the one of opening every cell, in the same order. The best distance
+    starts just above ``radius`` (1e-12 relative, far more than sqrt's rounding): a point further than
+    that would be refused at the end anyway; or at the hint's distance when that is nearer."""
+    max_shell = int(math.ceil(radius / cell))
+    ix = int(math.floor((qx - origin[0]) / cell))
+    iy = int(math.floor((qy - origin[1]) / cell))
+    iz = int(math.floor((qz - origin[2]) / cell))
+    outside = max(-ix, ix - dims[0] + 1, -iy, iy - dims[1] + 1, -iz, iz - dims[2] + 1, 0)
+    if outside == 0:
+        first = empty[ix + dims[0] * (iy + dims[1] * iz)]
+    else:
+        first = outside
+    best, best_j = radius * radius * (1.0 + 1e-12), -1
+    if hint >= 0:
+        dx, dy, dz = points[hint, 0] - qx, points[hint, 1] - qy, points[hint, 2] - qz
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 < best:
+            best, best_j = d2, hint
+    for r in range(first, max_shell + 1):
+        for cz in range(max(iz - r, 0), min(iz + r + 1, dims[2])):
+            gz = _axis_gap(qz, origin[2], cell, cz)
+            if gz * gz >= best:
+                continue
+            for cy in range(max(iy - r, 0), min(iy + r + 1, dims[1])):
+                gy = _axis_gap(qy, origin[1], cell, cy)
+                gzy = gz * gz + gy * gy
+                if gzy >= best:
+                    continue
+                on_face = abs(cz - iz) == r or abs(cy - iy) == r
+                step = 1 if on_face else 2 * r
+                cx = ix - r
+                while cx <= ix + r:
+                    if 0 <= cx < dims[0]:
+                        gx = _axis_gap(qx, origin[0], cell, cx)
+                        if gzy + gx * gx < best:
                             c = cx + dims[0] * (cy + dims[1] * cz)
                             for k in range(start[c], start[c + 1]):
                                 dx, dy, dz = points[k, 0] - qx, points[k, 1] - qy, points[k, 2] - qz
                                 d2 = dx * dx + dy * dy + dz * dz
                                 if d2 < best:
                                     best, best_j = d2, k
-                        cx += max(step, 1)
-            if best_j >= 0 and math.sqrt(best) <= _cube_clearance(qx, qy, qz, ix, iy, iz, r, origin, cell):
-                break
-        if best_j >= 0 and math.sqrt(best) <= radius:
-            out_j[q], out_d[q] = best_j, math.sqrt(best)
-    return out_j, out_d
+                    cx += max(step, 1)
+        if best_j >= 0 and math.sqrt(best) <= _cube_clearance(qx, qy, qz, ix, iy, iz, r, origin, cell):
+            break
+    if best_j >= 0 and math.sqrt(best) <= radius:
+        return best_j, math.sqrt(best)
+    return -1, np.inf
+
+
+@_njit()
+def _axis_gap(q, origin, cell, i):
+    """Distance along one axis from the coordinate ``q`` to the slab of cell ``i`` (0 inside it), less
+    ``GAP_SLACK`` so that rounding (of the slab's bounds, of a point's cell) can only open a cell more,
+    never less."""
+    lo = origin + i * cell
+    hi = lo + cell
+    if q < lo:
+        return max(lo - q - GAP_SLACK, 0.0)
+    if q > hi:
+        return max(q - hi - GAP_SLACK, 0.0)
+    return 0.0
 
 
 @_njit()
@@ -310,3 +376,158 @@ def normal_equations(p, x, n, d, sigma, in_front, center, width, tukey_c, front_
         for b in range(a):
             H[a, b] = H[b, a]
     return H, g, used, num, den
+
+
+@_njit()
+def to_bone(y, T):
+    """p = T⁻¹ y (M, 3): camera-frame points into the bone frame, T⁻¹ = [Rᵀ, −Rᵀ t] (refine.py step 2)."""
+    p = np.empty_like(y)
+    tx = -(T[0, 0] * T[0, 3] + T[1, 0] * T[1, 3] + T[2, 0] * T[2, 3])
+    ty = -(T[0, 1] * T[0, 3] + T[1, 1] * T[1, 3] + T[2, 1] * T[2, 3])
+    tz = -(T[0, 2] * T[0, 3] + T[1, 2] * T[1, 3] + T[2, 2] * T[2, 3])
+    for i in range(y.shape[0]):
+        p[i, 0] = y[i, 0] * T[0, 0] + y[i, 1] * T[1, 0] + y[i, 2] * T[2, 0] + tx
+        p[i, 1] = y[i, 0] * T[0, 1] + y[i, 1] * T[1, 1] + y[i, 2] * T[2, 1] + ty
+        p[i, 2] = y[i, 0] * T[0, 2] + y[i, 1] * T[1, 2] + y[i, 2] * T[2, 2] + tz
+    return p
+
+
+@_njit()
+def increment_inverse(delta, center):
+    """exp(δ)⁻¹ (4, 4) for δ = (ω, v) applied about the model's centre c (refine.py step 6):
+    exp(δ) maps p ↦ c + R (p − c) + v with R = exp([ω]ₓ) from the unit quaternion
+    (cos(|ω|/2), ω/|ω| sin(|ω|/2)) (app/geometry/quaternion.py ``exp_map``, ``to_matrix``); its inverse
+    is [Rᵀ, −Rᵀ t] with t = v + c − R c."""
+    wx, wy, wz = delta[0], delta[1], delta[2]
+    angle = math.sqrt(wx * wx + wy * wy + wz * wz)
+    half = 0.5 * angle
+    if angle < 1e-8:                       # quaternion._SMALL: sin(|ω|/2)/|ω| by its series
+        k = 0.5 - angle ** 2 / 48.0
+    else:
+        k = math.sin(half) / angle
+    w, x, y, z = math.cos(half), k * wx, k * wy, k * wz
+    R = np.empty((3, 3))
+    R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    t = np.empty(3)
+    for a in range(3):
+        t[a] = delta[3 + a] + (center[a] - (R[a, 0] * center[0] + R[a, 1] * center[1] + R[a, 2] * center[2]))
+    M = np.zeros((4, 4))
+    for a in range(3):
+        for b in range(3):
+            M[a, b] = R[b, a]
+        M[a, 3] = -(R[0, a] * t[0] + R[1, a] * t[1] + R[2, a] * t[2])
+    M[3, 3] = 1.0
+    return M
+
+
+@_njit()
+def _matmul4(A, B):
+    C = np.zeros((4, 4))
+    for a in range(4):
+        for b in range(4):
+            s = 0.0
+            for k in range(4):
+                s += A[a, k] * B[k, b]
+            C[a, b] = s
+    return C
+
+
+GN_DONE, GN_DECLINED, GN_STOPPED, GN_RERENDER = 0, 1, 2, 3
+
+
+@_njit()
+def gauss_newton(y, sigma, in_front, nbrs, T, it0, iterations, start_width, center,
+                 points, normals, start, empty, origin, cell, dims,
+                 pair_radius, pair_widths, tukey_c, front_sigmas, min_points,
+                 stop_rotation, stop_translation, rerender_step, render_lever):
+    """The Gauss-Newton iterations ``it0`` .. ``iterations`` − 1 of refine.py (steps 3-6) on one set of
+    measurements y (M, 3) (camera frame; σ(z_i), z*_i − z_i and the tissue border's neighbours with
+    them), from T = T_camera_bone (4, 4). Each iteration: the Tukey width w = start_width 2^−it;
+    p_i = T⁻¹ y_i; the nearest sample x_i, n_i within max(pair_radius, pair_widths w) (:func:`nearest`);
+    H = Σ w_i J_iᵀJ_i, g = Σ w_i J_iᵀ r_i (:func:`normal_equations`); (H + 10⁻¹² I) δ = −g; T ← T exp(δ)⁻¹.
+
+    Returns (T, H, used, rms, state, it, p, x, n, d): ``state`` GN_DECLINED (fewer than ``min_points``
+    pairs: T, p... of before the step; H, used of the declined system, rms NaN), GN_STOPPED (a step
+    under ``stop_rotation`` / ``stop_translation``: ``it`` is the last iteration, and p, x, n, d its
+    association), GN_RERENDER (a step that moved the model more than ``rerender_step``, the rotation
+    at ``render_lever``: the caller measures again and goes on at ``it``), or GN_DONE (no iteration
+    left). The numpy reference is the loop of :meth:`app.filter.refine.Refiner.refine`."""
+    H = np.zeros((6, 6))
+    used, rms = 0, np.nan
+    p = np.empty((0, 3))
+    x = np.empty((0, 3))
+    n = np.empty((0, 3))
+    d = np.empty(0)
+    j = np.full(y.shape[0], -1, np.int64)
+    for it in range(it0, iterations):
+        width = start_width * 0.5 ** it
+        p = to_bone(y, T)
+        j, d = nearest_from(p, j, points, start, empty, origin, cell, dims, max(pair_radius, pair_widths * width))
+        x, n = gather(j, points, normals)
+        H, g, used, num, den = normal_equations(p, x, n, d, sigma, in_front, center, width, tukey_c, front_sigmas, nbrs)
+        if used < min_points:
+            return T, H, used, np.nan, GN_DECLINED, it, p, x, n, d
+        A = H.copy()
+        for a in range(6):
+            A[a, a] += 1e-12
+        delta = -np.linalg.solve(A, g)
+        rms = math.sqrt(num / max(den, 1e-30))
+        T = _matmul4(T, increment_inverse(delta, center))
+        step_r = math.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2)
+        step_t = math.sqrt(delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2)
+        if step_r < stop_rotation and step_t < stop_translation:
+            return T, H, used, rms, GN_STOPPED, it, p, x, n, d
+        if step_r * render_lever > rerender_step or step_t > rerender_step:
+            return T, H, used, rms, GN_RERENDER, it + 1, p, x, n, d
+    return T, H, used, rms, GN_DONE, iterations, p, x, n, d
+
+
+@_njit()
+def _ndtr(a):
+    """Φ(a), the standard normal CDF, as scipy.special.ndtr computes it (Cephes: 0.5 + 0.5 erf(a/√2)
+    near 0, 0.5 erfc(|a|/√2) in the tails)."""
+    x = a * SQRT1_2
+    z = abs(x)
+    if z < SQRT1_2:
+        return 0.5 + 0.5 * math.erf(x)
+    y = 0.5 * math.erfc(z)
+    return 1.0 - y if x > 0 else y
+
+
+@_njit()
+def statistics(y, p, x, n, d, sigma, T, confirm_sigmas, sharp_sigmas, behind_sigmas, stride, fx, fy, cx, cy, window):
+    """The statistics of one association (refine.py steps 7-8; the numpy reference is
+    ``Refiner._result``): (confirmed, sharp, behind, σ̂_n, f, Σ e_i, Σ e_i (1 − e_i)) with
+    confirmed = #{d_i < confirm_sigmas σ_i}, sharp = #{d_i < sharp_sigmas σ_i} / M, behind =
+    #{r_i < −behind_sigmas σ_i} / M (r_i = n_iᵀ(p_i − x_i); an unassociated point, NaN, counts as
+    neither), (σ̂_n, f) from :func:`app.tracking.fit_kernels.residual_noise`, and the moments of the
+    count the noise alone puts behind, e_i = Φ(−behind_sigmas σ_i / (σ̂_n |cos θ_i|)) with θ_i the ray's
+    angle to the normal (app/filter/behind_noise.py ``behind_moments``; NaN when σ̂_n is unknown)."""
+    m = p.shape[0]
+    cbx = -(T[0, 0] * T[0, 3] + T[1, 0] * T[1, 3] + T[2, 0] * T[2, 3])      # the camera's centre, bone frame
+    cby = -(T[0, 1] * T[0, 3] + T[1, 1] * T[1, 3] + T[2, 1] * T[2, 3])
+    cbz = -(T[0, 2] * T[0, 3] + T[1, 2] * T[1, 3] + T[2, 2] * T[2, 3])
+    camera_bone = np.array([cbx, cby, cbz])
+    r = np.empty(m)
+    confirmed, sharp, behind = 0, 0, 0
+    for i in range(m):
+        r[i] = n[i, 0] * (p[i, 0] - x[i, 0]) + n[i, 1] * (p[i, 1] - x[i, 1]) + n[i, 2] * (p[i, 2] - x[i, 2])
+        confirmed += d[i] < confirm_sigmas * sigma[i]
+        sharp += d[i] < sharp_sigmas * sigma[i]
+        behind += r[i] < -behind_sigmas * sigma[i]
+    noise, factor = fit_kernels.residual_noise(y, p, n, r, camera_bone, stride, fx, fy, cx, cy, sigma, window)
+    mean, var = np.nan, np.nan
+    if np.isfinite(noise) and m > 0:
+        mean, var = 0.0, 0.0
+        for i in range(m):
+            rx, ry, rz = p[i, 0] - cbx, p[i, 1] - cby, p[i, 2] - cbz
+            cos = abs(n[i, 0] * rx + n[i, 1] * ry + n[i, 2] * rz) / math.sqrt(rx * rx + ry * ry + rz * rz)
+            if not np.isfinite(cos):
+                continue                                    # not associated: e = 0
+            scale = noise * max(cos, 1e-6)
+            e = _ndtr(-(behind_sigmas * sigma[i]) / scale) if scale > 0 else 0.0   # σ̂_n = 0: nothing behind
+            mean += e
+            var += e * (1.0 - e)
+    return confirmed, sharp / m, behind / m, noise, factor, mean, var
