@@ -60,6 +60,7 @@ class SessionConfig:
     mesh: Path | None = None
     initial_pose: np.ndarray | None = None
     point_prior: np.ndarray | None = None
+    pointed_pixel: tuple[float, float] | None = None
     record: Path | None = None
     out: Path | None = None
     loop: LoopConfig = field(default_factory=LoopConfig)
@@ -128,6 +129,32 @@ def _point3(key: str, value: Any, src: str) -> np.ndarray | None:
         raise ConfigError(key, f"expected a point on the bone in the base frame, metres: [x, y, z] (3 finite "
                           f"numbers, e.g. [0.61, -0.12, 0.05]), got {value!r}", src)
     return p
+
+
+def _pixel2(key: str, value: Any, src: str) -> tuple[float, float] | None:
+    """``bone.pointed_pixel``: a pixel (u, v) of the full-resolution depth image of the first usable
+    frame, column then row, pixel centres at integers (app/tracking/start.py's PointedPixel); that it
+    lies inside the image is checked when the camera has said its size (:func:`check_pointed_pixel`)."""
+    if value is None:
+        return None
+    ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(_is_number(v) for v in value)
+    uv = np.asarray(value, dtype=float) if ok else None
+    if uv is None or not np.all(np.isfinite(uv)) or np.any(uv < 0):
+        raise ConfigError(key, f"expected a pixel of the depth image: [u, v] (2 numbers >= 0, column then row, "
+                          f"full resolution, e.g. [424, 240]), got {value!r}", src)
+    return float(uv[0]), float(uv[1])
+
+
+def check_pointed_pixel(pixel: tuple[float, float] | None, camera: PinholeCamera, src: str | None = None) -> None:
+    """``bone.pointed_pixel`` inside the camera's ``width`` x ``height`` depth image, or a ConfigError
+    naming the key, the image's size and the fix."""
+    if pixel is None:
+        return
+    u, v = pixel
+    if not (u <= camera.width - 1 and v <= camera.height - 1):
+        raise ConfigError("bone.pointed_pixel", f"[{u:g}, {v:g}] lies outside the camera's {camera.width}x"
+                          f"{camera.height} depth image: give 0 <= u <= {camera.width - 1} (column) and "
+                          f"0 <= v <= {camera.height - 1} (row), at the depth image's full resolution", src)
 
 
 def _plugin(kind: str, value: Any, base: Path, src: str, default: str | None = None) -> PluginSpec:
@@ -221,7 +248,12 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
     intrinsics = _intrinsics(calib.get("intrinsics"), base, src)
     bone = _mapping("bone", raw.get("bone"), src)
     for k in bone:
-        _allowed(f"bone.{k}", k, ("mesh", "initial_pose", "point_prior"), src)
+        _allowed(f"bone.{k}", k, ("mesh", "initial_pose", "point_prior", "pointed_pixel"), src)
+    if bone.get("pointed_pixel") is not None:
+        for other in ("initial_pose", "point_prior"):
+            if bone.get(other) is not None:
+                raise ConfigError("bone.pointed_pixel", f"a pointed pixel starts the tracker on its own: give it or "
+                                  f"bone.{other}, not both", src)
     mesh = _resolve(base, bone.get("mesh"))
     if mesh is not None and not mesh.is_file():
         raise ConfigError("bone.mesh", f"file not found: {mesh}", src)
@@ -231,6 +263,7 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
         hand_eye=_matrix4("calibration.hand_eye", calib.get("hand_eye"), base, src), intrinsics=intrinsics,
         mesh=mesh, initial_pose=_matrix4("bone.initial_pose", bone.get("initial_pose"), base, src),
         point_prior=_point3("bone.point_prior", bone.get("point_prior"), src),
+        pointed_pixel=_pixel2("bone.pointed_pixel", bone.get("pointed_pixel"), src),
         record=_resolve(base, raw.get("record")), out=_resolve(base, raw.get("out")), loop=loop,
     )
 
@@ -263,7 +296,10 @@ def _loop_config(loop_raw: dict, src: str) -> LoopConfig:
 
 
 def resolve_session(config: SessionConfig, camera_model: PinholeCamera, defaults: dict) -> dict:
-    """Calibration, robot model, mesh, initial pose and point prior: the file's, else the sources'."""
+    """Calibration, robot model, mesh, initial pose and point prior: the file's, else the sources'. A
+    ``bone.pointed_pixel`` replaces the sources' initial pose and point prior (the file's start is the
+    pointed pixel; a simulated or recorded trial's own start is not used) and is checked against the
+    camera's image size."""
     from app.geometry.ur import dh_from_config
 
     robot = config.robot_model or defaults.get("robot")
@@ -275,6 +311,10 @@ def resolve_session(config: SessionConfig, camera_model: PinholeCamera, defaults
     mesh = config.mesh or defaults.get("mesh")
     initial_pose = config.initial_pose if config.initial_pose is not None else defaults.get("initial_pose")
     point_prior = config.point_prior if config.point_prior is not None else defaults.get("point_prior")
-    return {"camera": config.intrinsics or camera_model, "robot": robot, "dh": dh_from_config(robot),
+    camera = config.intrinsics or camera_model
+    if config.pointed_pixel is not None:
+        check_pointed_pixel(config.pointed_pixel, camera, str(config.path) if config.path else None)
+        initial_pose = point_prior = None
+    return {"camera": camera, "robot": robot, "dh": dh_from_config(robot),
             "T_flange_camera": np.asarray(T_flange_camera, float), "mesh_path": Path(mesh) if mesh else None,
-            "initial_pose": initial_pose, "point_prior": point_prior}
+            "initial_pose": initial_pose, "point_prior": point_prior, "pointed_pixel": config.pointed_pixel}

@@ -120,11 +120,23 @@ class LiveLoop:
     def _create_tracker(self, mesh):
         if mesh is None:
             raise ConfigError("bone.mesh", "missing: the tracker needs the bone mesh")
-        if self.ctx["initial_pose"] is None and self.ctx.get("point_prior") is None:
-            raise ConfigError("bone.initial_pose", "missing: the tracker starts from a coarse 4x4 T_base_bone")
+        if self.ctx["initial_pose"] is None and self.ctx.get("point_prior") is None and \
+                self.ctx.get("pointed_pixel") is None:
+            raise ConfigError("bone.initial_pose", "missing: the tracker starts from a coarse 4x4 T_base_bone "
+                              "(or a point on the bone: bone.point_prior, or bone.pointed_pixel)")
         spec = self.config.tracker
         return registry.create("tracker", spec.name, spec.params, "tracker", mesh=mesh, camera=self.ctx["camera"],
                                T_flange_camera=self.ctx["T_flange_camera"])
+
+    def _point_source(self):
+        """The session's live point (``bone.pointed_pixel``, app/tracking/start.py's PointedPixel on the
+        depth camera the tracker was given), or None."""
+        pixel = self.ctx.get("pointed_pixel")
+        if pixel is None:
+            return None
+        from app.tracking.start import PointedPixel
+
+        return PointedPixel(pixel, self.ctx["camera"])
 
     def _open_sinks(self) -> None:
         specs = list(self.config.outputs)
@@ -139,7 +151,7 @@ class LiveLoop:
     def start(self) -> None:
         """Start the tracker and the sources (robot first); the duration counts from here."""
         if self.tracker is not None:
-            start_tracker(self.tracker, self.ctx["initial_pose"], self.ctx.get("point_prior"))
+            start_tracker(self.tracker, self.ctx["initial_pose"], self.ctx.get("point_prior"), self._point_source())
         self.robot.start(self.bus.push_joints)
         self.started.append(self.robot)
         self.t_sources = self.clock.now()
