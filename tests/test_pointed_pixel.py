@@ -156,7 +156,7 @@ def test_a_pointed_pixel_needs_init_method_auto():
 
     with pytest.raises(ConfigError, match=r"init\.method.*'auto'.*got 'pose'"):
         start_tracker(EngineTracker(_Inner()), None, None, PointedPixel((1, 1), CAMERA))
-    with pytest.raises(ConfigError, match=r"bone\.pointed_pixel.*no initial_pose or point_prior"):
+    with pytest.raises(ConfigError, match=r"bone.*no initial_pose or point_prior"):
         start_tracker(EngineTracker(_Inner()), np.eye(4), None, PointedPixel((1, 1), CAMERA))
 
 

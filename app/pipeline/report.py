@@ -77,7 +77,7 @@ def start_text(start: dict) -> str:
     work = (f"{start['attempts']} attempt(s), {start['evaluations']} evaluations, {start['refinements']} refinements, "
             f"{start['cpu_s']:.2f} s CPU")
     if start["method"] == "detect_pointed" and start.get("point") is None:
-        return f"detector {where}: never located (no depth there on any frame; {work})"
+        return f"detector {where}: never located ({start.get('waiting') or 'no usable frame'}; {work})"
     if not start["found"]:
         return f"detector {where}: the bone not found ({work})"
     return f"detector {where}: found on the frame stamped {start['found_stamp']:.3f} s ({work}); ok once confirmed"

@@ -160,7 +160,7 @@ class DepthTracker:
             if point_base is None:
                 from app.errors import ConfigError
 
-                what = ("a point located live (bone.pointed_pixel)" if point_source is not None else
+                what = ("a point located live (bone.pointed_pixel, bone.pointer)" if point_source is not None else
                         "'auto' without a pose or a point searches the whole image, which")
                 raise ConfigError("init.method", f"{what} needs refine.enabled and recovery.enabled true: enable "
                                   "them or give a pose")
@@ -405,11 +405,11 @@ def _start_from_source(inner, initial_pose, point_prior, point_source) -> None:
     from app.errors import ConfigError
 
     if initial_pose is not None or point_prior is not None:
-        raise ConfigError("bone.pointed_pixel", "a live point starts the tracker on its own: give no "
+        raise ConfigError("bone", "a live point (pointed_pixel, pointer) starts the tracker on its own: give no "
                           "initial_pose or point_prior with it")
     init_method = getattr(getattr(inner, "config", None), "init_method", None)
     if init_method != "auto" or not hasattr(inner, "start_by_detection"):
-        raise ConfigError("init.method", f"a live point (bone.pointed_pixel) needs the particle filter's "
+        raise ConfigError("init.method", f"a live point (bone.pointed_pixel, bone.pointer) needs the particle filter's "
                           f"init.method 'auto' (the detector), got {init_method!r}: set init.method: auto "
                           "in the tracker's config, or start from bone.initial_pose")
     inner.start_by_detection(None, point_source)

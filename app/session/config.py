@@ -61,6 +61,7 @@ class SessionConfig:
     initial_pose: np.ndarray | None = None
     point_prior: np.ndarray | None = None
     pointed_pixel: tuple[float, float] | None = None
+    pointer: dict | None = None
     record: Path | None = None
     out: Path | None = None
     loop: LoopConfig = field(default_factory=LoopConfig)
@@ -143,6 +144,48 @@ def _pixel2(key: str, value: Any, src: str) -> tuple[float, float] | None:
         raise ConfigError(key, f"expected a pixel of the depth image: [u, v] (2 numbers >= 0, column then row, "
                           f"full resolution, e.g. [424, 240]), got {value!r}", src)
     return float(uv[0]), float(uv[1])
+
+
+POINTER_KEYS = ("marker_id", "marker_length_m", "tip_offset_m", "dictionary", "stream")
+
+
+def _pointer(key: str, value: Any, src: str) -> dict | None:
+    """``bone.pointer``: a pointer tool whose tip starts the tracker (app/tracking/pointer.py): its ArUco
+    marker (``marker_id`` >= 0, ``marker_length_m``, the printed square's side in metres, ``dictionary``,
+    default DICT_4X4_50), the tip in the marker frame (``tip_offset_m``: [x, y, z], metres) and the
+    camera stream it is seen in (``stream``: ir, the default, or color)."""
+    if value is None:
+        return None
+    block = _mapping(key, value, src)
+    for k in block:
+        _allowed(f"{key}.{k}", k, POINTER_KEYS, src)
+    for k in ("marker_id", "marker_length_m", "tip_offset_m"):
+        if k not in block:
+            raise ConfigError(f"{key}.{k}", "missing: a pointer names its marker_id, marker_length_m and "
+                              "tip_offset_m", src)
+    marker_id = block["marker_id"]
+    if not isinstance(marker_id, int) or isinstance(marker_id, bool) or marker_id < 0:
+        raise ConfigError(f"{key}.marker_id", f"expected the marker's id, an integer >= 0, got {marker_id!r}", src)
+    length = block["marker_length_m"]
+    if not _is_number(length) or not 0 < length < 0.5:
+        raise ConfigError(f"{key}.marker_length_m", f"expected the printed square's side in metres, 0 < L < 0.5 "
+                          f"(e.g. 0.03), got {length!r}", src)
+    tip = block["tip_offset_m"]
+    ok = isinstance(tip, (list, tuple)) and len(tip) == 3 and all(_is_number(v) for v in tip)
+    if not ok or not np.all(np.isfinite(tip)) or np.linalg.norm(tip) >= 0.5:
+        raise ConfigError(f"{key}.tip_offset_m", f"expected the tip in the marker frame, metres: [x, y, z] (3 finite "
+                          f"numbers, less than 0.5 m from the marker's centre, e.g. [0, -0.12, 0]), got {tip!r}", src)
+    dictionary = block.get("dictionary", "DICT_4X4_50")
+    try:
+        from app.marker.aruco import dictionary as aruco_dictionary
+
+        aruco_dictionary(str(dictionary))
+    except ValueError as exc:
+        raise ConfigError(f"{key}.dictionary", str(exc), src) from None
+    stream = block.get("stream", "ir")
+    _allowed(f"{key}.stream", stream, ("ir", "color"), src)
+    return {"marker_id": marker_id, "marker_length_m": float(length), "tip_offset_m": [float(v) for v in tip],
+            "dictionary": str(dictionary), "stream": stream}
 
 
 def check_pointed_pixel(pixel: tuple[float, float] | None, camera: PinholeCamera, src: str | None = None) -> None:
@@ -248,12 +291,13 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
     intrinsics = _intrinsics(calib.get("intrinsics"), base, src)
     bone = _mapping("bone", raw.get("bone"), src)
     for k in bone:
-        _allowed(f"bone.{k}", k, ("mesh", "initial_pose", "point_prior", "pointed_pixel"), src)
-    if bone.get("pointed_pixel") is not None:
-        for other in ("initial_pose", "point_prior"):
-            if bone.get(other) is not None:
-                raise ConfigError("bone.pointed_pixel", f"a pointed pixel starts the tracker on its own: give it or "
-                                  f"bone.{other}, not both", src)
+        _allowed(f"bone.{k}", k, ("mesh", "initial_pose", "point_prior", "pointed_pixel", "pointer"), src)
+    starts = [k for k in ("initial_pose", "point_prior", "pointed_pixel", "pointer") if bone.get(k) is not None]
+    for live in ("pointed_pixel", "pointer"):
+        if live in starts and len(starts) > 1:
+            other = next(k for k in starts if k != live)
+            raise ConfigError(f"bone.{live}", f"a live point starts the tracker on its own: give bone.{live} or "
+                              f"bone.{other}, not both", src)
     mesh = _resolve(base, bone.get("mesh"))
     if mesh is not None and not mesh.is_file():
         raise ConfigError("bone.mesh", f"file not found: {mesh}", src)
@@ -264,6 +308,7 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
         mesh=mesh, initial_pose=_matrix4("bone.initial_pose", bone.get("initial_pose"), base, src),
         point_prior=_point3("bone.point_prior", bone.get("point_prior"), src),
         pointed_pixel=_pixel2("bone.pointed_pixel", bone.get("pointed_pixel"), src),
+        pointer=_pointer("bone.pointer", bone.get("pointer"), src),
         record=_resolve(base, raw.get("record")), out=_resolve(base, raw.get("out")), loop=loop,
     )
 
@@ -297,9 +342,9 @@ def _loop_config(loop_raw: dict, src: str) -> LoopConfig:
 
 def resolve_session(config: SessionConfig, camera_model: PinholeCamera, defaults: dict) -> dict:
     """Calibration, robot model, mesh, initial pose and point prior: the file's, else the sources'. A
-    ``bone.pointed_pixel`` replaces the sources' initial pose and point prior (the file's start is the
-    pointed pixel; a simulated or recorded trial's own start is not used) and is checked against the
-    camera's image size."""
+    live point (``bone.pointed_pixel``, ``bone.pointer``) replaces the sources' initial pose and point
+    prior (the file's start is the live point; a simulated or recorded trial's own start is not used);
+    the pointed pixel is checked against the camera's image size."""
     from app.geometry.ur import dh_from_config
 
     robot = config.robot_model or defaults.get("robot")
@@ -312,9 +357,10 @@ def resolve_session(config: SessionConfig, camera_model: PinholeCamera, defaults
     initial_pose = config.initial_pose if config.initial_pose is not None else defaults.get("initial_pose")
     point_prior = config.point_prior if config.point_prior is not None else defaults.get("point_prior")
     camera = config.intrinsics or camera_model
-    if config.pointed_pixel is not None:
-        check_pointed_pixel(config.pointed_pixel, camera, str(config.path) if config.path else None)
+    check_pointed_pixel(config.pointed_pixel, camera, str(config.path) if config.path else None)
+    if config.pointed_pixel is not None or config.pointer is not None:
         initial_pose = point_prior = None
     return {"camera": camera, "robot": robot, "dh": dh_from_config(robot),
             "T_flange_camera": np.asarray(T_flange_camera, float), "mesh_path": Path(mesh) if mesh else None,
-            "initial_pose": initial_pose, "point_prior": point_prior, "pointed_pixel": config.pointed_pixel}
+            "initial_pose": initial_pose, "point_prior": point_prior, "pointed_pixel": config.pointed_pixel,
+            "pointer": config.pointer}

@@ -147,13 +147,13 @@ class StartByDetection:
 
     def report(self) -> dict:
         """For the summaries: the method ('detect_point' | 'detect_whole_image' | 'detect_pointed'), the
-        point source and the point it located, whether and when it was found, its verification score and
-        the work of every attempt."""
+        point source, the point it located (or why it has not, ``waiting``), whether and when it was
+        found, its verification score and the work of every attempt."""
         d = self.detection
         method = "detect_pointed" if self.source is not None else \
             "detect_point" if self.point is not None else "detect_whole_image"
         pointed = {} if self.source is None else {
-            "source": self.source.description, "located_stamp": self.located_stamp,
+            "source": self.source.description, "located_stamp": self.located_stamp, "waiting": self.waiting,
             "point": None if self.point is None else [float(c) for c in self.point]}
         return {"method": method, **pointed,
                 "strategy": getattr(self.detector, "strategy", ""), "found": d is not None,
