@@ -245,7 +245,8 @@ def test_a_simulated_session_started_from_a_pointed_pixel_finds_the_bone(tmp_pat
     path.write_text(yaml.safe_dump(session))
     out, rec = tmp_path / "out", tmp_path / "rec"
     assert main(["track", "--config", str(path), "--out", str(out), "--record", str(rec)]) == 0
-    assert f"start: detector from the pointed pixel ({u:g}, {v:g}): found on the frame stamped" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert f"start: detector from the pointed pixel ({u:g}, {v:g}): found on the frame stamped" in printed
     summary = json.loads((out / "summary.json").read_text())
     start = summary["start"]
     assert start["method"] == "detect_pointed" and start["source"] == f"pointed pixel ({u:g}, {v:g})"

@@ -376,9 +376,10 @@ def start_tracker(tracker, initial_pose: np.ndarray | None, point_prior: np.ndar
     prior is kept for the recovery either way. A tracker without ``init.method`` (the ICP baseline)
     starts from the pose.
 
-    ``point_source`` (app/tracking/start.py's PointSource: the session's ``bone.pointed_pixel``) is a
-    point given live, located on the first frame that allows it: the detector starts from it, never
-    from a pose or another point (the caller gives none with it), and only under ``init.method: auto``."""
+    ``point_source`` (app/tracking/start.py's PointSource: the session's ``bone.pointed_pixel`` or
+    ``bone.pointer``) is a point given live, located on the first frame that allows it: the detector
+    starts from it, never from a pose or another point (the caller gives none with it), and only under
+    ``init.method: auto``."""
     inner = _inner(tracker)
     if point_source is not None:
         _start_from_source(inner, initial_pose, point_prior, point_source)
