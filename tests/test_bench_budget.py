@@ -62,3 +62,22 @@ def test_bench_init_writes_the_success_against_budget_curve_and_its_plot(tmp_pat
     assert main(argv) != 0
     err = capsys.readouterr().err
     assert "--json's plot" in err and "init.png already exists; pass --overwrite" in err and not out.exists()
+
+
+def test_bench_init_without_samplers_plots_the_replays_start_against_its_evaluations(tmp_path):
+    """The replay's start (one crest, one view, a 0.2 s trial): the curve of 'detector, from the point'
+    steps from 0 to the runs found within 1 mm at the evaluations their attempts spent."""
+    _pelvis_or_skip()
+    from app.cli import main
+
+    out = tmp_path / "start.json"
+    main(["bench-init", "--crests", "crest_left_02.ply", "--seconds", "0.2", "--work", str(tmp_path / "work"),
+          "--json", str(out)])
+    report = json.loads(out.read_text())
+    (run,) = report["runs"]
+    result = report["budget"]
+    counts = result["successes"]["detector, from the point"]
+    assert counts[0] == 0 and counts[-1] == int(run["found_1mm"]) and np.all(np.diff(counts) >= 0)
+    if run["found_1mm"]:
+        assert counts[result["budgets"].index(run["evaluations"])] == 1
+    assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
