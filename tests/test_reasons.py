@@ -49,43 +49,78 @@ def test_reason_shares_count_each_frame_once_per_code():
     assert shares["state_fraction"] == {"suspect": 0.5, "tracking": 0.25}
 
 
-def test_the_lifecycle_table_has_every_event_from_every_state_but_waiting():
-    for state, row in lifecycle.TRANSITIONS.items():
-        expected = set(lifecycle.EVENTS) - ({"waiting"} if state != lifecycle.State.INITIALISING else set())
-        assert set(row) == expected, state
+def test_the_lifecycle_table_is_the_contract():
+    T, S = lifecycle.TRANSITIONS, lifecycle.State
+    assert set(T) == set(S)
+    assert all(set(row) <= set(lifecycle.EVENTS) for row in T.values())
+    assert all(row["ok"] == S.TRACKING for row in T.values())                     # ok (confirmed) from every state
+    for name in lifecycle.RECOVERY_EVENTS:                                         # only searching runs an attempt
+        assert [s for s, row in T.items() if name in row] == ([S.INITIALISING] if name == "detected" else [S.SEARCHING])
+    for state in (S.SEARCHING, S.CONFIRMING):                                      # a hand does not end a search
+        assert T[state]["unseen"] == T[state]["not_ok"] == state
+    assert [s for s, row in T.items() if "capped" in row] == [S.SEARCHING, S.CONFIRMING]   # only with a hypothesis
 
 
 def test_the_lifecycle_walks_a_recovery():
     life = lifecycle.Lifecycle()
-    walk = ["ok", "unseen", "unseen", "not_ok", "search_due", "unseen", "reinitialised", "capped", "not_ok", "ok"]
-    states = [life.step(e).value for e in walk]
+    states = [life.frame(e).value for e in ["ok", "unseen", "unseen", "not_ok"]]
+    life.passed()
+    life.search_due("lost for 10 frames")
+    assert life.due == "lost for 10 frames" and not life.retrying
+    states += [life.frame(e).value for e in ["search_due", "unseen"]]
+    life.declined()
+    assert life.retrying and life.state == "searching"
+    life.search_due("still searching")
+    life.reinitialised(hold_frames=15)
+    assert life.due is None and life.hypothesis.hold == 15 and not life.hypothesis.evidence_only
+    states += [life.frame(e).value for e in ["capped", "not_ok", "unseen"]]
+    life.passed()
+    states.append(life.frame("ok").value)
     assert states == ["tracking", "occluded", "occluded", "suspect", "searching", "searching", "confirming",
                       "confirming", "confirming", "tracking"]
-    assert life.counts["confirming"] == 3
+    assert life.counts["confirming"] == 3 and life.hypothesis is None and life.ever_ok
     with pytest.raises(ValueError, match="no transition from tracking on 'waiting'"):
-        life.step("waiting")
+        life.frame("waiting")
+    with pytest.raises(ValueError, match="no transition from tracking on 'reinitialised'"):
+        life.reinitialised(15)                                       # an attempt runs only when one is due
     with pytest.raises(ValueError, match="unknown lifecycle event"):
         life.step("bogus")
 
 
+def test_a_kept_track_is_retried_only_if_it_was_ever_ok_and_a_detected_start_stays_evidence_only():
+    never = lifecycle.Lifecycle()
+    never.detected()
+    assert never.state == "confirming" and never.hypothesis.evidence_only
+    never.search_due("never ok: one wide search")
+    never.kept()
+    assert never.state == "confirming" and never.hypothesis.evidence_only        # its one search is spent
+    never.search_due("not ok, far")
+    never.reinitialised(15)
+    assert never.hypothesis.evidence_only and never.hypothesis.hold == 15      # still a detected start's hypothesis
+    was_ok = lifecycle.Lifecycle()
+    was_ok.frame("ok")
+    was_ok.passed()
+    was_ok.search_due("not ok, far")
+    was_ok.kept()
+    assert was_ok.retrying and was_ok.hypothesis is not None and not was_ok.hypothesis.evidence_only
+
+
 @pytest.mark.parametrize("facts, expected", [
-    (dict(status="ok", weighed=True, reinitialised=False, pending=False, capped=False, waiting=False), "ok"),
-    (dict(status="ok", weighed=True, reinitialised=False, pending=False, capped=True, waiting=False), "capped"),
-    (dict(status="uncertain", weighed=False, reinitialised=False, pending=False, capped=False, waiting=False), "unseen"),
-    (dict(status="uncertain", weighed=True, reinitialised=False, pending=True, capped=False, waiting=False), "search_due"),
-    (dict(status="uncertain", weighed=True, reinitialised=True, pending=True, capped=False, waiting=False), "reinitialised"),
-    (dict(status="lost", weighed=True, reinitialised=False, pending=False, capped=False, waiting=False), "not_ok"),
+    (dict(status="ok", weighed=True, due=False, capped=False), "ok"),
+    (dict(status="ok", weighed=True, due=False, capped=True), "capped"),
+    (dict(status="uncertain", weighed=False, due=False, capped=False), "unseen"),
+    (dict(status="uncertain", weighed=True, due=True, capped=False), "search_due"),
+    (dict(status="ok", weighed=True, due=True, capped=False), "search_due"),
+    (dict(status="lost", weighed=True, due=False, capped=False), "not_ok"),
+    (dict(status="lost", weighed=False, due=False, capped=False, waiting=True), "waiting"),
 ])
 def test_one_event_per_frame_the_first_that_applies(facts, expected):
-    assert lifecycle.event(**facts) == expected
+    assert lifecycle.frame_event(**facts) == expected
 
 
-def test_the_printed_summary_says_why_the_template_was_not_shown():
-    from app.pipeline.report import summary_rows
-    summary = {"frames": 10, "processing_rate_hz": 30.0, "particles": 200, "resolution": [160, 120],
-               "sampling": "joint", "gl": "cpu", "status_fraction": {"ok": 0.5, "uncertain": 0.5, "lost": 0.0},
-               "blocked_by": {"imprecise": 0.42, "moving": 0.03}}
-    rows = dict(summary_rows(summary))
-    assert rows["not ok because (share of frames)"] == "imprecise 42 %, moving 3 %"
-    del summary["blocked_by"]
-    assert "not ok because (share of frames)" not in dict(summary_rows(summary))
+def test_the_readme_shows_the_triggers_in_their_order():
+    from app.tracking import triggers
+
+    readme = (REPO / "README.md").read_text()
+    assert triggers.markdown_table() in readme
+    assert len(set(triggers.CODES)) == len(triggers.TRIGGERS) == 8

@@ -36,6 +36,13 @@ def trial(tmp_path_factory):
     return out
 
 
+def _due(policy):
+    """The policy with an attempt due (the runner runs one only then: the lifecycle's ``searching``)."""
+    if policy.pending is None:
+        policy.pending = "a due attempt"
+    return policy
+
+
 def _knock(tracker, T_base_bone: np.ndarray) -> None:
     """Turn the whole track a quarter turn about the bone's centroid (base frame): the cloud, the
     refinement's track and its static-bone prior's anchor. Knocking only the first two tests
@@ -117,6 +124,69 @@ def test_a_knocked_off_track_is_found_again_within_2_s_and_never_ok_while_off(tr
     assert report["template_points"] == "mesh_vertices"
 
 
+def test_a_search_on_the_worker_never_stops_the_frames_and_its_result_is_taken_later(trial):
+    """recovery.search_worker thread (a live session's): the due search is handed to the worker and the
+    frames go on, searching and never ok; its result is taken on the first frame after it is ready
+    and finds the knocked-off track again. The worker's search is held by an event the test releases
+    after HELD frames (no wall time: the test waits for the worker, never for a clock)."""
+    import threading
+
+    from app.pipeline.tracker import DepthTracker
+    from app.trial.reader import open_trial
+
+    HELD = 4
+    config = _enabled()
+    config = replace(config, recovery=replace(config.recovery, search_worker="thread"))
+    reader = open_trial(trial)
+    mesh = reader.load_mesh()
+    points = np.asarray(mesh.vertices)
+    tracker = DepthTracker(config, mesh, reader.meta.camera)
+    worker = tracker.recovery_runner.worker
+    assert worker is not None and DepthTracker(_enabled(), mesh, reader.meta.camera).recovery_runner.worker is None
+    release, build = threading.Event(), worker._build
+
+    class HeldSearch:
+        def __init__(self):
+            self.search = build()                       # the worker's own backend and refiner, on its thread
+            self.backend = self.search.backend
+
+        def run(self, *args, **kw):
+            release.wait()
+            return self.search.run(*args, **kw)
+
+    worker._build = HeldSearch
+    tracker.start(reader.meta.initial_pose)
+    T_base_camera, valid = reader.camera_poses()
+    held, taken, found, results, knocked = [], None, None, [], False
+    for frame in reader.iter_frames():
+        i = frame.index
+        if i % EVERY:
+            continue
+        t = frame.stamp - reader.stamps[0]
+        if t >= KNOCK_S and not knocked:
+            _knock(tracker, results[-1].T_base_bone)
+            knocked = True
+        result = tracker.process(frame.depth_m, frame.stamp, T_base_camera[i] if valid[i] else None)
+        add = 1e3 * metrics.add(result.T_base_bone, reader.groundtruth[i], points)
+        results.append(result)
+        assert not (result.status == "ok" and add > 5.0)
+        if tracker.recovery_runner.searching and taken is None:
+            held.append((result.state, result.status))
+            if len(held) == HELD:
+                release.set()
+                worker._future.result()                 # the worker finishes; the next frame takes it
+        elif held and taken is None:
+            taken = result
+        if taken is not None and found is None and add < 2.0:
+            found = t
+    tracker.release()
+    assert len(held) >= HELD and all(state == "searching" and status != "ok" for state, status in held)
+    assert taken is not None and taken.reinitialised and taken.state == "confirming"
+    assert found is not None and found - KNOCK_S <= 2.0
+    report = tracker.report()["recovery"]
+    assert report["events"][0]["kind"] == "search" and report["search"]["found"] >= 1
+
+
 def test_recovery_disabled_keeps_a_knocked_off_track_off(trial):
     config = load_config(None)
     config = replace(config, recovery=replace(config.recovery, enabled=False))
@@ -149,12 +219,30 @@ def test_policy_counts_bad_frames_waits_while_hidden_and_holds_after():
     assert policy.pending is None
     policy.update(unc, True, False, 0.9, np.eye(4), 0.0)              # weighed, not refined: the track broken
     assert policy.pending is not None and policy.next_kind() == "respread"
-    policy.done(1.0, "respread")
+    _due(policy).done(1.0, "respread")
     assert policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0) == unc       # held
     assert policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0) == unc
     assert policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0) == TrackingStatus.OK
     policy.update(unc, True, True, 0.9, np.eye(4), 0.0)               # a weighed, refined frame resets the count
     assert policy._bad == 0
+
+
+def test_the_lifecycle_follows_the_policy_and_the_trigger_is_recorded():
+    policy = _policy(after_lost_s=_s(3), hold_frames=2, cooldown_s=_s(1))
+    lost, unc, ok = TrackingStatus.LOST, TrackingStatus.UNCERTAIN, TrackingStatus.OK
+    policy.update(ok, True, True, 0.9, np.eye(4), 0.0)
+    states = [policy.lifecycle.state.value]
+    for _ in range(3):
+        policy.update(lost, True, False, 0.9, np.eye(4), 0.0)
+        states.append(policy.lifecycle.state.value)
+    assert states == ["tracking", "suspect", "suspect", "searching"] and policy.due_code == "lost_for"
+    assert policy.lifecycle.due == policy.pending == "lost for 3 frames"
+    policy.done(1.0, "search")                                           # the runner ran the due attempt
+    assert policy.lifecycle.state == "confirming" and policy.report()["events"][0]["trigger"] == "lost_for"
+    assert policy.update(ok, True, True, 0.9, np.eye(4), 0.0) == unc and policy.capped == "holding"
+    policy.update(ok, True, True, 0.9, np.eye(4), 0.0)
+    assert policy.update(ok, True, True, 0.9, np.eye(4), 0.0) == ok and policy.lifecycle.state == "tracking"
+    assert policy.lifecycle.hypothesis is None
 
 
 def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
@@ -170,7 +258,7 @@ def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
         frames += 1
         if policy.pending:
             kinds.append(policy.next_kind())
-            policy.done(float(frames), kinds[-1])
+            _due(policy).done(float(frames), kinds[-1])
     assert kinds == ["respread", "respread", "smc", "respread"]
     gaps = np.diff([e.stamp for e in policy.events])
     assert gaps[1] > gaps[0]                                # the cooldown doubles
@@ -193,13 +281,13 @@ def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retrie
         return policy.next_kind()
 
     assert run_until_due() == "respread"
-    policy.done(0.0, "respread")
+    _due(policy).done(0.0, "respread")
     assert run_until_due() == "search"
-    policy.declined()                                        # found nothing: no attempt, no hold
+    _due(policy).declined()                                        # found nothing: no attempt, no hold
     assert policy.report()["declined_searches"] == 1 and len(policy.events) == 1
     # retried, not backed off: SEARCH_RETRY_S (0.33 s, 30 frames at 90 Hz) is 33 frames at 100 Hz
     assert run_until_due() == "search" and due[-1] == math.ceil(SEARCH_RETRY_S / 0.01 - 0.01) == 33
-    policy.done(1.0, "search")
+    _due(policy).done(1.0, "search")
     assert run_until_due() == "respread"
 
 
@@ -207,7 +295,7 @@ def test_the_slow_trigger_does_not_count_frames_the_rules_find_ok_while_unconfir
     """After a re-initialisation away from the last ok pose the reported status is uncertain until
     confirmed; those frames must not fire the slow trigger (it would re-spread at the old pose)."""
     policy = _policy(after_uncertain_s=0.5, hold_frames=0, confirm_frames=8, cooldown_s=0.1)   # 5 and 1 frames at 10 Hz
-    policy.done(0.0, "search")
+    _due(policy).done(0.0, "search")
     T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.1, 0.0, 0.0]))
     statuses = [policy.update(TrackingStatus.OK, True, True, 0.9, T_far, 0.1 * k) for k in range(8)]
     assert statuses[:7] == [TrackingStatus.UNCERTAIN] * 7 and statuses[7] == TrackingStatus.OK
@@ -334,12 +422,12 @@ def test_after_a_reinitialisation_a_pose_away_from_the_last_ok_one_needs_evidenc
     ok, unc = TrackingStatus.OK, TrackingStatus.UNCERTAIN
     far = se3.from_rotvec_trans(np.zeros(3), np.array([0.02, 0.0, 0.0]))
     policy = _policy(hold_frames=0, confirm_frames=5)
-    policy.done(0.0, "respread")
+    _due(policy).done(0.0, "respread")
     assert [policy.update(ok, True, True, 0.9, far, 0.0) for _ in range(4)] == [unc] * 4
     policy.update(unc, True, True, 0.9, far, 0.0)
     assert [policy.update(ok, True, True, 0.9, far, 0.0) for _ in range(5)] == [unc] * 4 + [ok]
     policy = _policy(hold_frames=0, confirm_frames=5)
-    policy.done(0.0, "respread")
+    _due(policy).done(0.0, "respread")
     near = se3.from_rotvec_trans(np.zeros(3), np.array([0.001, 0.0, 0.0]))
     assert policy.update(ok, True, True, 0.9, near, 0.0) == ok
 
@@ -499,18 +587,18 @@ def test_a_declined_search_is_retried_while_not_ok_even_when_the_estimate_moves(
         policy.update(unc, False, False, float("nan"), T_far, (1 + k) / 90)   # out of view
     policy.update(unc, True, True, 0.9, T_far, 6 / 90)
     assert policy.pending and "unseen" in policy.pending
-    policy.declined()
+    _due(policy).declined()
     assert drift(policy, 100) == retry_frames
     assert "search" in policy.pending
-    policy.declined()
+    _due(policy).declined()
     assert drift(policy, 100, start=100) == retry_frames                  # and again
-    policy.declined()
+    _due(policy).declined()
     policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 5.0)        # an ok frame ends it
     assert drift(policy, 100, start=200) is None
     policy.pending = "a due search"                                            # a found pose ends it too
-    policy.declined()
+    _due(policy).declined()
     policy.pending = "a due search"
-    policy.done(6.0, "search")
+    _due(policy).done(6.0, "search")
     assert drift(policy, 200, start=300) is None
 
 
@@ -599,7 +687,7 @@ def test_a_never_ok_track_sliding_outside_the_start_prior_is_searched_for_withou
     assert slide(inside, 30, x0=-0.015) is None                 # -15 mm -> +18 mm: within 40 mm of the start
     hidden = policy()
     assert slide(hidden, 30, weighed=False) is None              # not weighed: no evidence
-    sliding.done(1.0, "search")                                  # a found pose may lie outside the start's prior
+    _due(sliding).done(1.0, "search")                                  # a found pose may lie outside the start's prior
     assert slide(sliding, 60, start=30) is None
 
 
@@ -659,7 +747,7 @@ def test_a_track_never_ok_and_still_gets_one_wide_search():
 
     policy = _policy()
     assert still(policy, 200) == math.ceil(NEVER_OK_SEARCH_S * 90 - 0.01) and "never ok" in policy.pending
-    policy.declined()
+    _due(policy).declined()
     assert still(policy, 300, start=200) is None            # declined: the rule does not search again
     ok_once = _policy()
     ok_once.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), -1 / 90)
@@ -812,7 +900,7 @@ def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
         return False
 
     assert still(200) and "never ok" in policy.pending
-    policy.kept()
+    _due(policy).kept()
     assert policy.pending is None and policy.events == [] and policy.report()["kept_searches"] == 1
     assert not still(int(3 * NEVER_OK_SEARCH_S * 90))       # the never-ok rule searched once; no retry
     T_8mm = se3.from_rotvec_trans(np.zeros(3), np.array([0.008, 0.0, 0.0]))   # > 5 mm from the start, inside its prior
@@ -825,14 +913,14 @@ def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
     while not policy.pending:                                 # the bone moved 5 cm: the slow trigger
         policy.update(unc, True, True, 0.9, T_far, frames / 90)
         frames += 1
-    policy.kept()
+    _due(policy).kept()
     for _ in range(3):                                       # far: the retry waits the backed-off cooldown
         waited = 0
         while not policy.pending and waited < 500:
             policy.update(unc, True, True, 0.9, T_far, frames / 90)
             frames, waited = frames + 1, waited + 1
         assert "still searching" in policy.pending and waited == policy._cooldown()
-        policy.kept()
+        _due(policy).kept()
     assert policy._cooldown() == 8 * math.ceil(0.1 * 90 - 0.01)   # the backoff's cap, x8
     confirm = policy.config.confirm_frames
     statuses = [policy.update(TrackingStatus.OK, True, True, 0.9, T_far, (frames + k) / 90) for k in range(confirm)]
@@ -889,7 +977,7 @@ def test_a_found_pose_not_ok_is_searched_again_after_the_slow_trigger_moving_or_
         policy.update(ok, True, True, 0.9, np.eye(4), -1 / hz)
         if found:
             policy.pending = "a moved bone"
-            policy.done(0.0, "search")
+            _due(policy).done(0.0, "search")
         for k in range(int(4 * hz)):                        # 5 cm/s back and forth, 8 cm away: always moving
             x = 0.08 + 0.01 * math.sin(2 * math.pi * 1.25 * k / hz)
             policy.update(status, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([x, 0, 0])), k / hz)
@@ -924,7 +1012,7 @@ def test_a_found_pose_whose_fit_falls_below_the_search_bar_is_searched_again():
         policy.update(ok, True, True, 0.9, np.eye(4), -1 / hz)
         if found:
             policy.pending = "a moved bone"
-            policy.done(0.0, "search")
+            _due(policy).done(0.0, "search")
         for k in range(int(0.5 * hz)):                      # still, refined at a fit of 0.9: no other trigger
             policy.update(status, True, True, 0.9, far, k / hz, sharp=sharp)
             if policy.pending:
@@ -947,8 +1035,8 @@ def test_the_replay_summary_names_the_reinitialisations_and_the_searches():
 
     policy = _policy()
     policy.pending = "lost for 10 frames"
-    policy.done(101.25, "search")
-    policy.kept()
+    _due(policy).done(101.25, "search")
+    _due(policy).kept()
     recovery = {**policy.report(), "search": {"searches": 3, "found": 1, "kept": 1}}
     summary = {"frames": 10, "processing_rate_hz": 30.0, "particles": 200, "resolution": [160, 120],
                "sampling": "joint", "status_fraction": {"ok": 0.5, "uncertain": 0.5, "lost": 0.0}, "recovery": recovery}

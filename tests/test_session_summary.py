@@ -59,3 +59,13 @@ def test_latency_log_memory_does_not_grow_with_the_session_length():
     assert s["latency_first_ms"]["n"] == 301 and s["latency_last_ms"]["p99"] == pytest.approx(35.0)
     assert s["rate_hz"]["all"] == pytest.approx(30.0, rel=1e-3)
     assert s["latency_stages_ms"]["queue_wait"]["max"] == pytest.approx(4.0)
+    assert s["estimate_gap_ms"]["n"] == 17_999 and s["estimate_gap_ms"]["max"] == pytest.approx(1e3 / 30, rel=1e-6)
+
+
+def test_the_time_between_estimates_shows_a_loop_that_waited():
+    log = LatencyLog(window_s=10.0)
+    for i in range(90):
+        stamp = 100.0 + i / 30 + (3.3 if i >= 45 else 0.0)        # a 3.3 s wait after frame 44
+        log.add(_frame(stamp), stamp, stamp + 0.02, stamp + 0.021)
+    gap = log.summary()["estimate_gap_ms"]
+    assert gap["max"] == pytest.approx(3300 + 1e3 / 30, rel=2e-2) and gap["median"] == pytest.approx(1e3 / 30, rel=2e-2)

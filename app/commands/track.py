@@ -157,6 +157,10 @@ def print_summary(summary: dict, tracked: bool = True) -> None:
             window = summary.get("latency_window_s", 10)
             print(f"latency p99 over the first {window:.0f} s {first['p99']:.1f} ms, over the last {window:.0f} s "
                   f"{last['p99']:.1f} ms")
+        gap = summary.get("estimate_gap_ms") or {}
+        if gap.get("n"):
+            print(f"time between estimates: median {gap['median']:.1f} ms, p99 {gap['p99']:.1f} ms, "
+                  f"max {gap['max']:.1f} ms")
         stages = summary.get("latency_stages_ms") or {}
         if stages:
             print("where the time goes (median / p99 ms): " + ", ".join(

@@ -1,5 +1,12 @@
 """Automatic recovery of a lost track: when to re-initialise the filter, and around what.
 
+**Where the mode lives.** The tracker's mode (a search due and its reason, a pose awaiting its
+evidence, whether the track was ever ok) is the lifecycle's (app/tracking/lifecycle.py: explicit
+states, one transition table); this policy owns it (:attr:`RecoveryPolicy.lifecycle`) and moves it
+only by the table's events. The triggers below are the table's transitions into ``searching``, one
+ordered table of named tests (app/tracking/triggers.py); this policy counts their evidence (the runs
+of bad, not-ok, unseen, outside and below-bar frames) and the cooldown's backoff.
+
 Import as ``from app.filter.recovery import RecoveryPolicy``. Run on the tracker's parts by
 app/pipeline/recovery_runner.py in :class:`app.pipeline.tracker.DepthTracker` (issue 12, item 4), so
 replay, ``osteonav track`` and the bench all get it (``recovery.enabled``, **on by default** since
@@ -165,6 +172,8 @@ from app.filter.refine_track import pose_gap
 from app.filter.status import TrackingStatus
 from app.filter.weights import uniform_log_weights
 from app.geometry import quaternion as quat
+from app.tracking.lifecycle import Lifecycle, frame_event
+from app.tracking.triggers import Evidence, first_trigger
 
 RESPREAD, SMC, SEARCH = "respread", "smc", "search"
 FOUND_SIGMA_M, FOUND_SIGMA_RAD = 0.003, math.radians(3.0)   # the cloud about a pose the wide search found
@@ -218,6 +227,7 @@ class RecoveryConfig:
     start_sigmas: float = START_SIGMAS
     still_window_s: float = STILL_WINDOW_S
     max_backoff_doublings: int = MAX_BACKOFF_DOUBLINGS
+    search_worker: str = "auto"
 
 
 class FramePeriod:
@@ -246,11 +256,13 @@ class FramePeriod:
 
 @dataclass
 class Reinitialisation:
-    """One re-initialisation: stamp (s, the frame it ran on), kind ('respread' | 'smc'), reason."""
+    """One re-initialisation: stamp (s, the frame it ran on), kind ('respread' | 'smc' | 'search'), reason,
+    and the trigger's code (app/tracking/triggers.py; '' for one made due from outside)."""
 
     stamp: float
     kind: str
     reason: str
+    trigger: str = ""
 
 
 class RecoveryPolicy:
@@ -284,23 +296,19 @@ class RecoveryPolicy:
         self.T_base_bone_confident: np.ndarray | None = None
         self.T_base_bone_start: np.ndarray | None = None
         self.events: list[Reinitialisation] = []
-        self.pending: str | None = None        # the reason of a due re-initialisation
+        self.lifecycle = Lifecycle()           # the mode: a due search, a hypothesis awaiting evidence, ever ok
+        self.due_code = ""                     # the code of the trigger that made the due search due
         self._bad = 0
         self._not_ok = 0                       # weighed frames not ok in a row (while still)
         self._not_ok_moving = 0                # weighed frames not ok in a row, moving or not
         self._attempts = 0                     # since the last ok frame
         self._since = 10**9                    # frames since the last re-initialisation
         self._wait = 0                         # frames the next one waits after it (_due)
-        self._hold = 0
-        self._unconfirmed = False              # a re-initialised pose not yet confirmed (_confirmed)
-        self._confirm_start = False            # a detected start: confirmed by evidence only (set_found_start)
-        self._ok_run = 0
+        self._ok_run = 0                       # weighed frames in a row the rules find ok (after the hold)
         self._track: collections.deque = collections.deque(maxlen=TRACK_FRAMES)   # recent not-lost estimates
         self._unseen = 0                       # not-weighed frames in a row while not ok
-        self._ever_ok = False                  # the slow trigger needs an ok frame: the start pose is no evidence
         self.declined_searches = 0
         self.kept_searches = 0                 # searches that kept the track (no better pose found)
-        self._searching = False                # a search found nothing: retried until an ok frame or a found pose
         self._outside = 0                      # weighed frames in a row never ok and outside the start's prior
         self._below_bar = 0                    # weighed frames in a row an unconfirmed pose's fit is below search_bar
         self.last_sharp = math.nan             # the last weighed frame's refined fit's consistent sharp share
@@ -319,7 +327,8 @@ class RecoveryPolicy:
         frames in a row that the rules find ok); agreeing with the start pose is no evidence here, the
         start being the hypothesis itself."""
         self.set_start(T_base_bone)
-        self._unconfirmed, self._ok_run, self._confirm_start = True, 0, True
+        self._ok_run = 0
+        self.lifecycle.detected()
 
     def set_point_prior(self, point_base: np.ndarray | None) -> None:
         """A point on the bone in the base frame (m; trial or session ``point_prior``), or None."""
@@ -337,21 +346,12 @@ class RecoveryPolicy:
         rules_ok = status == TrackingStatus.OK
         if status != TrackingStatus.LOST:
             self._track.append(np.array(T_base_bone, float))
-        self.capped = ""
-        if self._hold > 0 and status == TrackingStatus.OK:
-            status, self.capped = TrackingStatus.UNCERTAIN, "holding"
-        if self._hold > 0 and weighed:
-            self._hold -= 1
-        confirmed = self._confirmed(status, weighed, T_base_bone)
-        if confirmed != status:
-            self.capped = "confirming"
-        status = confirmed
+        status = self._capped(status, weighed, T_base_bone)
         if status == TrackingStatus.OK:
-            self._ever_ok = True
+            self.lifecycle.passed()
             self.T_base_bone_confident = np.array(T_base_bone, float)
             self._attempts, self._bad, self._not_ok, self._unseen, self._not_ok_moving = 0, 0, 0, 0, 0
-            self._searching = False
-            return status
+            return self._frame(status, weighed)
         back = self._back_in_view(weighed)
         moving = self._moving(stamp, T_base_bone)
         beyond = self._beyond_start(T_base_bone)
@@ -367,34 +367,46 @@ class RecoveryPolicy:
             self._bad += 1
         elif weighed:
             self._bad = 0
-        c = self.config
-        after_lost = self.period.frames(c.after_lost_s)
-        if reason is not None and self._bad >= after_lost:
-            self._due(f"{reason} for {self._bad} frames")
-        elif self._outside >= after_lost:
-            self._due(f"never ok, {self._outside} weighed frames outside the start's prior "
-                      f"({self._gap_text(T_base_bone)} from the start)")
-        elif back and self._far(T_base_bone):
-            self._due(f"weighed again after {back} frames unseen, {self._gap_text(T_base_bone)} from the last ok pose")
-        elif (c.after_uncertain_s and (self._ever_ok or beyond)
-              and self._not_ok >= self.period.frames(c.after_uncertain_s) and self._far(T_base_bone)):
-            self._due(f"not ok for {self._not_ok} weighed frames, {self._gap_text(T_base_bone)} from the last ok pose")
-        elif (c.after_uncertain_s and (self._ever_ok or beyond) and self._far(T_base_bone)
-              and self._not_ok_moving >= self.period.frames(self._sliding_factor() * c.after_uncertain_s)):
-            self._due(f"not ok for {self._not_ok_moving} weighed frames, moving or not, "
-                      f"{self._gap_text(T_base_bone)} from the last ok pose")
-        elif self._below_bar >= after_lost and self._far(T_base_bone):
-            self._due(f"the found pose's fit below the search's bar for {self._below_bar} weighed frames "
-                      f"(sharp share {sharp:.2f} < {self.search_bar:.2f}), {self._gap_text(T_base_bone)} from the last ok pose")
-        elif (c.after_uncertain_s and not self._ever_ok and not self.events and not self.declined_searches
-              and not self.kept_searches
-              and self._not_ok >= self.period.frames(self.config.never_ok_search_s)):
-            self._due(f"never ok for {self._not_ok} weighed frames since the start: one wide search")
-        elif self._searching and weighed and not rules_ok and self._far(T_base_bone):
-            self._due(f"still searching ({self.declined_searches} searches found nothing, "
-                      f"{self.kept_searches} kept the track), "
-                      f"{self._gap_text(T_base_bone)} from the last ok pose")
+        evidence = self._evidence(reason, back, beyond, weighed, rules_ok, T_base_bone, sharp)
+        trigger = first_trigger(evidence)
+        if trigger is not None:
+            self._due(trigger.text(evidence), trigger.code)
+        return self._frame(status, weighed)
+
+    def _frame(self, status: TrackingStatus, weighed: bool) -> TrackingStatus:
+        """Step the lifecycle by the frame's own event (app/tracking/lifecycle.py ``frame_event``)."""
+        self.lifecycle.frame(frame_event(str(status), weighed, self.pending is not None, bool(self.capped)))
         return status
+
+    def _capped(self, status: TrackingStatus, weighed: bool, T_base_bone: np.ndarray) -> TrackingStatus:
+        """The lifecycle's caps on ok (module docstring, "Honesty"): the hypothesis' hold, then its
+        confirmation; ``capped`` names the one that applied ('' | 'holding' | 'confirming')."""
+        self.capped = ""
+        hypothesis = self.lifecycle.hypothesis
+        if hypothesis is not None and hypothesis.hold > 0:
+            if status == TrackingStatus.OK:
+                status, self.capped = TrackingStatus.UNCERTAIN, "holding"
+            if weighed:
+                hypothesis.hold -= 1
+        confirmed = self._confirmed(status, weighed, T_base_bone)
+        if confirmed != status:
+            self.capped = "confirming"
+        return confirmed
+
+    def _evidence(self, bad_reason: str | None, back: int, beyond: bool, weighed: bool, rules_ok: bool,
+                  T_base_bone: np.ndarray, sharp: float) -> Evidence:
+        """This frame's evidence for the triggers (app/tracking/triggers.py)."""
+        c, frames = self.config, self.period.frames
+        return Evidence(
+            bad_reason=bad_reason, bad=self._bad, outside=self._outside, back=back, not_ok=self._not_ok,
+            not_ok_moving=self._not_ok_moving, below_bar=self._below_bar, far=self._far(T_base_bone), beyond=beyond,
+            ever_ok=self.lifecycle.ever_ok, retrying=self.lifecycle.retrying,
+            untried=not self.events and not self.declined_searches and not self.kept_searches,
+            weighed=weighed, rules_ok=rules_ok, after_lost=frames(c.after_lost_s),
+            uncertain=frames(c.after_uncertain_s) if c.after_uncertain_s else 0,
+            sliding=frames(self._sliding_factor() * c.after_uncertain_s), never_ok=frames(c.never_ok_search_s),
+            gap=self._gap_text(T_base_bone), sharp=float(sharp), search_bar=self.search_bar,
+            declined=self.declined_searches, kept=self.kept_searches)
 
     def fit_below_bar(self) -> bool:
         """Whether the last weighed frame's refined fit scored below ``search_bar`` (the share the wide
@@ -426,12 +438,10 @@ class RecoveryPolicy:
             if weighed and status != TrackingStatus.OK:
                 self._ok_run = 0
             return status
-        if not self._far(T_base_bone) and not self._confirm_start:
-            self._unconfirmed = False
-            return status
+        if not self._far(T_base_bone) and not self.lifecycle.hypothesis.evidence_only:
+            return status                      # agrees with the last ok pose: confirmed (the lifecycle's passed)
         self._ok_run += 1 if weighed else 0
         if self._ok_run >= self.config.confirm_frames:
-            self._unconfirmed = self._confirm_start = False
             return status
         return TrackingStatus.UNCERTAIN
 
@@ -447,7 +457,7 @@ class RecoveryPolicy:
 
     def _beyond_start(self, T_base_bone: np.ndarray) -> bool:
         """Never ok and outside the start's prior: more than START_SIGMAS start sigmas from it."""
-        if self._ever_ok or self.T_base_bone_start is None:
+        if self.lifecycle.ever_ok or self.T_base_bone_start is None:
             return False
         dist, angle = pose_gap(self.T_base_bone_start, T_base_bone)
         k = self.config.start_sigmas
@@ -473,9 +483,30 @@ class RecoveryPolicy:
         angle = float(np.arccos(np.clip(cos, -1.0, 1.0)))
         return dist / dt > speed or angle / dt > angular
 
-    def _due(self, reason: str) -> None:
+    def _due(self, reason: str, code: str = "") -> None:
+        """A trigger fired: the lifecycle's ``search_due``, unless the cooldown runs or one is due already."""
         if self._since >= self._wait and self.pending is None:
-            self.pending = reason
+            self.lifecycle.search_due(reason)
+            self.due_code = code
+
+    @property
+    def pending(self) -> str | None:
+        """The reason of a due re-initialisation (the lifecycle's ``due``), or None."""
+        return self.lifecycle.due
+
+    @pending.setter
+    def pending(self, reason: str | None) -> None:
+        """Make one due (tests, and the tracker's own start), or none."""
+        self.due_code = ""
+        if reason is None:
+            self.lifecycle.due = None
+        else:
+            self.lifecycle.search_due(reason)
+
+    @property
+    def _unconfirmed(self) -> bool:
+        """A found or kept pose awaits its evidence (the lifecycle's hypothesis)."""
+        return self.lifecycle.hypothesis is not None
 
     def _bad_reason(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float,
                     T_base_bone: np.ndarray) -> str | None:
@@ -514,9 +545,8 @@ class RecoveryPolicy:
         wrong track that moves (sliding over the tissue) or fits the tissue well is no less so
         (or_fast_reposition crest_left_03 seed 1: with the retry tied to the trigger, the bone was not
         searched for again for 2.4 s; BENCHMARKS.md §6e)."""
-        self.pending = None
+        self.lifecycle.declined()
         self.declined_searches += 1
-        self._searching = True
         self._not_ok_moving = 0
         self._since, self._wait = 0, self.period.frames(self.config.search_retry_s)
 
@@ -539,11 +569,9 @@ class RecoveryPolicy:
         not every frame. A track never ok is not retried so (its "last ok pose" is the start: the
         residual-tissue tracks 2 mm from the truth lie 5 mm from their start, and were searched
         four times in 3.5 s for nothing; the triggers above still apply)."""
-        self.pending = None
-        self.kept_searches += 1
+        self.lifecycle.kept()      # retried if ever ok (a never-ok track has no last ok pose to be far from: its one search
+        self.kept_searches += 1    # is spent); a kept pose needs evidence, as a found one (a count under way goes on)
         self._attempts += 1
-        self._searching = self._ever_ok      # a never-ok track has no last ok pose to be far from: its one search is spent
-        self._unconfirmed = True   # a kept pose away from the last ok one needs evidence, as a found one (a count under way goes on)
         self._bad, self._not_ok, self._not_ok_moving, self._below_bar = 0, 0, 0, 0
         self._since, self._wait = 0, self._cooldown()
 
@@ -556,15 +584,13 @@ class RecoveryPolicy:
 
     def done(self, stamp: float, kind: str) -> None:
         """Record the re-initialisation that just ran; hold the status and restart the counts."""
-        self.events.append(Reinitialisation(float(stamp), kind, self.pending or ""))
-        self.pending = None
+        self.events.append(Reinitialisation(float(stamp), kind, self.pending or "", self.due_code))
+        self.lifecycle.reinitialised(self.config.hold_frames)
         self._attempts += 1
         self._since, self._bad, self._not_ok, self._not_ok_moving, self._below_bar = 0, 0, 0, 0, 0
         self._wait = self._cooldown()
         self._recent.clear()
-        self._hold = self.config.hold_frames
-        self._unconfirmed, self._ok_run = True, 0
-        self._searching, self._outside = False, 0
+        self._ok_run, self._outside = 0, 0
 
     # -- when a due attempt may run ------------------------------------------------------------
     def may_run(self, visible_share: float) -> bool:
@@ -603,4 +629,5 @@ class RecoveryPolicy:
         """The re-initialisations for the summaries: count, stamps, kinds and reasons."""
         return {"enabled": self.config.enabled, "reinitialisations": len(self.events),
                 "declined_searches": self.declined_searches, "kept_searches": self.kept_searches,
-                "events": [{"stamp": e.stamp, "kind": e.kind, "reason": e.reason} for e in self.events]}
+                "events": [{"stamp": e.stamp, "kind": e.kind, "reason": e.reason, "trigger": e.trigger}
+                           for e in self.events]}

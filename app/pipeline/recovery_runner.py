@@ -31,6 +31,7 @@ from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD, RESPREAD, SEARCH
 from app.filter.refine_track import RefinedTrack, pose_gap
 from app.filter.visibility import point_visible, visible_share
 from app.geometry.camera import PinholeCamera
+from app.tracking.search_worker import SearchJob
 
 log = logging.getLogger(__name__)
 KEPT_MOVE_M, KEPT_MOVE_RAD = 0.001, math.radians(1.0)
@@ -58,11 +59,12 @@ class RecoveryRunner:
         self.filter = particle_filter
         self.refined_track = refined_track
         self.run_smc = run_smc
+        self.worker = None        # app/tracking/search_worker.py's SearchWorker: searches off the frame loop
         self.work = {"searches": 0, "found": 0, "kept": 0, "evaluations": 0, "refinements": 0, "cpu_s": 0.0, "wall_s": 0.0}
 
     def may_run(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray | None) -> bool:
         """Whether the due attempt runs on this frame (module docstring)."""
-        if self.policy.pending is None or not usable_frame(depth_small, T_base_camera):
+        if self.policy.pending is None or self.searching or not usable_frame(depth_small, T_base_camera):
             return False
         if self.refined_track is None or self.policy.T_base_bone_confident is None:
             return True
@@ -98,21 +100,55 @@ class RecoveryRunner:
 
     def _search(self, depth_small: np.ndarray, depth_m: np.ndarray, T_base_camera: np.ndarray, stamp: float,
                 T_base_bone_now: np.ndarray | None) -> tuple[float, bool]:
-        """The wide search for a moved bone (app/filter/wide_search.py): a found pose seeds the cloud
-        (FOUND_SIGMA_M / _RAD about it) and the refinement's track (which resets the static prior:
-        the old base-frame pose must not drag it back); nothing found changes nothing; a search that
-        kept the current estimate (the incumbent explained the image best) moves the track onto the
-        incumbent's refined pose when that lies away from it (:meth:`_refined_in_place`)."""
+        """The wide search for a moved bone (app/filter/wide_search.py): inline, its outcome applied at
+        once (:meth:`_searched`); or handed to the worker (app/tracking/search_worker.py), its outcome
+        applied on a later frame (:meth:`take_search`), the track going on meanwhile (0 s, False)."""
         policy = self.policy
+        if self.worker is not None and self.worker.safe():
+            self.worker.submit(SearchJob(depth_small.copy(), depth_m.copy(), np.array(T_base_camera, float),
+                                         np.array(policy.T_base_bone_confident, float), policy.track_poses(),
+                                         None if T_base_bone_now is None else np.array(T_base_bone_now, float),
+                                         float(stamp)))
+            return 0.0, False
         wall0, cpu0 = time.perf_counter(), time.process_time()
         result = self.wide_search.run(depth_small, depth_m, T_base_camera, policy.T_base_bone_confident,
                                       policy.track_poses(), self.filter.rng, incumbent=T_base_bone_now)
+        seconds = time.perf_counter() - wall0
+        return self._searched(result, stamp, T_base_bone_now, seconds, time.process_time() - cpu0)
+
+    @property
+    def searching(self) -> bool:
+        """A search handed to the worker has not been taken yet (the track goes on meanwhile)."""
+        return self.worker is not None and self.worker.in_flight
+
+    def take_search(self, stamp: float) -> tuple[float, bool] | None:
+        """The worker's finished search applied on this frame (:meth:`_searched`), or None while it runs.
+        A search that failed counts as one that found nothing."""
+        if not self.searching or not self.worker.ready():
+            return None
+        job, outcome = self.worker.take()
+        if outcome is None:
+            self.work["searches"] += 1
+            self.policy.declined()
+            return 0.0, False
+        seconds, reinitialised = self._searched(outcome.result, stamp, job.incumbent, outcome.wall_s, outcome.cpu_s)
+        log.info("recovery at %.3f s: the search asked at %.3f s was taken (%.2f s on the worker)", stamp,
+                 job.stamp, outcome.wall_s)
+        return 0.0, reinitialised            # the frame loop did not wait: its seconds are the worker's
+
+    def _searched(self, result, stamp: float, T_base_bone_now: np.ndarray | None, seconds: float,
+                  cpu_s: float) -> tuple[float, bool]:
+        """Apply a wide search's result: a found pose seeds the cloud (FOUND_SIGMA_M / _RAD about it) and
+        the refinement's track (which resets the static prior: the old base-frame pose must not drag it
+        back); nothing found changes nothing; a search that kept the current estimate (the incumbent
+        explained the image best) moves the track onto the incumbent's refined pose when that lies away
+        from it (:meth:`_refined_in_place`)."""
+        policy = self.policy
         work = self.work
         work["searches"] += 1
         work["evaluations"] += result.evaluations
         work["refinements"] += result.refinements
-        work["cpu_s"] += time.process_time() - cpu0
-        seconds = time.perf_counter() - wall0
+        work["cpu_s"] += cpu_s
         work["wall_s"] += seconds
         if result.kept:
             work["kept"] += 1
@@ -201,10 +237,10 @@ def _wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedT
     no refinement to verify with)."""
     if not config.recovery.search or refined_track is None:
         return None
-    return build_wide_search(config, backend, camera, refined_track, vertices)
+    return build_wide_search(config, backend, camera, refined_track.refiner, vertices)
 
 
-def build_wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedTrack, vertices: np.ndarray):
+def build_wide_search(config, backend, camera: PinholeCamera, refiner, vertices: np.ndarray):
     """The wide search with the configured budget and bars (``recovery.search_evaluations``,
     ``status.min_fitness``, ``refine.nearby_margin``, ``status.max_behind_excess``): the recovery's,
     and the detector's for a start without a pose (app/tracking/detector.py)."""
@@ -212,7 +248,7 @@ def build_wide_search(config, backend, camera: PinholeCamera, refined_track: Ref
 
     search = SearchConfig(evaluations=config.recovery.search_evaluations, min_fitness=config.status.min_fitness,
                           margin=config.refine.nearby_margin, max_behind_excess=config.status.max_behind_excess)
-    return WideSearch(backend, camera, refined_track.refiner, vertices, search)
+    return WideSearch(backend, camera, refiner, vertices, search)
 
 
 def usable_frame(depth_small: np.ndarray, T_base_camera: np.ndarray | None) -> bool:

@@ -53,7 +53,8 @@ def recovery_text(recovery: dict) -> str:
     count = recovery.get("reinitialisations", len(events))
     text = f"{count} re-initialisation{'' if count == 1 else 's'}"
     if events:
-        stamps = ", ".join(f"{e['kind']} at {e['stamp']:.2f} s" for e in events[:4])
+        stamps = ", ".join(f"{e['kind']} at {e['stamp']:.2f} s" + (f" ({e['trigger']})" if e.get("trigger") else "")
+                           for e in events[:4])
         text += f" ({stamps}{', ...' if len(events) > 4 else ''})"
     search = recovery.get("search") or {}
     if search.get("searches"):

@@ -29,10 +29,11 @@ from app.filter.refine_track import RefinedTrack
 from app.filter.status import (Reason, RefinementEvidence, TrackingStatus, motion_reason, refinement_reasons,
                                with_refinement)
 from app.metrics import STATUS_CODE
-from app.tracking.lifecycle import Lifecycle
+from app.tracking.lifecycle import Lifecycle, State, frame_event
 from app.geometry.camera import PinholeCamera
 from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD
 from app.pipeline.recovery_runner import build_wide_search, make_recovery, usable_frame
+from app.tracking.search_worker import THREAD, SearchWorker, search_worker_mode
 from app.tracking.start import StartByDetection
 
 log = logging.getLogger(__name__)
@@ -50,7 +51,7 @@ class DepthTracker:
     """
 
     def __init__(self, config: TrackerConfig, mesh: trimesh.Trimesh, camera: PinholeCamera,
-                 T_flange_camera: np.ndarray | None = None):
+                 T_flange_camera: np.ndarray | None = None, live: bool = False):
         from app.mesh import outward_wound, prepare_mesh
         from app.render.backends import make_backend
 
@@ -62,6 +63,7 @@ class DepthTracker:
         width, height = config.resolution
         self.camera = camera.resized(width, height)
         cull = config.cull_back_faces and outward_wound(tracking_mesh)
+        self._mesh, self._camera_full, self._cull = mesh, camera, cull     # the search worker builds its own parts
         if config.cull_back_faces and not cull:
             log.warning("the mesh's triangles are not consistently wound outwards: back-face culling disabled (slower)")
         # gl_description names the backend that runs (and the GL renderer for gl); the summary and rerun show it
@@ -79,9 +81,12 @@ class DepthTracker:
         self._start_detection: StartByDetection | None = None   # init.method auto without a pose (start_by_detection)
         self.recovery_runner = make_recovery(config, self.backend, self.camera, self.filter, self.refined_track,
                                              self.mesh_vertices, self._run_smc)
+        if self.wide_search is not None and search_worker_mode(config.recovery.search_worker, live) == THREAD:
+            self.recovery_runner.worker = SearchWorker(self._worker_search,
+                                                       np.random.default_rng(self.filter.rng.integers(2**63)))
         self.template_points = "mesh_vertices"
         self._T_base_bone_last: np.ndarray | None = None
-        self.lifecycle = Lifecycle()
+        self._lifecycle = Lifecycle()        # without the recovery; with it, the recovery's (it drives the transitions)
         st = config.status
         self.motion_gate = MotionGate(st.motion_window_s, st.uncertain_speed, st.uncertain_angular_speed)
 
@@ -89,6 +94,19 @@ class DepthTracker:
     def recovery(self):
         """The recovery policy (app/filter/recovery.py), or None with ``recovery.enabled`` false."""
         return self.recovery_runner.policy if self.recovery_runner is not None else None
+
+    @property
+    def lifecycle(self) -> Lifecycle:
+        """The tracker's lifecycle (app/tracking/lifecycle.py): the recovery's, which its triggers and
+        attempts move, or the tracker's own without the recovery (moved by the frames' events alone)."""
+        return self.recovery.lifecycle if self.recovery is not None else self._lifecycle
+
+    def _new_lifecycle(self) -> None:
+        """A start begins a fresh lifecycle: no search due, no hypothesis, never ok yet."""
+        if self.recovery is not None:
+            self.recovery.lifecycle, self.recovery.due_code = Lifecycle(), ""
+        else:
+            self._lifecycle = Lifecycle()
 
     @property
     def wide_search(self):
@@ -99,7 +117,7 @@ class DepthTracker:
         """Spread the particles around a coarse initial pose (the surgeon's alignment)."""
         self.filter.initialise(T_base_bone)
         self.motion_gate.reset()
-        self.lifecycle = Lifecycle()
+        self._new_lifecycle()
         if self.refined_track is not None:
             self.refined_track.seed(T_base_bone, (self.config.init_sigma_p, self.config.init_sigma_r))
         if self.recovery is not None:
@@ -138,7 +156,7 @@ class DepthTracker:
         if not np.all(np.isfinite(point)):
             raise ValueError(f"the point on the bone must be 3 finite numbers, got {point_base!r}")
         self._pending_point = point
-        self.lifecycle = Lifecycle()
+        self._new_lifecycle()
         self._started_from_point = True
         if self.recovery is not None and self.recovery.point_prior is None:
             self.recovery.set_point_prior(point)
@@ -168,9 +186,9 @@ class DepthTracker:
             return
         prior_kind(point_base)                                        # a clear error for a malformed point
         point = None if point_base is None else np.asarray(point_base, float).reshape(3)
-        search = self.wide_search or build_wide_search(self.config, self.backend, self.camera, self.refined_track,
-                                                       self.mesh_vertices)     # recovery.search off: built alike
-        self.lifecycle = Lifecycle()
+        search = self.wide_search or build_wide_search(self.config, self.backend, self.camera,
+                                                       self.refined_track.refiner, self.mesh_vertices)     # recovery.search off: built alike
+        self._new_lifecycle()
         self._start_detection = StartByDetection(SearchDetector(search, self.filter.rng), point, point_source)
         if point is not None and self.recovery.point_prior is None:
             self.recovery.set_point_prior(point)
@@ -233,16 +251,22 @@ class DepthTracker:
                 self.motion_gate.reset()
             result = self._steady(self._refine(result, depth_m, T_base_camera), stamp)
         result = self._caps(result, stamp, reinitialised)
-        state = self.lifecycle.update(result, self.recovery, reinitialised)
+        state = self._state(result)
         result = replace(result, state=state.value,
                          reasons=result.reasons if result.status != TrackingStatus.OK else ())
         self._account(result)
         return result
 
     def _recover(self, depth_small, depth_m, T_base_camera, stamp: float) -> bool:
-        """Run a due re-initialisation (app/pipeline/recovery_runner.py); whether one ran."""
+        """Run a due re-initialisation (app/pipeline/recovery_runner.py), or take the worker's finished
+        search (app/tracking/search_worker.py); whether the track was re-initialised."""
         runner = self.recovery_runner
-        if runner is None or not runner.may_run(depth_small, depth_m, T_base_camera):
+        if runner is None:
+            return False
+        taken = runner.take_search(stamp)
+        if taken is not None:
+            return taken[1]
+        if not runner.may_run(depth_small, depth_m, T_base_camera):
             return False
         seconds, reinitialised = runner.run(depth_small, depth_m, T_base_camera, stamp, self._T_base_bone_last)
         self._timings["recovery_search"] += seconds
@@ -260,7 +284,18 @@ class DepthTracker:
                                       result.T_base_bone, stamp, sharp=result.refine_sharp)
         cap = self.recovery.capped
         reasons = result.reasons + ((Reason(cap, f"{cap} after a re-initialisation"),) if cap else ())
+        if self.recovery.lifecycle.state == State.SEARCHING:        # ok only in tracking: a due search caps it
+            trigger = self.recovery.due_code if self.recovery.pending else "retrying"
+            reasons += (Reason("searching", f"searching ({trigger or 'due'})"),)
+            status = _at_most_uncertain(status)
         return replace(result, status=status, reinitialised=reinitialised, reasons=reasons)
+
+    def _state(self, result: FilterOutput):
+        """The frame's lifecycle state: the recovery stepped its lifecycle in ``_caps``; without it the
+        frame's own event steps the tracker's."""
+        if self.recovery is not None:
+            return self.lifecycle.state
+        return self._lifecycle.frame(frame_event(str(result.status), bool(result.weighed), False, False))
 
     def _account(self, result: FilterOutput) -> None:
         """Remember the frame's pose and add its stage timings."""
@@ -332,7 +367,7 @@ class DepthTracker:
                             rotation_spread=float("inf"), ess=0.0, ess_ratio=0.0, log_likelihood_max=float("nan"),
                             status=TrackingStatus.LOST, inlier_fraction=float("nan"), covered_pixels=0, n_nan=0,
                             resampled=False, dt=0.0, weighed=False, timings={},
-                            state=self.lifecycle.step("waiting").value,
+                            state=self.lifecycle.frame("waiting").value,
                             reasons=(Reason("initialising", why),))
 
     def particle_positions(self) -> np.ndarray:
@@ -342,7 +377,22 @@ class DepthTracker:
     def mean_timings_ms(self) -> dict[str, float]:
         return {k: 1e3 * v / max(self._frames, 1) for k, v in self._timings.items()}
 
+    def _worker_search(self):
+        """The search worker's own wide search, built on its thread: its own likelihood backend (a GL
+        context belongs to its thread) and refiner, on the same mesh, cameras and configuration."""
+        from app.render.backends import make_backend
+
+        c = self.config
+        backend, _ = make_backend(c.backend, self.mesh_vertices, self.mesh_faces, self.camera, c.particles,
+                                  c.likelihood, near=c.near, far=c.far, cull_back_faces=self._cull)
+        mesh = self._mesh
+        refiner = Refiner(np.asarray(mesh.vertices, float), np.asarray(mesh.faces), self._camera_full,
+                          refine_params(c), seed=c.seed)
+        return build_wide_search(c, backend, self.camera, refiner, self.mesh_vertices)
+
     def release(self) -> None:
+        if self.recovery_runner is not None and self.recovery_runner.worker is not None:
+            self.recovery_runner.worker.close()
         self.backend.release()
 
 

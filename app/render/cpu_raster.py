@@ -57,15 +57,17 @@ _SQRT1_2 = 1.0 / math.sqrt(2.0)
 
 
 def _njit(parallel: bool = False):
-    """``numba.njit(cache=True, fastmath=False)``; without a writable cache location (a read-only
-    package directory and no usable NUMBA_CACHE_DIR or user cache) the kernel compiles uncached."""
+    """``numba.njit(cache=True, fastmath=False, nogil=True)``; without a writable cache location (a
+    read-only package directory and no usable NUMBA_CACHE_DIR or user cache) the kernel compiles
+    uncached. ``nogil``: a kernel releases the GIL, so a search on the worker thread
+    (app/tracking/search_worker.py) and the frame loop run side by side."""
     def wrap(fn):
         try:
-            return numba.njit(parallel=parallel, fastmath=False, cache=True)(fn)
+            return numba.njit(parallel=parallel, fastmath=False, cache=True, nogil=True)(fn)
         except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
             log.warning("numba cannot cache %s (%s); it compiles on every start. Set NUMBA_CACHE_DIR "
                         "to a writable folder to cache it", fn.__name__, exc)
-            return numba.njit(parallel=parallel, fastmath=False, cache=False)(fn)
+            return numba.njit(parallel=parallel, fastmath=False, cache=False, nogil=True)(fn)
     return wrap
 
 

@@ -80,7 +80,8 @@ class LatencyLog:
     capture->arrival (``frame.arrival - frame.stamp``: the source's own delay), queue wait (the
     loop's pop minus the arrival), tracker (joint interpolation and ``tracker.process``), sinks
     (every sink's ``on_estimate``). The frame-to-estimate latency is
-    ``capture->arrival + queue wait + tracker``; sinks run after the estimate is made. Overall
+    ``capture->arrival + queue wait + tracker``; sinks run after the estimate is made. The gap is the
+    time between two successive estimates (a loop that waits for a search shows one long gap). Overall
     figures come from :class:`StreamingStats`; the first and last ``window_s`` keep their frames.
     """
 
@@ -94,6 +95,7 @@ class LatencyLog:
         self.last: collections.deque = collections.deque()  # (t, latency) with t >= t_last - window_s
         self.t0: float | None = None
         self.t_last: float | None = None
+        self.gap = StreamingStats()                       # session-clock time between two estimates
 
     def add(self, frame: DepthFrame, t_pop: float, t_estimate: float, t_sinks_done: float) -> None:
         latency = t_estimate - frame.stamp
@@ -103,6 +105,8 @@ class LatencyLog:
             self.stages[key].add(value)
         if self.t0 is None:
             self.t0 = t_estimate
+        else:
+            self.gap.add(t_estimate - self.t_last)
         self.t_last = t_estimate
         if t_estimate <= self.t0 + self.window_s:
             self.first.append(latency)
@@ -113,7 +117,8 @@ class LatencyLog:
     def summary(self) -> dict:
         """Latency (ms) overall, per stage, and over the first and last ``window_s`` of the session."""
         out = {"latency_ms": _ms(self.latency.summary()),
-               "latency_stages_ms": {k: _ms(v.summary()) for k, v in self.stages.items()}}
+               "latency_stages_ms": {k: _ms(v.summary()) for k, v in self.stages.items()},
+               "estimate_gap_ms": _ms(self.gap.summary())}     # a search on the loop showed as one long gap
         if self.t0 is not None:
             window_s, n = self.window_s, self.latency.n
             out["latency_first_ms"] = _ms(_summary_stats(self.first))

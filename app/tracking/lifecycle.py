@@ -1,34 +1,37 @@
-"""The tracker's lifecycle: one explicit state per frame, moved by one named event through a table.
+"""The tracker's lifecycle: one explicit state, moved only by named events through one table.
 
 Import as ``from app.tracking.lifecycle import Lifecycle, State``. DESIGN.md "The status as a test,
-and the tracker's lifecycle". A frame is ok only in ``tracking``; the state is part of every frame's
-output (status.csv's ``state`` column, rerun, the summaries' shares).
+and the tracker's lifecycle"; issue 32. The lifecycle is the one owner of the tracker's mode: whether
+a search is due (and which trigger asked for it), whether the pose is a hypothesis awaiting its
+evidence, whether the track was ever ok. The recovery (app/filter/recovery.py) counts the evidence
+and names the event; this module decides what the event does (:data:`TRANSITIONS`). A frame is ok
+only in ``tracking``; the state is part of every frame's output (status.csv's ``state`` column,
+rerun, the summaries' shares).
 
 States:
-- ``initialising``: no pose yet (waiting for a frame to start from a point);
-- ``tracking``: the track follows the bone and the status's tests decide (ok when they all pass);
+- ``initialising``: no pose yet (waiting for a frame to start from, or the first frames of a start);
+- ``tracking``: the status's tests decide, and they found the last frame ok;
 - ``occluded``: the frame was not weighed (no camera pose, no depth, or the bone hidden): the pose is
   held, never ok;
-- ``suspect``: weighed, but a test failed: the track may be wrong; the recovery's triggers count
-  these frames (app/filter/recovery.py);
-- ``searching``: a re-initialisation is due or under way (the wide search, a re-spread or the
-  one-point SMC);
-- ``confirming``: a pose a re-initialisation found (away from the last ok one) awaits its evidence
-  (``recovery.hold_frames`` and ``recovery.confirm_frames``): never ok.
+- ``suspect``: weighed, but a test failed: the recovery's triggers count these frames;
+- ``searching``: a trigger fired (:mod:`app.tracking.triggers`) and a re-initialisation is due
+  (:attr:`Lifecycle.due`: it waits for a usable frame with the bone not hidden), or a search found
+  nothing / kept the track and is retried while the track stays far and not ok;
+- ``confirming``: a pose a detection found (a re-initialisation, a kept track, a detected start)
+  awaits its evidence (:class:`Hypothesis`: ``recovery.hold_frames``, then ``recovery.confirm_frames``).
 
-Events, one per frame, the first that applies (:func:`event`): ``waiting`` (not started),
-``reinitialised`` (a re-initialisation ran this frame), ``search_due`` (one is pending),
-``unseen`` (not weighed), ``capped`` (the recovery caps ok: hold or confirmation), ``ok``,
-``not_ok``.
-
-Today the recovery's triggers still live in app/filter/recovery.py's counters; this module states
-the states and their transitions explicitly and reports them, and the table is the contract the
-recovery's counters must respect (a transition the table does not hold raises: tests run every
-scenario through it).
+Events: per frame, one of ``waiting`` (before the start), ``search_due`` (a search is due), ``capped``
+(the rules found the frame ok but the hypothesis is not confirmed yet), ``ok``, ``unseen`` (not
+weighed), ``not_ok`` (:func:`frame_event`); within a frame, the recovery's: ``search_due`` (a trigger
+fired), ``reinitialised`` (a search found a pose, or a re-spread / SMC ran), ``kept`` (a search kept
+the track, which was ok before: retried), ``kept_once`` (a never-ok track's one search kept it),
+``declined`` (a search found nothing: retried), ``detected`` (a start without a pose found the bone).
+A pair the table does not hold raises: the tests run every scenario through it.
 """
 from __future__ import annotations
 
 import enum
+from dataclasses import dataclass
 
 
 class State(enum.StrEnum):
@@ -40,53 +43,54 @@ class State(enum.StrEnum):
     CONFIRMING = "confirming"
 
 
-EVENTS = ("waiting", "reinitialised", "search_due", "unseen", "capped", "ok", "not_ok")
+FRAME_EVENTS = ("waiting", "search_due", "capped", "ok", "unseen", "not_ok")
+RECOVERY_EVENTS = ("reinitialised", "kept", "kept_once", "declined", "detected")
+EVENTS = FRAME_EVENTS + RECOVERY_EVENTS
 
 S = State
+_SEEN = {"search_due": S.SEARCHING, "ok": S.TRACKING, "unseen": S.OCCLUDED, "not_ok": S.SUSPECT}
 # TRANSITIONS[state][event] -> next state. An absent pair is a transition the lifecycle does not have.
 TRANSITIONS: dict[State, dict[str, State]] = {
-    S.INITIALISING: {"waiting": S.INITIALISING, "reinitialised": S.CONFIRMING, "search_due": S.SEARCHING,
-                     "unseen": S.INITIALISING, "capped": S.CONFIRMING, "ok": S.TRACKING, "not_ok": S.SUSPECT},
-    S.TRACKING: {"reinitialised": S.CONFIRMING, "search_due": S.SEARCHING, "unseen": S.OCCLUDED,
-                 "capped": S.CONFIRMING, "ok": S.TRACKING, "not_ok": S.SUSPECT},
-    S.OCCLUDED: {"reinitialised": S.CONFIRMING, "search_due": S.SEARCHING, "unseen": S.OCCLUDED,
-                 "capped": S.CONFIRMING, "ok": S.TRACKING, "not_ok": S.SUSPECT},
-    S.SUSPECT: {"reinitialised": S.CONFIRMING, "search_due": S.SEARCHING, "unseen": S.OCCLUDED,
-                "capped": S.CONFIRMING, "ok": S.TRACKING, "not_ok": S.SUSPECT},
-    S.SEARCHING: {"reinitialised": S.CONFIRMING, "search_due": S.SEARCHING, "unseen": S.SEARCHING,
-                  "capped": S.CONFIRMING, "ok": S.TRACKING, "not_ok": S.SUSPECT},
-    S.CONFIRMING: {"reinitialised": S.CONFIRMING, "search_due": S.SEARCHING, "unseen": S.CONFIRMING,
-                   "capped": S.CONFIRMING, "ok": S.TRACKING, "not_ok": S.CONFIRMING},
+    S.INITIALISING: {"waiting": S.INITIALISING, "detected": S.CONFIRMING, "search_due": S.SEARCHING,
+                     "ok": S.TRACKING, "unseen": S.INITIALISING, "not_ok": S.SUSPECT},
+    S.TRACKING: dict(_SEEN),
+    S.OCCLUDED: dict(_SEEN),
+    S.SUSPECT: dict(_SEEN),
+    S.SEARCHING: {"search_due": S.SEARCHING, "reinitialised": S.CONFIRMING, "kept": S.SEARCHING,
+                  "kept_once": S.CONFIRMING, "declined": S.SEARCHING, "capped": S.SEARCHING, "ok": S.TRACKING,
+                  "unseen": S.SEARCHING, "not_ok": S.SEARCHING},
+    S.CONFIRMING: {"search_due": S.SEARCHING, "capped": S.CONFIRMING, "ok": S.TRACKING,
+                   "unseen": S.CONFIRMING, "not_ok": S.CONFIRMING},
 }
-"""Notes on the table: ``unseen`` keeps ``searching`` and ``confirming`` (a hand over the bone does not
-end a search or confirm a found pose); ``not_ok`` keeps ``confirming`` while the recovery still
-awaits the found pose's evidence; ``ok`` is reached from every state but ``initialising`` waiting."""
+"""Notes on the table: only ``searching`` runs a re-initialisation (``reinitialised``, ``kept``,
+``kept_once``, ``declined``); ``unseen`` and ``not_ok`` keep ``searching`` (the search is retried
+until an ok frame or a found pose) and ``confirming`` (a hand over the bone does not confirm nor
+refute a found pose); ``capped`` exists only where a hypothesis does; ``ok`` (confirmed) is reached
+from every state."""
 
 
-def event(status: str, weighed: bool, reinitialised: bool, pending: bool, capped: bool, waiting: bool) -> str:
-    """The frame's one event (module docstring), the first that applies."""
-    if waiting:
-        return "waiting"
-    if reinitialised:
-        return "reinitialised"
-    if pending:
-        return "search_due"
-    if capped:
-        return "capped"
-    if status == "ok":
-        return "ok"
-    if not weighed:
-        return "unseen"
-    return "not_ok"
+@dataclass
+class Hypothesis:
+    """A pose that awaits its evidence (app/filter/recovery.py, "Honesty"): ``hold`` weighed frames
+    still capped at uncertain after a re-initialisation; ``evidence_only``: a detected start, for which
+    agreeing with the start pose is no evidence (the start is the hypothesis itself)."""
+
+    hold: int = 0
+    evidence_only: bool = False
 
 
 class Lifecycle:
-    """The current state and its history's counts (for the summaries)."""
+    """The current state, the due search's reason, the hypothesis under confirmation, whether the track
+    was ever ok, and the frames' counts per state (for the summaries)."""
 
     def __init__(self, state: State = State.INITIALISING):
         self.state = State(state)
+        self.due: str | None = None                 # searching: the trigger's reason while the attempt waits to run
+        self.hypothesis: Hypothesis | None = None   # confirming (or searching again): the pose awaiting evidence
+        self.ever_ok = False
         self.counts: dict[str, int] = {s.value: 0 for s in State}
 
+    # -- the table -----------------------------------------------------------------------------
     def step(self, name: str) -> State:
         """Apply one event (one of EVENTS); a pair the table does not hold raises ValueError."""
         if name not in EVENTS:
@@ -95,16 +99,72 @@ class Lifecycle:
         if nxt is None:
             raise ValueError(f"the lifecycle has no transition from {self.state.value} on {name!r}")
         self.state = nxt
-        self.counts[nxt.value] += 1
         return nxt
 
-    def update(self, result, recovery, reinitialised: bool) -> State:
-        """The state of a tracked frame from the tracker's result (status, weighed) and the recovery policy
-        (its pending re-initialisation, its cap on ok); a frame before the start steps ``waiting``."""
-        pending = recovery is not None and recovery.pending is not None
-        capped = recovery is not None and bool(recovery.capped)
-        return self.step(event(str(result.status), bool(result.weighed), bool(reinitialised), pending, capped,
-                               waiting=False))
+    def frame(self, name: str) -> State:
+        """The frame's own event (one of FRAME_EVENTS, :func:`frame_event`), stepped and counted: the
+        state a frame reports is the state after it."""
+        state = self.step(name)
+        self.counts[state.value] += 1
+        return state
+
+    def passed(self) -> None:
+        """The frame's final status is ok (confirmed, if there was a hypothesis): the track has been ok
+        (the slow triggers need that, app/tracking/triggers.py)."""
+        self.ever_ok, self.hypothesis = True, None
+
+    # -- the recovery's events -------------------------------------------------------------------
+    @property
+    def retrying(self) -> bool:
+        """Searching with no attempt due: a search found nothing or kept the track, and is retried."""
+        return self.state == State.SEARCHING and self.due is None
+
+    def search_due(self, reason: str) -> None:
+        """A trigger fired (app/tracking/triggers.py): a re-initialisation is due, for ``reason``."""
+        self.step("search_due")
+        self.due = reason
+
+    def reinitialised(self, hold_frames: int) -> None:
+        """The due attempt re-initialised the track (a found pose, a re-spread, the SMC): a new hypothesis,
+        held for ``hold_frames`` weighed frames (a detected start's evidence-only rule carries over)."""
+        self.step("reinitialised")
+        evidence_only = self.hypothesis is not None and self.hypothesis.evidence_only
+        self.due, self.hypothesis = None, Hypothesis(hold_frames, evidence_only)
+
+    def kept(self) -> None:
+        """The due search kept the track: the kept pose is a hypothesis too (a confirmation under way goes
+        on); retried if the track was ever ok, else its one search is spent (``kept_once``)."""
+        self.step("kept" if self.ever_ok else "kept_once")
+        self.due = None
+        if self.hypothesis is None:
+            self.hypothesis = Hypothesis()
+
+    def declined(self) -> None:
+        """The due search found nothing: nothing changed, retried."""
+        self.step("declined")
+        self.due = None
+
+    def detected(self) -> None:
+        """A start without a pose found the bone: the found pose is a hypothesis, by evidence only."""
+        self.step("detected")
+        self.hypothesis = Hypothesis(evidence_only=True)
+
+
+
+def frame_event(status: str, weighed: bool, due: bool, capped: bool, waiting: bool = False) -> str:
+    """The frame's own event, the first that applies: ``waiting``, ``search_due`` (a search is due: the
+    frame stays searching, even if the rules find it ok), ``capped``, ``ok``, ``unseen``, ``not_ok``."""
+    if waiting:
+        return "waiting"
+    if due:
+        return "search_due"
+    if capped:
+        return "capped"
+    if status == "ok":
+        return "ok"
+    if not weighed:
+        return "unseen"
+    return "not_ok"
 
 
 def mermaid() -> str:

@@ -40,6 +40,8 @@ REASONS: dict[str, tuple[str, str, str]] = {
     "holding": ("lifecycle", "the frames right after a re-initialisation", "recovery.hold_frames"),
     "confirming": ("lifecycle", "a re-initialised pose away from the last ok one awaits its evidence",
                    "recovery.confirm_frames"),
+    "searching": ("lifecycle", "a trigger found the track suspect: a re-initialisation is due, or a search found "
+                  "nothing and is retried (the text names the trigger: the triggers' table)", "recovery.*"),
     "other": ("-", "a reason without a code (a plugin's)", "-"),
 }
 

@@ -1,0 +1,137 @@
+"""Searches off the frame loop: a wide search runs on a worker thread while the track goes on.
+
+Import as ``from app.tracking.search_worker import SearchWorker``. Issue 35, Deliver 3: a wide search
+(1-4 s of CPU) blocked a live session's frame loop, with no estimate meanwhile. With
+``recovery.search_worker`` ``thread`` (``auto``: in a live session, ``osteonav track``) the recovery
+hands the due search to this worker and the tracker goes on with its track, in the lifecycle's
+``searching`` state (never ok); the result is taken on the first frame after it is ready and applied
+there (app/pipeline/recovery_runner.py): a found pose is a base-frame pose, so the camera's motion
+since the search's frame is already in it (the robot's encoders), and the bone is taken to have
+stayed where the search saw it (the found pose then awaits its confirmation, as always). Replays and
+benchmarks search inline (``auto``), so that a replay is reproducible frame for frame.
+
+The worker owns its own likelihood backend and refiner, built on its thread at the first search
+(a GL context belongs to the thread that made it; the tracker's are busy with the frames), and its
+own random generator, drawn once from the tracker's. The numba kernels release the GIL
+(app/render/cpu_raster.py ``_njit``), so on two cores the search and the frames run side by side.
+A search that raises is logged and counts as one that found nothing: the session goes on.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+INLINE, THREAD, AUTO = "inline", "thread", "auto"
+MODES = (AUTO, INLINE, THREAD)
+
+
+def search_worker_mode(choice: str, live: bool) -> str:
+    """``recovery.search_worker`` resolved: ``auto`` is ``thread`` in a live session, else ``inline``."""
+    if choice not in MODES:
+        raise ValueError(f"recovery.search_worker must be one of {', '.join(MODES)}, got {choice!r}")
+    return (THREAD if live else INLINE) if choice == AUTO else choice
+
+
+@dataclass
+class SearchJob:
+    """One search's inputs, copied at the frame it was asked on: the images, the camera pose, the last
+    ok pose, the track's poses, the incumbent (the track's estimate then) and the frame's stamp."""
+
+    depth_small: np.ndarray
+    depth_m: np.ndarray
+    T_base_camera: np.ndarray
+    T_base_bone_ok: np.ndarray
+    track: list
+    incumbent: np.ndarray | None
+    stamp: float
+
+
+@dataclass
+class SearchOutcome:
+    """The wide search's result with its cost: wall and CPU seconds on the worker's thread."""
+
+    result: object
+    wall_s: float
+    cpu_s: float
+
+
+class SearchWorker:
+    """One search at a time on a worker thread.
+
+    Parameters
+    ----------
+    build : () -> WideSearch, called once on the worker's thread (its own backend and refiner)
+    rng : the worker's generator
+    """
+
+    def __init__(self, build: Callable[[], object], rng: np.random.Generator):
+        self._build, self.rng = build, rng
+        self._search = None
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="osteonav-search")
+        self._future: Future | None = None
+        self.job: SearchJob | None = None
+
+    @property
+    def in_flight(self) -> bool:
+        """A search was handed over and its outcome not taken yet."""
+        return self._future is not None
+
+    def ready(self) -> bool:
+        """The search in flight has finished (its outcome can be taken)."""
+        return self._future is not None and self._future.done()
+
+    @staticmethod
+    def safe() -> bool:
+        """Whether two threads may run numba's parallel kernels at once: not under its ``workqueue``
+        threading layer (numba aborts the process); the recovery then searches inline."""
+        import numba
+
+        try:
+            return numba.threading_layer() != "workqueue"
+        except ValueError:                                  # no parallel kernel ran yet: the layer is not chosen
+            return True
+
+    def submit(self, job: SearchJob) -> None:
+        """Hand a search over (one at a time)."""
+        if self._future is not None:
+            raise RuntimeError("a search is already in flight")
+        self.job = job
+        self._future = self._executor.submit(self._run, job)
+
+    def take(self) -> tuple[SearchJob, SearchOutcome | None]:
+        """The finished search's job and outcome (None when it raised: logged; it found nothing)."""
+        future, job = self._future, self.job
+        self._future = self.job = None
+        try:
+            return job, future.result()
+        except Exception:                                   # a failed search must not end the session
+            log.exception("the wide search on the worker failed; treated as one that found nothing")
+            return job, None
+
+    def _run(self, job: SearchJob) -> SearchOutcome:
+        if self._search is None:
+            self._search = self._build()
+        wall0, cpu0 = time.perf_counter(), time.thread_time()
+        result = self._search.run(job.depth_small, job.depth_m, job.T_base_camera, job.T_base_bone_ok, job.track,
+                                  self.rng, incumbent=job.incumbent)
+        return SearchOutcome(result, time.perf_counter() - wall0, time.thread_time() - cpu0)
+
+    def close(self) -> None:
+        """Wait for a search in flight, release the worker's backend on its own thread (a GL context's),
+        and stop the thread."""
+        try:
+            self._executor.submit(self._release).result()
+        finally:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+
+    def _release(self) -> None:
+        backend = getattr(self._search, "backend", None)
+        if backend is not None and hasattr(backend, "release"):
+            backend.release()
+        self._search = None
