@@ -20,6 +20,9 @@ def register(subparsers) -> None:
     p.add_argument("--views", type=positive_int, default=1,
                    help="simulator seeds per crest and scenario (bone tilt, tissue), >= 1 (default 1)")
     p.add_argument("--seeds", type=positive_int, default=1, help="point draws per view, >= 1 (default 1)")
+    p.add_argument("--first-seed", type=int_at_least(0), default=0,
+                   help="the first point draw: draws FIRST-SEED .. FIRST-SEED + SEEDS - 1, >= 0 (default 0; "
+                   "another subset of the same starts)")
     p.add_argument("--seconds", type=positive_seconds, default=2.5, help="trial length in seconds, > 0 (default 2.5)")
     p.add_argument("--off-mm", type=finite_float, nargs=2, default=(2.0, 5.0), metavar=("LOW", "HIGH"),
                    help="the point's distance off the crest's top, 0 <= LOW <= HIGH mm (default 2 5)")
@@ -33,8 +36,9 @@ def register(subparsers) -> None:
     p.add_argument("--work", default="recordings/bench_init",
                    help="folder the simulated trials are cached in (default: recordings/bench_init)")
     p.add_argument("--json", help="where to write the results (an existing file needs --overwrite; default: "
-                   "recordings/bench_init.json, or a dated name beside it when that exists)")
-    add_overwrite_argument(p, "the --json file")
+                   "recordings/bench_init.json, or a dated name beside it when that exists); the plot of success "
+                   "against budget goes beside it, the same name with .png")
+    add_overwrite_argument(p, "the --json file and its plot")
     p.set_defaults(func=run)
 
 
@@ -43,6 +47,8 @@ def run(args) -> int:
     import time
     from pathlib import Path
 
+    from app.bench import budget
+    from app.commands.outdir import prepare_file
     from app.errors import OsteonavError
 
     low, high = args.off_mm
@@ -56,6 +62,7 @@ def run(args) -> int:
         raise OsteonavError(f"--crests {args.crests}: no mesh matches in {pelvis}")
     default = "recordings/bench_init_samplers.json" if args.samplers else "recordings/bench_init.json"
     args.json = str(results_file(args.json, default, args.overwrite))
+    png = prepare_file(Path(args.json).with_suffix(".png"), args.overwrite, "--json's plot")
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -63,7 +70,7 @@ def run(args) -> int:
     for mesh in meshes:
         for scenario in args.scenarios:
             for view in range(args.views):
-                for seed in range(args.seeds):
+                for seed in range(args.first_seed, args.first_seed + args.seeds):
                     rows.extend(_one(args, work, mesh, scenario, view, seed, first=not rows))
     if args.samplers:
         report = _samplers_report(rows)
@@ -71,7 +78,8 @@ def run(args) -> int:
         report = _start_report(rows, args.no_point)
     report["args"] = {k: str(v) for k, v in vars(args).items() if k != "func"}
     Path(args.json).write_text(json.dumps(report, indent=2))
-    print(f"\n{len(rows)} runs in {time.perf_counter() - t0:.0f} s; wrote {args.json}")
+    budget.plot(report["budget"], png, _plot_title(args, rows))
+    print(f"\n{len(rows)} runs in {time.perf_counter() - t0:.0f} s; wrote {args.json} and {png}")
     if not args.samplers and report["missed"]:
         print(f"{report['missed']} of {len(rows)} starts missed (not within 1 mm, or ok while > 2 mm off): exit 1")
         return 1
@@ -125,7 +133,7 @@ def _compare(trial, budget: int, seed: int):
 
 
 def _start_report(rows: list[dict], no_point: bool) -> dict:
-    from app.bench import start
+    from app.bench import budget, start
 
     crests = start.per_crest(rows)
     print()
@@ -135,13 +143,26 @@ def _start_report(rows: list[dict], no_point: bool) -> dict:
     print(f"\nworst crest: {worst['crest']} ({worst['found_1mm']}/{worst['runs']} within 1 mm, CPU max "
           f"{worst['cpu_s_max']} s); frames ok while > 2 mm off: {sum(c['ok_off_2mm'] for c in crests)}"
           f"{' (no point: the whole image)' if no_point else ''}")
-    return {"runs": rows, "crests": crests, "worst": worst, "missed": missed}
+    method = "detector, whole image" if no_point else "detector, from the point"
+    solved = [{"method": method, "evaluations": r["evaluations"],
+               "evaluations_to_success": r["evaluations"] if r["found_1mm"] else None} for r in rows]
+    return {"runs": rows, "crests": crests, "worst": worst, "missed": missed,
+            "budget": budget.curve(solved, "method")}
 
 
 def _samplers_report(rows: list[dict]) -> dict:
+    from app.bench import budget
     from app.bench.samplers import sampler_table
 
     table, per_sampler = sampler_table(rows)
     print()
     print(table)
-    return {"runs": rows, "samplers": per_sampler}
+    return {"runs": rows, "samplers": per_sampler, "budget": budget.curve(rows, "sampler")}
+
+
+def _plot_title(args, rows: list[dict]) -> str:
+    """The plot's title: what was run, and what success means there."""
+    starts = len({(r["crest"], r["scenario"], r["view"], r["seed"]) for r in rows})
+    what = ("success within 2 mm / 2 deg on the start's first frame" if args.samplers else
+            "the replay's start: the frame found on within 1 mm ADD")
+    return f"osteonav bench-init: {starts} starts ({', '.join(args.scenarios)}); {what}"

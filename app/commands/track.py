@@ -169,6 +169,10 @@ def print_summary(summary: dict, tracked: bool = True) -> None:
               f"{summary.get('frames_skipped_by_tracker', 0)} in the tracker queue (newer frame waiting)")
     if tracked and summary.get("status_counts"):
         print("status: " + ", ".join(f"{k} {v}" for k, v in sorted(summary["status_counts"].items())))
+    if tracked and summary.get("start"):
+        from app.pipeline.report import start_text
+
+        print(f"start: {start_text(summary['start'])}")
     if summary.get("events"):
         print("events: " + ", ".join(f"{k} x{v}" for k, v in sorted(summary["events"].items())))
     rss, rate = summary.get("rss_mb") or {}, summary.get("rate_hz") or {}

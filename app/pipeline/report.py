@@ -72,9 +72,13 @@ def print_summary(summary: dict) -> None:
 
 def start_text(start: dict) -> str:
     """The detected start (summary's ``start`` block, init.method auto without a pose) in one line."""
-    where = "from the point" if start["method"] == "detect_point" else "over the whole image (experimental)"
+    where = {"detect_point": "from the point",
+             "detect_pointed": f"from the {start.get('source', 'pointed point')}"}.get(
+        start["method"], "over the whole image (experimental)")
     work = (f"{start['attempts']} attempt(s), {start['evaluations']} evaluations, {start['refinements']} refinements, "
             f"{start['cpu_s']:.2f} s CPU")
+    if start["method"] == "detect_pointed" and start.get("point") is None:
+        return f"detector {where}: never located ({start.get('waiting') or 'no usable frame'}; {work})"
     if not start["found"]:
         return f"detector {where}: the bone not found ({work})"
     return f"detector {where}: found on the frame stamped {start['found_stamp']:.3f} s ({work}); ok once confirmed"

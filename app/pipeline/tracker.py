@@ -161,10 +161,12 @@ class DepthTracker:
         if self.recovery is not None and self.recovery.point_prior is None:
             self.recovery.set_point_prior(point)
 
-    def start_by_detection(self, point_base: np.ndarray | None) -> None:
+    def start_by_detection(self, point_base: np.ndarray | None, point_source=None) -> None:
         """Start without a pose (``init.method: auto``; issue 33): the detector (app/tracking/detector.py,
         the wide search around the point, verified by the refinement) on the first usable frame, from
-        ``point_base`` (base frame, m) when given, else over the whole image (experimental); retried
+        ``point_base`` (base frame, m) when given, or from the first point ``point_source`` locates
+        (app/tracking/start.py's PointSource, e.g. the session's pointed pixel: the frames before it has
+        one are lost, 'initialising', with its reason), else over the whole image (experimental); retried
         every DETECT_RETRY_S while it finds nothing (those frames are lost, 'initialising'). A found
         pose seeds the particles (the recovery's FOUND_SIGMA_M / _RAD about it) and the refined track as
         a verified fit, and is ok only once confirmed (RecoveryPolicy.set_found_start). Needs the
@@ -176,8 +178,10 @@ class DepthTracker:
             if point_base is None:
                 from app.errors import ConfigError
 
-                raise ConfigError("init.method", "'auto' without a pose or a point searches the whole image, which "
-                                  "needs refine.enabled and recovery.enabled true: enable them or give a pose")
+                what = ("a point located live (bone.pointed_pixel, bone.pointer)" if point_source is not None else
+                        "'auto' without a pose or a point searches the whole image, which")
+                raise ConfigError("init.method", f"{what} needs refine.enabled and recovery.enabled true: enable "
+                                  "them or give a pose")
             self.start_from_point(point_base)
             return
         prior_kind(point_base)                                        # a clear error for a malformed point
@@ -185,7 +189,7 @@ class DepthTracker:
         search = self.wide_search or build_wide_search(self.config, self.backend, self.camera,
                                                        self.refined_track.refiner, self.mesh_vertices)     # recovery.search off: built alike
         self._new_lifecycle()
-        self._start_detection = StartByDetection(SearchDetector(search, self.filter.rng), point)
+        self._start_detection = StartByDetection(SearchDetector(search, self.filter.rng), point, point_source)
         if point is not None and self.recovery.point_prior is None:
             self.recovery.set_point_prior(point)
 
@@ -200,6 +204,8 @@ class DepthTracker:
         detection = self._start_detection
         if detection is not None and detection.pending:
             T_found = detection.attempt(depth_small, depth_m, T_base_camera, stamp)
+            if detection.source is not None and detection.point is not None and self.recovery.point_prior is None:
+                self.recovery.set_point_prior(detection.point)        # the located point, kept for the recovery
             if T_found is None:
                 return False
             self.filter.set_state(self.recovery.state_around(T_found, self.config.particles, self.filter.rng,
@@ -349,17 +355,20 @@ class DepthTracker:
         """A lost result while the one-point initialiser waits for a frame it can use (the pose: the
         pointed point, identity rotation; a lost status blanks every output that would use it)."""
         T_base_bone = np.eye(4)
-        point = self._pending_point if self._start_detection is None else self._start_detection.point
+        detection = self._start_detection
+        point = self._pending_point if detection is None else detection.point
         if point is not None:
             T_base_bone[:3, 3] = point
+        why = ("waiting for a frame to start from the point" if detection is None else
+               detection.waiting or ("waiting for a frame to locate the " + detection.source.description
+                                     if detection.source is not None and detection.point is None else
+                                     "the detector has not found the bone yet"))
         return FilterOutput(T_base_bone=T_base_bone, position_spread=float("inf"),
                             rotation_spread=float("inf"), ess=0.0, ess_ratio=0.0, log_likelihood_max=float("nan"),
                             status=TrackingStatus.LOST, inlier_fraction=float("nan"), covered_pixels=0, n_nan=0,
                             resampled=False, dt=0.0, weighed=False, timings={},
                             state=self.lifecycle.frame("waiting").value,
-                            reasons=(Reason("initialising", "waiting for a frame to start from the point"
-                                            if self._start_detection is None else
-                                            "the detector has not found the bone yet"),))
+                            reasons=(Reason("initialising", why),))
 
     def particle_positions(self) -> np.ndarray:
         """(N, 3) particle positions in the base frame (metres); (0, 3) before the start has set any."""
@@ -401,18 +410,30 @@ def _inner(tracker):
 
 
 def tracker_report(tracker) -> dict:
-    """``DepthTracker.report()`` for a summary ({} for a tracker without one, e.g. the ICP baseline)."""
+    """``DepthTracker.report()`` for a summary ({} for a tracker without one, e.g. the ICP baseline),
+    with the detected start's report (``start``) when the tracker started by detection."""
     inner = _inner(tracker)
-    return inner.report() if hasattr(inner, "report") else {}
+    report = inner.report() if hasattr(inner, "report") else {}
+    start = getattr(inner, "start_report", None)
+    return {**report, "start": start} if start is not None else report
 
 
-def start_tracker(tracker, initial_pose: np.ndarray | None, point_prior: np.ndarray | None) -> None:
+def start_tracker(tracker, initial_pose: np.ndarray | None, point_prior: np.ndarray | None,
+                  point_source=None) -> None:
     """Start a session's or a replay's tracker by its ``init.method`` (:func:`start_method`): from the
     coarse initial pose, from the point prior through the detector (DepthTracker.start_by_detection),
     or by the one-point initialiser (``point``: never ok, DepthTracker.start_from_point); the point
     prior is kept for the recovery either way. A tracker without ``init.method`` (the ICP baseline)
-    starts from the pose."""
+    starts from the pose.
+
+    ``point_source`` (app/tracking/start.py's PointSource: the session's ``bone.pointed_pixel`` or
+    ``bone.pointer``) is a point given live, located on the first frame that allows it: the detector
+    starts from it, never from a pose or another point (the caller gives none with it), and only under
+    ``init.method: auto``."""
     inner = _inner(tracker)
+    if point_source is not None:
+        _start_from_source(inner, initial_pose, point_prior, point_source)
+        return
     if point_prior is not None and hasattr(inner, "set_point_prior"):
         inner.set_point_prior(point_prior)
     method = start_method(getattr(getattr(inner, "config", None), "init_method", "pose"), initial_pose, point_prior)
@@ -427,6 +448,22 @@ def start_tracker(tracker, initial_pose: np.ndarray | None, point_prior: np.ndar
 
         raise ConfigError("bone.initial_pose", "missing: this tracker starts from a coarse 4x4 T_base_bone "
                           "(or give bone.point_prior for the particle filter)")
+
+
+def _start_from_source(inner, initial_pose, point_prior, point_source) -> None:
+    """:func:`start_tracker` with a live point: the detector from the source's point (checked here: a
+    pose or a point beside it, another init.method or a tracker without the detector are refused)."""
+    from app.errors import ConfigError
+
+    if initial_pose is not None or point_prior is not None:
+        raise ConfigError("bone", "a live point (pointed_pixel, pointer) starts the tracker on its own: give no "
+                          "initial_pose or point_prior with it")
+    init_method = getattr(getattr(inner, "config", None), "init_method", None)
+    if init_method != "auto" or not hasattr(inner, "start_by_detection"):
+        raise ConfigError("init.method", f"a live point (bone.pointed_pixel, bone.pointer) needs the particle filter's "
+                          f"init.method 'auto' (the detector), got {init_method!r}: set init.method: auto "
+                          "in the tracker's config, or start from bone.initial_pose")
+    inner.start_by_detection(None, point_source)
 
 
 def start_method(init_method: str, initial_pose, point_prior) -> str:

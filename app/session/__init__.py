@@ -10,7 +10,10 @@ A session file (YAML, ``format: osteonav-session/1``; examples in ``configs/sess
       intrinsics: null                        # optional; default: what the camera reports
     bone:
       mesh: ../../data/bone.ply               # the bone frame, metres
-      initial_pose: ../../calib/initial_pose.yaml   # 4x4 T_base_bone (a file, or inline)
+      initial_pose: ../../calib/initial_pose.yaml   # 4x4 T_base_bone (a file, or inline); or, instead,
+      # point_prior: [0.61, -0.12, 0.05]      # a point on the bone, base frame, m (the detector starts there)
+      # pointed_pixel: [424, 240]             # a depth pixel on the bone (column, row) of the first usable frame
+      # pointer: {marker_id: 7, marker_length_m: 0.03, tip_offset_m: [0, -0.12, 0]}   # a tool's tip (ArUco)
     outputs: [{plugin: rerun, params: {path: session.rrd}}]
     record: recordings/today                  # optional: record the sensors as a trial
     out: recordings/today-tracking            # estimate.txt, status.csv, events.csv, summary.json

@@ -60,6 +60,8 @@ class SessionConfig:
     mesh: Path | None = None
     initial_pose: np.ndarray | None = None
     point_prior: np.ndarray | None = None
+    pointed_pixel: tuple[float, float] | None = None
+    pointer: dict | None = None
     record: Path | None = None
     out: Path | None = None
     loop: LoopConfig = field(default_factory=LoopConfig)
@@ -128,6 +130,74 @@ def _point3(key: str, value: Any, src: str) -> np.ndarray | None:
         raise ConfigError(key, f"expected a point on the bone in the base frame, metres: [x, y, z] (3 finite "
                           f"numbers, e.g. [0.61, -0.12, 0.05]), got {value!r}", src)
     return p
+
+
+def _pixel2(key: str, value: Any, src: str) -> tuple[float, float] | None:
+    """``bone.pointed_pixel``: a pixel (u, v) of the full-resolution depth image of the first usable
+    frame, column then row, pixel centres at integers (app/tracking/start.py's PointedPixel); that it
+    lies inside the image is checked when the camera has said its size (:func:`check_pointed_pixel`)."""
+    if value is None:
+        return None
+    ok = isinstance(value, (list, tuple)) and len(value) == 2 and all(_is_number(v) for v in value)
+    uv = np.asarray(value, dtype=float) if ok else None
+    if uv is None or not np.all(np.isfinite(uv)) or np.any(uv < 0):
+        raise ConfigError(key, f"expected a pixel of the depth image: [u, v] (2 numbers >= 0, column then row, "
+                          f"full resolution, e.g. [424, 240]), got {value!r}", src)
+    return float(uv[0]), float(uv[1])
+
+
+POINTER_KEYS = ("marker_id", "marker_length_m", "tip_offset_m", "dictionary", "stream")
+
+
+def _pointer(key: str, value: Any, src: str) -> dict | None:
+    """``bone.pointer``: a pointer tool whose tip starts the tracker (app/tracking/pointer.py): its ArUco
+    marker (``marker_id`` >= 0, ``marker_length_m``, the printed square's side in metres, ``dictionary``,
+    default DICT_4X4_50), the tip in the marker frame (``tip_offset_m``: [x, y, z], metres) and the
+    camera stream it is seen in (``stream``: ir, the default, or color)."""
+    if value is None:
+        return None
+    block = _mapping(key, value, src)
+    for k in block:
+        _allowed(f"{key}.{k}", k, POINTER_KEYS, src)
+    for k in ("marker_id", "marker_length_m", "tip_offset_m"):
+        if k not in block:
+            raise ConfigError(f"{key}.{k}", "missing: a pointer names its marker_id, marker_length_m and "
+                              "tip_offset_m", src)
+    marker_id = block["marker_id"]
+    if not isinstance(marker_id, int) or isinstance(marker_id, bool) or marker_id < 0:
+        raise ConfigError(f"{key}.marker_id", f"expected the marker's id, an integer >= 0, got {marker_id!r}", src)
+    length = block["marker_length_m"]
+    if not _is_number(length) or not 0 < length < 0.5:
+        raise ConfigError(f"{key}.marker_length_m", f"expected the printed square's side in metres, 0 < L < 0.5 "
+                          f"(e.g. 0.03), got {length!r}", src)
+    tip = block["tip_offset_m"]
+    ok = isinstance(tip, (list, tuple)) and len(tip) == 3 and all(_is_number(v) for v in tip)
+    if not ok or not np.all(np.isfinite(tip)) or np.linalg.norm(tip) >= 0.5:
+        raise ConfigError(f"{key}.tip_offset_m", f"expected the tip in the marker frame, metres: [x, y, z] (3 finite "
+                          f"numbers, less than 0.5 m from the marker's centre, e.g. [0, -0.12, 0]), got {tip!r}", src)
+    dictionary = block.get("dictionary", "DICT_4X4_50")
+    try:
+        from app.marker.aruco import dictionary as aruco_dictionary
+
+        aruco_dictionary(str(dictionary))
+    except ValueError as exc:
+        raise ConfigError(f"{key}.dictionary", str(exc), src) from None
+    stream = block.get("stream", "ir")
+    _allowed(f"{key}.stream", stream, ("ir", "color"), src)
+    return {"marker_id": marker_id, "marker_length_m": float(length), "tip_offset_m": [float(v) for v in tip],
+            "dictionary": str(dictionary), "stream": stream}
+
+
+def check_pointed_pixel(pixel: tuple[float, float] | None, camera: PinholeCamera, src: str | None = None) -> None:
+    """``bone.pointed_pixel`` inside the camera's ``width`` x ``height`` depth image, or a ConfigError
+    naming the key, the image's size and the fix."""
+    if pixel is None:
+        return
+    u, v = pixel
+    if not (u <= camera.width - 1 and v <= camera.height - 1):
+        raise ConfigError("bone.pointed_pixel", f"[{u:g}, {v:g}] lies outside the camera's {camera.width}x"
+                          f"{camera.height} depth image: give 0 <= u <= {camera.width - 1} (column) and "
+                          f"0 <= v <= {camera.height - 1} (row), at the depth image's full resolution", src)
 
 
 def _plugin(kind: str, value: Any, base: Path, src: str, default: str | None = None) -> PluginSpec:
@@ -221,7 +291,13 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
     intrinsics = _intrinsics(calib.get("intrinsics"), base, src)
     bone = _mapping("bone", raw.get("bone"), src)
     for k in bone:
-        _allowed(f"bone.{k}", k, ("mesh", "initial_pose", "point_prior"), src)
+        _allowed(f"bone.{k}", k, ("mesh", "initial_pose", "point_prior", "pointed_pixel", "pointer"), src)
+    starts = [k for k in ("initial_pose", "point_prior", "pointed_pixel", "pointer") if bone.get(k) is not None]
+    for live in ("pointed_pixel", "pointer"):
+        if live in starts and len(starts) > 1:
+            other = next(k for k in starts if k != live)
+            raise ConfigError(f"bone.{live}", f"a live point starts the tracker on its own: give bone.{live} or "
+                              f"bone.{other}, not both", src)
     mesh = _resolve(base, bone.get("mesh"))
     if mesh is not None and not mesh.is_file():
         raise ConfigError("bone.mesh", f"file not found: {mesh}", src)
@@ -231,6 +307,8 @@ def parse_session(raw: dict, base: Path, src: str = "(session)", path: Path | No
         hand_eye=_matrix4("calibration.hand_eye", calib.get("hand_eye"), base, src), intrinsics=intrinsics,
         mesh=mesh, initial_pose=_matrix4("bone.initial_pose", bone.get("initial_pose"), base, src),
         point_prior=_point3("bone.point_prior", bone.get("point_prior"), src),
+        pointed_pixel=_pixel2("bone.pointed_pixel", bone.get("pointed_pixel"), src),
+        pointer=_pointer("bone.pointer", bone.get("pointer"), src),
         record=_resolve(base, raw.get("record")), out=_resolve(base, raw.get("out")), loop=loop,
     )
 
@@ -263,7 +341,10 @@ def _loop_config(loop_raw: dict, src: str) -> LoopConfig:
 
 
 def resolve_session(config: SessionConfig, camera_model: PinholeCamera, defaults: dict) -> dict:
-    """Calibration, robot model, mesh, initial pose and point prior: the file's, else the sources'."""
+    """Calibration, robot model, mesh, initial pose and point prior: the file's, else the sources'. A
+    live point (``bone.pointed_pixel``, ``bone.pointer``) replaces the sources' initial pose and point
+    prior (the file's start is the live point; a simulated or recorded trial's own start is not used);
+    the pointed pixel is checked against the camera's image size."""
     from app.geometry.ur import dh_from_config
 
     robot = config.robot_model or defaults.get("robot")
@@ -275,6 +356,11 @@ def resolve_session(config: SessionConfig, camera_model: PinholeCamera, defaults
     mesh = config.mesh or defaults.get("mesh")
     initial_pose = config.initial_pose if config.initial_pose is not None else defaults.get("initial_pose")
     point_prior = config.point_prior if config.point_prior is not None else defaults.get("point_prior")
-    return {"camera": config.intrinsics or camera_model, "robot": robot, "dh": dh_from_config(robot),
+    camera = config.intrinsics or camera_model
+    check_pointed_pixel(config.pointed_pixel, camera, str(config.path) if config.path else None)
+    if config.pointed_pixel is not None or config.pointer is not None:
+        initial_pose = point_prior = None
+    return {"camera": camera, "robot": robot, "dh": dh_from_config(robot),
             "T_flange_camera": np.asarray(T_flange_camera, float), "mesh_path": Path(mesh) if mesh else None,
-            "initial_pose": initial_pose, "point_prior": point_prior}
+            "initial_pose": initial_pose, "point_prior": point_prior, "pointed_pixel": config.pointed_pixel,
+            "pointer": config.pointer}

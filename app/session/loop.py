@@ -79,6 +79,7 @@ class LiveLoop:
         self.estimate_files: EstimateFiles | None = None
         self.core = FrameCore(None, [], now=self.clock.now)   # wired in open(): tracker, files + output sinks
         self.bus: Bus | None = None
+        self.point_source = None                # a live point for the start (bone.pointed_pixel / bone.pointer)
         self.ctx: dict = {}
         self.started: list = []
         self.statuses: Counter = Counter()
@@ -120,11 +121,39 @@ class LiveLoop:
     def _create_tracker(self, mesh):
         if mesh is None:
             raise ConfigError("bone.mesh", "missing: the tracker needs the bone mesh")
-        if self.ctx["initial_pose"] is None and self.ctx.get("point_prior") is None:
-            raise ConfigError("bone.initial_pose", "missing: the tracker starts from a coarse 4x4 T_base_bone")
+        if all(self.ctx.get(k) is None for k in ("initial_pose", "point_prior", "pointed_pixel", "pointer")):
+            raise ConfigError("bone.initial_pose", "missing: the tracker starts from a coarse 4x4 T_base_bone "
+                              "(or a point on the bone: bone.point_prior, bone.pointed_pixel or bone.pointer)")
         spec = self.config.tracker
         return registry.create("tracker", spec.name, spec.params, "tracker", mesh=mesh, camera=self.ctx["camera"],
                                T_flange_camera=self.ctx["T_flange_camera"])
+
+    def _point_source(self):
+        """The session's live point, or None: ``bone.pointed_pixel`` (app/tracking/start.py's PointedPixel
+        on the depth camera the tracker was given) or ``bone.pointer`` (app/tracking/pointer.py's
+        PointerTip in the camera's infrared or colour stream, which must be delivered)."""
+        pixel, pointer = self.ctx.get("pointed_pixel"), self.ctx.get("pointer")
+        if pixel is not None:
+            from app.tracking.start import PointedPixel
+
+            return PointedPixel(pixel, self.ctx["camera"])
+        if pointer is None:
+            return None
+        from app.tracking.pointer import PointerTip
+
+        streams = self.ctx.get("image_streams")
+        stream = pointer["stream"]
+        delivered = getattr(streams, "infrared" if stream == "ir" else "color", None)
+        if delivered is None:
+            raise ConfigError("bone.pointer.stream", f"the pointer is seen in the camera's {stream!r} stream, which "
+                              f"this camera does not deliver ({', '.join(streams.names) if streams else 'depth only'}"
+                              f"): add it to the camera's streams (e.g. camera.params.streams: "
+                              f"\"depth,{stream}\") or set bone.pointer.stream to one it delivers")
+        marker = {k: pointer[k] for k in ("marker_id", "marker_length_m", "tip_offset_m", "dictionary")}
+        if stream == "ir":
+            return PointerTip(**marker, camera=self.ctx["camera"], stream="ir")
+        return PointerTip(**marker, camera=delivered.camera, stream="color", distortion=delivered.distortion,
+                          T_depth_image=delivered.T_depth_color)
 
     def _open_sinks(self) -> None:
         specs = list(self.config.outputs)
@@ -139,7 +168,8 @@ class LiveLoop:
     def start(self) -> None:
         """Start the tracker and the sources (robot first); the duration counts from here."""
         if self.tracker is not None:
-            start_tracker(self.tracker, self.ctx["initial_pose"], self.ctx.get("point_prior"))
+            self.point_source = self._point_source()
+            start_tracker(self.tracker, self.ctx["initial_pose"], self.ctx.get("point_prior"), self.point_source)
         self.robot.start(self.bus.push_joints)
         self.started.append(self.robot)
         self.t_sources = self.clock.now()
@@ -195,6 +225,8 @@ class LiveLoop:
         floor = None
         if T_base_camera is None:   # capped without a camera pose: uncertain, lost after robot_lost_s
             floor = "lost" if t_pop - self.last_pose_host > self.lc.robot_lost_s else "uncertain"
+        if hasattr(self.point_source, "observe"):   # the pointer sees this frame's image before the tracker asks
+            self.point_source.observe(frame)
         est = self.core.process(frame, T_base_camera, reasons, floor)
         self.statuses[est.status] += 1
         self.blocked.update(codes(est.reasons))
