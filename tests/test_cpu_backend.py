@@ -239,3 +239,27 @@ def test_the_fused_evidence_counts_equal_depth_evidence_on_random_inputs(option,
             assert backend.evidence(T, depth, 30) == want
             counts.append(want.covered_pixels)
         assert max(counts) > 300 and min(counts) == 0, "seen and unseen poses both tested"
+
+
+def test_a_camera_in_a_faces_plane_renders_without_dividing_by_zero():
+    """A box over a flat table seen with the camera in the plane of one of its faces: that face's
+    interpolated 1 / z is exactly 0 over its bounding box, and numba raised ZeroDivisionError (the
+    tracker stopped). Now such pixels are never kept, and the likelihood is finite."""
+    import trimesh
+
+    from app.config import load_config
+    from app.geometry.camera import PinholeCamera
+    from app.pipeline.tracker import DepthTracker
+
+    mesh = trimesh.creation.box((0.08, 0.03, 0.02))
+    camera = PinholeCamera(width=160, height=120, K=np.array([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]]))
+    T_camera_bone = np.array([[-0.70710678118654791, 0.70710678118654713, 0.0, -0.016011002862997004],
+                              [0.70710678118654713, 0.70710678118654791, 1.2246467991473532e-16, 0.040557539631926764],
+                              [8.6595605623549279e-17, 8.6595605623549378e-17, -1.0, 0.51],
+                              [0.0, 0.0, 0.0, 1.0]])
+    assert abs((np.linalg.inv(T_camera_bone) @ [0, 0, 0, 1])[0] + 0.04) < 1e-12     # in the x = -4 cm face's plane
+    config = load_config(None)
+    tracker = DepthTracker(replace(config, backend="cpu"), mesh, camera)
+    ll = tracker.backend.log_likelihood(T_camera_bone[None], np.full((120, 160), 0.5, np.float32))
+    assert np.all(np.isfinite(ll))
+    tracker.release()

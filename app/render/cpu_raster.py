@@ -124,7 +124,8 @@ def _raster_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, cam, cull, zbuf):
             wa, wb, wc = row_a + a_a * fu, row_b + a_b * fu, row_c + a_c * fu
             # branch-free (the branches of ~1-pixel triangles mispredict): the tests of
             # "skip if wa < 0 or wb < 0 or wc < 0 or z > far or z < near', keep the nearer" as one mask
-            z = 1.0 / (wa * iza + wb * izb + wc * izc)
+            den = wa * iza + wb * izb + wc * izc          # 0 where the camera lies in the face's plane
+            z = 1.0 / den if den != 0.0 else math.inf      # (numba raises on 1 / 0): never kept
             current = zbuf[v, u]
             keep = ((not wa < 0.0) & (not wb < 0.0) & (not wc < 0.0) & (not z > far) & (not z < near_lo)
                     & ((current <= 0.0) | (z < current)))
