@@ -235,7 +235,10 @@ def test_a_simulated_session_started_from_a_pointed_pixel_finds_the_bone(tmp_pat
 
     lockstep_sessions(monkeypatch, lead_s=0.005)
     tracker_config = tmp_path / "tracker.yaml"
-    tracker_config.write_text(yaml.safe_dump({"recovery": {"confirm_frames": CONFIRM_FRAMES}}))
+    # the detector inline: the lockstep clock does not wait for a search worker (a live session's start
+    # detects on it, tests/test_start_detection.py), and the pointed pixel's start is what is under test
+    tracker_config.write_text(yaml.safe_dump({"recovery": {"confirm_frames": CONFIRM_FRAMES,
+                                                           "search_worker": "inline"}}))
     u, v = _pixel_of_the_crest_top(sim_trial)
     session = {"camera": {"plugin": "simulated", "params": {**SIM, "trial_dir": str(sim_trial)}},
                "robot": {"plugin": "simulated", "params": {**SIM, "trial_dir": str(sim_trial)}},

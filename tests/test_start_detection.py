@@ -265,3 +265,35 @@ def test_a_point_start_that_finds_nothing_reports_lost_initialising_frames_and_d
     start = result.summary["start"]
     assert not start["found"] and start["attempts"] == 1 and start["evaluations"] > 0
     assert set(result.statuses) == {"lost"}
+
+
+def test_a_live_start_detects_on_the_worker_while_the_frames_go_on(crest_trial):
+    """recovery.search_worker thread (a live session's): the detector runs on the search worker; the
+    frames meanwhile are lost, 'initialising', never ok; the first frame after the worker finished
+    takes its pose (within 1 mm of the truth), and the start's report counts that one attempt. No wall
+    time: the test waits for the worker, never for a clock."""
+    from app.pipeline.tracker import DepthTracker
+    from app.trial.reader import open_trial
+
+    reader = open_trial(crest_trial)
+    config = _cpu_config()
+    config = replace(config, recovery=replace(config.recovery, search_worker="thread"))
+    mesh = reader.load_mesh()
+    tracker = DepthTracker(config, mesh, reader.meta.camera)
+    tracker.start_by_detection(np.asarray(reader.meta.point_prior))
+    worker = tracker._start_detection.worker
+    assert worker is tracker.recovery_runner.worker and worker is not None
+    T_base_camera, valid = reader.camera_poses()
+    frames = list(reader.iter_frames())
+    first = tracker.process(frames[0].depth_m, frames[0].stamp, T_base_camera[0])     # hands the detection over
+    assert worker.in_flight and first.state == "initialising" and first.status == "lost"
+    worker._future.result()                                                            # the worker finishes
+    taken = tracker.process(frames[1].depth_m, frames[1].stamp, T_base_camera[1])
+    points = np.asarray(mesh.vertices)
+    from app import metrics
+
+    assert not tracker._start_detection.pending and taken.state == "confirming" and taken.status != "ok"
+    assert 1e3 * metrics.add(taken.T_base_bone, reader.groundtruth[1], points) < 1.0
+    report = tracker.start_report
+    assert report["found"] and report["attempts"] == 1 and report["found_stamp"] == pytest.approx(frames[1].stamp)
+    tracker.release()

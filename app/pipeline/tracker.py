@@ -190,6 +190,8 @@ class DepthTracker:
                                                        self.refined_track.refiner, self.mesh_vertices)     # recovery.search off: built alike
         self._new_lifecycle()
         self._start_detection = StartByDetection(SearchDetector(search, self.filter.rng), point, point_source)
+        if self.recovery_runner is not None and self.recovery_runner.worker is not None:
+            self._start_detection.worker = self.recovery_runner.worker      # a live session: off the frame loop
         if point is not None and self.recovery.point_prior is None:
             self.recovery.set_point_prior(point)
 

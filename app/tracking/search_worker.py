@@ -8,7 +8,9 @@ hands the due search to this worker and the tracker goes on with its track, in t
 there (app/pipeline/recovery_runner.py): a found pose is a base-frame pose, so the camera's motion
 since the search's frame is already in it (the robot's encoders), and the bone is taken to have
 stayed where the search saw it (the found pose then awaits its confirmation, as always). Replays and
-benchmarks search inline (``auto``), so that a replay is reproducible frame for frame.
+benchmarks search inline (``auto``), so that a replay is reproducible frame for frame. A start
+without a pose (the detector from a point, app/tracking/start.py) runs on the same worker: the frames
+before it finds the bone are 'initialising' (lost) as when it searched inline, but they keep coming.
 
 The worker owns its own likelihood backend and refiner, built on its thread at the first search
 (a GL context belongs to the thread that made it; the tracker's are busy with the frames), and its
@@ -49,6 +51,18 @@ class SearchJob:
     T_base_bone_ok: np.ndarray
     track: list
     incumbent: np.ndarray | None
+    stamp: float
+
+
+@dataclass
+class DetectJob:
+    """A start's detection (app/tracking/start.py): the images, the camera pose, the point (or None:
+    the whole image) and the frame's stamp, copied at the frame it was asked on."""
+
+    depth_small: np.ndarray
+    depth_m: np.ndarray
+    T_base_camera: np.ndarray
+    point: np.ndarray | None
     stamp: float
 
 
@@ -97,7 +111,7 @@ class SearchWorker:
         except ValueError:                                  # no parallel kernel ran yet: the layer is not chosen
             return True
 
-    def submit(self, job: SearchJob) -> None:
+    def submit(self, job: SearchJob | DetectJob) -> None:
         """Hand a search over (one at a time)."""
         if self._future is not None:
             raise RuntimeError("a search is already in flight")
@@ -114,12 +128,21 @@ class SearchWorker:
             log.exception("the wide search on the worker failed; treated as one that found nothing")
             return job, None
 
-    def _run(self, job: SearchJob) -> SearchOutcome:
+    def _run(self, job: SearchJob | DetectJob) -> SearchOutcome:
+        """The job on the worker's thread: the recovery's wide search, or a start's detection (the
+        result then is (Detection or None, the detector's (evaluations, refinements)))."""
         if self._search is None:
             self._search = self._build()
         wall0, cpu0 = time.perf_counter(), time.thread_time()
-        result = self._search.run(job.depth_small, job.depth_m, job.T_base_camera, job.T_base_bone_ok, job.track,
-                                  self.rng, incumbent=job.incumbent)
+        if isinstance(job, DetectJob):
+            from app.tracking.detector import SearchDetector
+
+            detector = SearchDetector(self._search, self.rng)
+            found = detector.detect(job.depth_small, job.depth_m, job.T_base_camera, job.point)
+            result = (found, detector.last_work)
+        else:
+            result = self._search.run(job.depth_small, job.depth_m, job.T_base_camera, job.T_base_bone_ok,
+                                      job.track, self.rng, incumbent=job.incumbent)
         return SearchOutcome(result, time.perf_counter() - wall0, time.thread_time() - cpu0)
 
     def close(self) -> None:

@@ -100,6 +100,7 @@ class StartByDetection:
         self.waiting = ""           # why the source located no point on the last frame ('' once it has)
         self.located_stamp: float | None = None
         self.pending = True
+        self.worker = None          # app/tracking/search_worker.py's SearchWorker in a live session, else inline
         self.detection = None
         self._next_stamp = -math.inf
         self.work = {"attempts": 0, "evaluations": 0, "refinements": 0, "cpu_s": 0.0, "wall_s": 0.0}
@@ -109,15 +110,43 @@ class StartByDetection:
                 stamp: float) -> np.ndarray | None:
         """One attempt on this usable frame when one is due: the found T_base_bone, or None (nothing
         found, or the retry not due yet)."""
-        if not self.pending or stamp < self._next_stamp or not self._located(depth_m, T_base_camera, stamp):
+        if not self.pending or not self._located(depth_m, T_base_camera, stamp):
+            return None
+        if self.worker is not None and (self.worker.in_flight or self.worker.safe()):
+            return self._on_worker(depth_small, depth_m, T_base_camera, stamp)
+        if stamp < self._next_stamp:
             return None
         wall0, cpu0 = time.perf_counter(), time.process_time()
         found = self.detector.detect(depth_small, depth_m, T_base_camera, self.point)
+        return self._attempted(found, self.detector.last_work, time.process_time() - cpu0,
+                               time.perf_counter() - wall0, stamp)
+
+    def _on_worker(self, depth_small, depth_m, T_base_camera, stamp: float) -> np.ndarray | None:
+        """The attempt on the search worker (app/tracking/search_worker.py, a live session): taken on the
+        first frame after it finished (its frame's result; the camera's motion since is in the base
+        frame's pose), else handed over when due; None meanwhile (the frames go on, 'initialising')."""
+        from app.tracking.search_worker import DetectJob
+
+        worker = self.worker
+        if worker.in_flight:
+            if not worker.ready():
+                return None
+            job, outcome = worker.take()
+            found, spent = outcome.result if outcome is not None else (None, (0, 0))
+            return self._attempted(found, spent, 0.0 if outcome is None else outcome.cpu_s,
+                                   0.0 if outcome is None else outcome.wall_s, stamp)
+        if stamp >= self._next_stamp:
+            worker.submit(DetectJob(depth_small.copy(), depth_m.copy(), np.array(T_base_camera, float),
+                                    None if self.point is None else self.point.copy(), float(stamp)))
+        return None
+
+    def _attempted(self, found, spent: tuple, cpu_s: float, wall_s: float, stamp: float) -> np.ndarray | None:
+        """Count an attempt's work; the found T_base_bone, or None (retried DETECT_RETRY_S later)."""
         work = self.work
         work["attempts"] += 1
-        work["cpu_s"] += time.process_time() - cpu0
-        work["wall_s"] += time.perf_counter() - wall0
-        evaluations, refinements = self.detector.last_work
+        work["cpu_s"] += cpu_s
+        work["wall_s"] += wall_s
+        evaluations, refinements = spent
         work["evaluations"] += int(evaluations)
         work["refinements"] += int(refinements)
         if found is None:
