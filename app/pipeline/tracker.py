@@ -84,6 +84,7 @@ class DepthTracker:
         if self.wide_search is not None and search_worker_mode(config.recovery.search_worker, live) == THREAD:
             self.recovery_runner.worker = SearchWorker(self._worker_search,
                                                        np.random.default_rng(self.filter.rng.integers(2**63)))
+            self.recovery_runner.worker.prepare()
         self.template_points = "mesh_vertices"
         self._T_base_bone_last: np.ndarray | None = None
         self._lifecycle = Lifecycle()        # without the recovery; with it, the recovery's (it drives the transitions)

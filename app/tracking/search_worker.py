@@ -14,13 +14,15 @@ before it finds the bone are 'initialising' (lost) as when it searched inline, b
 
 The worker owns its own likelihood backend and refiner, built on its thread at the first search
 (a GL context belongs to the thread that made it; the tracker's are busy with the frames), and its
-own random generator, drawn once from the tracker's. The numba kernels release the GIL
-(app/render/cpu_raster.py ``_njit``), so on two cores the search and the frames run side by side.
+own random generator, drawn once from the tracker's; it is built when the tracker is (:meth:`prepare`).
+The numba kernels release the GIL (app/render/cpu_raster.py ``_njit``) and the worker runs them on
+one thread, so on two cores the search and the frames run side by side.
 A search that raises is logged and counts as one that found nothing: the session goes on.
 """
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -31,6 +33,8 @@ import numpy as np
 log = logging.getLogger(__name__)
 INLINE, THREAD, AUTO = "inline", "thread", "auto"
 MODES = (AUTO, INLINE, THREAD)
+SWITCH_INTERVAL_S = 0.0005   # the GIL handed over every 0.5 ms, not Python's 5: the frame loop's many short
+                             # Python steps between GIL-free kernels each waited up to 5 ms for the worker
 
 
 def search_worker_mode(choice: str, live: bool) -> str:
@@ -86,6 +90,8 @@ class SearchWorker:
 
     def __init__(self, build: Callable[[], object], rng: np.random.Generator):
         self._build, self.rng = build, rng
+        if sys.getswitchinterval() > SWITCH_INTERVAL_S:
+            sys.setswitchinterval(SWITCH_INTERVAL_S)
         self._search = None
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="osteonav-search")
         self._future: Future | None = None
@@ -131,8 +137,7 @@ class SearchWorker:
     def _run(self, job: SearchJob | DetectJob) -> SearchOutcome:
         """The job on the worker's thread: the recovery's wide search, or a start's detection (the
         result then is (Detection or None, the detector's (evaluations, refinements)))."""
-        if self._search is None:
-            self._search = self._build()
+        self._built()
         wall0, cpu0 = time.perf_counter(), time.thread_time()
         if isinstance(job, DetectJob):
             from app.tracking.detector import SearchDetector
@@ -144,6 +149,20 @@ class SearchWorker:
             result = self._search.run(job.depth_small, job.depth_m, job.T_base_camera, job.T_base_bone_ok,
                                       job.track, self.rng, incumbent=job.incumbent)
         return SearchOutcome(result, time.perf_counter() - wall0, time.thread_time() - cpu0)
+
+    def prepare(self) -> None:
+        """Build the worker's search now, on its thread, before a search is due (the first search then
+        does not pay for it while the frames wait for the GIL)."""
+        self._executor.submit(self._built)
+
+    def _built(self) -> None:
+        """The worker's search, built once; its numba kernels on one thread (numba's count is per
+        thread): the other core stays with the frame loop."""
+        if self._search is None:
+            import numba
+
+            numba.set_num_threads(1)
+            self._search = self._build()
 
     def close(self) -> None:
         """Wait for a search in flight, release the worker's backend on its own thread (a GL context's),
