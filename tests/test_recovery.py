@@ -1226,3 +1226,36 @@ def test_a_track_slid_far_off_with_a_moved_bone_is_never_ok_there(tmp_path):
     ok = np.array(result.statuses) == "ok"
     assert ok.any() and add.max() > 20.0                                # tracked, and the track did slide off
     assert not np.any(ok & (add > 2.0)), np.round(add[ok & (add > 2.0)], 1)
+
+
+def test_a_search_worker_that_fails_counts_as_nothing_found_and_the_searches_go_inline(trial):
+    """The worker's own search cannot be built (say its GL context failed on its thread): the first
+    search handed over raises there, is logged and counts as one that found nothing; the worker is
+    then marked failed and later searches run inline on the frame loop: the session goes on."""
+    from app.pipeline.tracker import DepthTracker
+    from app.trial.reader import open_trial
+
+    config = _enabled()
+    config = replace(config, recovery=replace(config.recovery, search_worker="thread"))
+    reader = open_trial(trial)
+    tracker = DepthTracker(config, reader.load_mesh(), reader.meta.camera)
+    worker, runner = tracker.recovery_runner.worker, tracker.recovery_runner
+    worker._executor.submit(lambda: None).result()             # the prepared build has run (a real one)
+
+    def broken():
+        raise RuntimeError("no GL context on this thread")
+    worker._search, worker._build = None, broken
+    tracker.start(reader.meta.initial_pose)
+    T_base_camera, valid = reader.camera_poses()
+    frames = [f for f in reader.iter_frames() if f.index % EVERY == 0][:6]
+    tracker.recovery.pending = "a test"                          # a search is due
+    tracker.process(frames[0].depth_m, frames[0].stamp, T_base_camera[frames[0].index])
+    assert worker.in_flight
+    worker._future.exception()                                  # the worker's search has raised
+    tracker.process(frames[1].depth_m, frames[1].stamp, T_base_camera[frames[1].index])
+    assert worker.failed and not worker.in_flight and runner.work["searches"] == 1
+    assert tracker.recovery.report()["declined_searches"] == 1
+    tracker.recovery.pending = "another test"
+    tracker.process(frames[2].depth_m, frames[2].stamp, T_base_camera[frames[2].index])
+    assert not worker.in_flight and runner.work["searches"] == 2   # inline, on this frame
+    tracker.release()

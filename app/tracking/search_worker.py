@@ -96,6 +96,7 @@ class SearchWorker:
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="osteonav-search")
         self._future: Future | None = None
         self.job: SearchJob | None = None
+        self.failed = False                                 # a search raised: inline from then on (safe)
 
     @property
     def in_flight(self) -> bool:
@@ -106,10 +107,13 @@ class SearchWorker:
         """The search in flight has finished (its outcome can be taken)."""
         return self._future is not None and self._future.done()
 
-    @staticmethod
-    def safe() -> bool:
-        """Whether two threads may run numba's parallel kernels at once: not under its ``workqueue``
-        threading layer (numba aborts the process); the recovery then searches inline."""
+    def safe(self) -> bool:
+        """Whether the worker may take a search: it has not failed (a search that raised, e.g. its own
+        backend could not be made on its thread), and two threads may run numba's parallel kernels at
+        once (not under its ``workqueue`` threading layer: numba aborts the process). Otherwise the
+        recovery and the start search inline, as in a replay."""
+        if self.failed:
+            return False
         import numba
 
         try:
@@ -131,7 +135,9 @@ class SearchWorker:
         try:
             return job, future.result()
         except Exception:                                   # a failed search must not end the session
-            log.exception("the wide search on the worker failed; treated as one that found nothing")
+            log.exception("the wide search on the worker failed; treated as one that found nothing, and "
+                          "the searches run inline from now on")
+            self.failed = True
             return job, None
 
     def _run(self, job: SearchJob | DetectJob) -> SearchOutcome:
@@ -152,8 +158,9 @@ class SearchWorker:
 
     def prepare(self) -> None:
         """Build the worker's search now, on its thread, before a search is due (the first search then
-        does not pay for it while the frames wait for the GIL)."""
-        self._executor.submit(self._built)
+        does not pay for it while the frames wait for the GIL); a build that fails is retried by the
+        first search, whose failure is then reported (:meth:`take`)."""
+        self._executor.submit(self._built).add_done_callback(lambda f: f.exception())
 
     def _built(self) -> None:
         """The worker's search, built once; its numba kernels on one thread (numba's count is per
