@@ -228,18 +228,18 @@ class _Declining:
         return Detection(np.eye(4), 0.8, 0.9, 10, 2, "fake")
 
 
-def test_a_start_that_finds_nothing_is_retried_after_detect_retry_s_and_counts_every_attempt():
-    from app.tracking.start import DETECT_RETRY_S, StartByDetection
+def test_a_start_that_finds_nothing_is_retried_after_search_retry_s_and_counts_every_attempt():
+    from app.tracking.start import StartByDetection
 
-    start = StartByDetection(_Declining(misses=2), np.zeros(3))
     period = 1.0 / 90.0
+    start = StartByDetection(_Declining(misses=2), np.zeros(3), retry_s=30 * period)
     found_at = None
     for k in range(200):
         if start.attempt(None, None, np.eye(4), k * period) is not None:
             found_at = k * period
             break
     assert start.detector.calls == 3 and not start.pending
-    assert found_at == pytest.approx(2 * DETECT_RETRY_S, abs=period)
+    assert found_at == pytest.approx(2 * 30 * period, abs=period)       # recovery.search_retry_s, as given
     report = start.report()
     assert report["attempts"] == 3 and report["evaluations"] == 30 and report["refinements"] == 6
     assert report["found"] and report["found_stamp"] == pytest.approx(found_at) and report["method"] == "detect_point"
@@ -283,6 +283,7 @@ def test_a_live_start_detects_on_the_worker_while_the_frames_go_on(crest_trial):
     tracker.start_by_detection(np.asarray(reader.meta.point_prior))
     worker = tracker._start_detection.worker
     assert worker is tracker.recovery_runner.worker and worker is not None
+    assert tracker._start_detection.retry_s == config.recovery.search_retry_s     # the retry from the config
     T_base_camera, valid = reader.camera_poses()
     frames = list(reader.iter_frames())
     first = tracker.process(frames[0].depth_m, frames[0].stamp, T_base_camera[0])     # hands the detection over

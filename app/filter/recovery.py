@@ -398,15 +398,17 @@ class RecoveryPolicy:
                   T_base_bone: np.ndarray, sharp: float) -> Evidence:
         """This frame's evidence for the triggers (app/tracking/triggers.py)."""
         c, frames = self.config, self.period.frames
+        gap_m, gap_rad = self._gap(T_base_bone) if self.T_base_bone_confident is not None else (math.nan, math.nan)
         return Evidence(
             bad_reason=bad_reason, bad=self._bad, outside=self._outside, back=back, not_ok=self._not_ok,
-            not_ok_moving=self._not_ok_moving, below_bar=self._below_bar, far=self._far(T_base_bone), beyond=beyond,
+            not_ok_moving=self._not_ok_moving, below_bar=self._below_bar,
+            far=self.T_base_bone_confident is None or self._far_gap(gap_m, gap_rad), beyond=beyond,
             ever_ok=self.lifecycle.ever_ok, retrying=self.lifecycle.retrying,
             untried=not self.events and not self.declined_searches and not self.kept_searches,
             weighed=weighed, rules_ok=rules_ok, after_lost=frames(c.after_lost_s),
             uncertain=frames(c.after_uncertain_s) if c.after_uncertain_s else 0,
             sliding=frames(self._sliding_factor() * c.after_uncertain_s), never_ok=frames(c.never_ok_search_s),
-            gap=self._gap_text(T_base_bone), sharp=float(sharp), search_bar=self.search_bar,
+            gap_m=gap_m, gap_rad=gap_rad, sharp=float(sharp), search_bar=self.search_bar,
             declined=self.declined_searches, kept=self.kept_searches)
 
     def fit_below_bar(self) -> bool:
@@ -462,7 +464,10 @@ class RecoveryPolicy:
         """Whether the estimate lies more than FAR_M / FAR_RAD from the last confident pose."""
         if self.T_base_bone_confident is None:
             return True
-        dist, angle = self._gap(T_base_bone)
+        return self._far_gap(*self._gap(T_base_bone))
+
+    def _far_gap(self, dist: float, angle: float) -> bool:
+        """Whether a gap (m, rad) to the last confident pose is far (``recovery.far_m`` / ``far_angle``)."""
         return dist > self.config.far_m or angle > self.config.far_angle
 
     def _beyond_start(self, T_base_bone: np.ndarray) -> bool:
@@ -472,10 +477,6 @@ class RecoveryPolicy:
         dist, angle = pose_gap(self.T_base_bone_start, T_base_bone)
         k = self.config.start_sigmas
         return dist > k * self.start_sigmas[0] or angle > k * self.start_sigmas[1]
-
-    def _gap_text(self, T_base_bone: np.ndarray) -> str:
-        dist, angle = self._gap(T_base_bone) if self.T_base_bone_confident is not None else (math.nan, math.nan)
-        return f"{1e3 * dist:.0f} mm / {math.degrees(angle):.0f} deg"
 
     def _moving(self, stamp: float, T_base_bone: np.ndarray) -> bool:
         """Whether the estimate moved faster than ``still`` over the window (ending at this frame)."""

@@ -2,8 +2,8 @@
 
 Import as ``from app.tracking.start import StartByDetection, PointedPixel``. Used by
 :meth:`app.pipeline.tracker.DepthTracker.start_by_detection` (``init.method: auto`` with no coarse
-pose; issue 33). On each usable frame while the start is pending, at most every DETECT_RETRY_S
-(the recovery's SEARCH_RETRY_S: a detector that found nothing on one frame is asked again a third of
+pose; issue 33). On each usable frame while the start is pending, at most every ``retry_s``
+(``recovery.search_retry_s``: a detector that found nothing on one frame is asked again a third of
 a second later, not on every frame), the detector (app/tracking/detector.py) looks for the bone
 from the point prior, or over the whole image without one. The work (attempts, likelihood
 evaluations, refinements, CPU and wall seconds, the stamp it was found at) is counted for the
@@ -27,10 +27,10 @@ from typing import Protocol
 
 import numpy as np
 
-from app.filter.recovery import SEARCH_RETRY_S
+from app.filter.recovery import RecoveryConfig
+
 
 log = logging.getLogger(__name__)
-DETECT_RETRY_S = SEARCH_RETRY_S
 POINTED_WINDOW_PX = 5     # the pointed pixel's depth: the median over this square (odd) around it
 POINTED_MIN_VALID = 0.5   # ... of at least this share of valid pixels: fewer is an edge, a hole or a flying pixel
 
@@ -93,10 +93,12 @@ class StartByDetection:
     source : a :class:`PointSource` that locates the point live (with ``point`` None), or None
     """
 
-    def __init__(self, detector, point: np.ndarray | None, source: PointSource | None = None):
+    def __init__(self, detector, point: np.ndarray | None, source: PointSource | None = None,
+                 retry_s: float = RecoveryConfig.search_retry_s):
         if point is not None and source is not None:
             raise ValueError("a start takes a point or a point source, not both")
         self.detector, self.point, self.source = detector, point, source
+        self.retry_s = float(retry_s)   # s between two attempts that found nothing (recovery.search_retry_s)
         self.waiting = ""           # why the source located no point on the last frame ('' once it has)
         self.located_stamp: float | None = None
         self.pending = True
@@ -141,7 +143,7 @@ class StartByDetection:
         return None
 
     def _attempted(self, found, spent: tuple, cpu_s: float, wall_s: float, stamp: float) -> np.ndarray | None:
-        """Count an attempt's work; the found T_base_bone, or None (retried DETECT_RETRY_S later)."""
+        """Count an attempt's work; the found T_base_bone, or None (retried ``retry_s`` later)."""
         work = self.work
         work["attempts"] += 1
         work["cpu_s"] += cpu_s
@@ -150,8 +152,8 @@ class StartByDetection:
         work["evaluations"] += int(evaluations)
         work["refinements"] += int(refinements)
         if found is None:
-            self._next_stamp = stamp + DETECT_RETRY_S
-            log.info("start at %.3f s: the detector found nothing confirmed; again in %.2f s", stamp, DETECT_RETRY_S)
+            self._next_stamp = stamp + self.retry_s
+            log.info("start at %.3f s: the detector found nothing confirmed; again in %.2f s", stamp, self.retry_s)
             return None
         self.pending, self.detection, self.found_stamp = False, found, float(stamp)
         log.info("start at %.3f s: the detector found the bone (%s, sharp share %.2f, fit %.2f)", stamp,

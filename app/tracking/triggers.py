@@ -11,6 +11,7 @@ recovery.py's docstring ("Trigger") and BENCHMARKS.md §6b-§6o.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -25,7 +26,8 @@ class Evidence:
     ``recovery.far_m`` / ``far_angle`` from the last ok pose; ``beyond``: never ok and outside the start's
     prior; ``ever_ok``, ``retrying`` (the lifecycle's), ``untried`` (no attempt, declined or kept search
     yet); the thresholds in frames (``after_lost``, ``uncertain``: after_uncertain_s or 0 when off,
-    ``sliding``, ``never_ok``); ``gap``: the pose's gap to the last ok pose, as text."""
+    ``sliding``, ``never_ok``); ``gap_m`` / ``gap_rad``: the pose's distance and angle to the last ok pose
+    (NaN without one), formatted only when a trigger fires (:func:`gap_text`)."""
 
     bad_reason: str | None
     bad: int
@@ -45,7 +47,8 @@ class Evidence:
     uncertain: int
     sliding: int
     never_ok: int
-    gap: str
+    gap_m: float
+    gap_rad: float
     sharp: float
     search_bar: float
     declined: int
@@ -54,12 +57,14 @@ class Evidence:
 
 @dataclass(frozen=True)
 class Trigger:
-    """A transition into ``searching``: its code, the test, the reason's text, and its config keys."""
+    """A transition into ``searching``: its code, the test, the reason's text, its config keys, and
+    when it fires in words (the README's table)."""
 
     code: str
     fires: Callable[[Evidence], bool]
     text: Callable[[Evidence], str]
     keys: str
+    when: str
 
 
 def _slow(e: Evidence) -> bool:
@@ -71,39 +76,52 @@ TRIGGERS: tuple[Trigger, ...] = (
     Trigger("lost_for",
             lambda e: e.bad_reason is not None and e.bad >= e.after_lost,
             lambda e: f"{e.bad_reason} for {e.bad} frames",
-            "recovery.after_lost_s, status.min_fitness"),
+            "recovery.after_lost_s, status.min_fitness",
+            "lost, or the refined fit broken or below status.min_fitness far from the last ok pose, for after_lost_s"),
     Trigger("outside_start",
             lambda e: e.outside >= e.after_lost,
-            lambda e: f"never ok, {e.outside} weighed frames outside the start's prior ({e.gap} from the start)",
-            "recovery.after_lost_s, recovery.start_sigmas"),
+            lambda e: f"never ok, {e.outside} weighed frames outside the start's prior ({gap_text(e)} from the start)",
+            "recovery.after_lost_s, recovery.start_sigmas",
+            "never ok and beyond start_sigmas of the start's prior for after_lost_s (until the first re-initialisation)"),
     Trigger("back_in_view",
             lambda e: bool(e.back) and e.far,
-            lambda e: f"weighed again after {e.back} frames unseen, {e.gap} from the last ok pose",
-            "recovery.after_lost_s, recovery.far_m"),
+            lambda e: f"weighed again after {e.back} frames unseen, {gap_text(e)} from the last ok pose",
+            "recovery.after_lost_s, recovery.far_m",
+            "weighed again after after_lost_s unseen, far from the last ok pose"),
     Trigger("not_ok_still",
             lambda e: _slow(e) and e.not_ok >= e.uncertain,
-            lambda e: f"not ok for {e.not_ok} weighed frames, {e.gap} from the last ok pose",
-            "recovery.after_uncertain_s, recovery.still_window_s"),
+            lambda e: f"not ok for {e.not_ok} weighed frames, {gap_text(e)} from the last ok pose",
+            "recovery.after_uncertain_s, recovery.still_window_s",
+            "not ok for after_uncertain_s while still, far (ok before, or outside the start's prior)"),
     Trigger("sliding",
             lambda e: _slow(e) and e.not_ok_moving >= e.sliding,
-            lambda e: f"not ok for {e.not_ok_moving} weighed frames, moving or not, {e.gap} from the last ok pose",
-            "recovery.after_uncertain_s, recovery.sliding_factor"),
+            lambda e: f"not ok for {e.not_ok_moving} weighed frames, moving or not, {gap_text(e)} from the last ok pose",
+            "recovery.after_uncertain_s, recovery.sliding_factor",
+            "not ok for sliding_factor x after_uncertain_s, moving or not, far (x1 for a hypothesis)"),
     Trigger("below_bar",
             lambda e: e.below_bar >= e.after_lost and e.far,
             lambda e: (f"the found pose's fit below the search's bar for {e.below_bar} weighed frames "
-                       f"(sharp share {e.sharp:.2f} < {e.search_bar:.2f}), {e.gap} from the last ok pose"),
-            "recovery.after_lost_s"),
+                       f"(sharp share {e.sharp:.2f} < {e.search_bar:.2f}), {gap_text(e)} from the last ok pose"),
+            "recovery.after_lost_s",
+            "a hypothesis' fit below the search's bar for after_lost_s, far"),
     Trigger("never_ok_once",
             lambda e: bool(e.uncertain) and not e.ever_ok and e.untried and e.not_ok >= e.never_ok,
             lambda e: f"never ok for {e.not_ok} weighed frames since the start: one wide search",
-            "recovery.never_ok_search_s"),
+            "recovery.never_ok_search_s",
+            "never ok for never_ok_search_s (still), before any attempt: one search"),
     Trigger("still_searching",
             lambda e: e.retrying and e.weighed and not e.rules_ok and e.far,
             lambda e: (f"still searching ({e.declined} searches found nothing, {e.kept} kept the track), "
-                       f"{e.gap} from the last ok pose"),
-            "recovery.search_retry_s, recovery.cooldown_s"),
+                       f"{gap_text(e)} from the last ok pose"),
+            "recovery.search_retry_s, recovery.cooldown_s",
+            "a search found nothing or kept the track, and the track is still far and not ok (after the retry wait)"),
 )
 CODES = tuple(t.code for t in TRIGGERS)
+
+
+def gap_text(e: Evidence) -> str:
+    """The pose's gap to the last ok pose for a reason's text ('nan mm / nan deg' without one)."""
+    return f"{1e3 * e.gap_m:.0f} mm / {math.degrees(e.gap_rad):.0f} deg"
 
 
 def first_trigger(evidence: Evidence) -> Trigger | None:
@@ -114,17 +132,7 @@ def first_trigger(evidence: Evidence) -> Trigger | None:
 def markdown_table() -> str:
     """The README's table of the triggers, in their order."""
     rows = ["| trigger | searching when | config |", "|---|---|---|"]
-    rows += [f"| `{t.code}` | {_WHEN[t.code]} | `{t.keys}` |" for t in TRIGGERS]
+    rows += [f"| `{t.code}` | {t.when} | `{t.keys}` |" for t in TRIGGERS]
     return "\n".join(rows)
 
 
-_WHEN = {
-    "lost_for": "lost, or the refined fit broken or below status.min_fitness far from the last ok pose, for after_lost_s",
-    "outside_start": "never ok and beyond start_sigmas of the start's prior for after_lost_s (until the first re-initialisation)",
-    "back_in_view": "weighed again after after_lost_s unseen, far from the last ok pose",
-    "not_ok_still": "not ok for after_uncertain_s while still, far (ok before, or outside the start's prior)",
-    "sliding": "not ok for sliding_factor x after_uncertain_s, moving or not, far (x1 for a hypothesis)",
-    "below_bar": "a hypothesis' fit below the search's bar for after_lost_s, far",
-    "never_ok_once": "never ok for never_ok_search_s (still), before any attempt: one search",
-    "still_searching": "a search found nothing or kept the track, and the track is still far and not ok (after the retry wait)",
-}
