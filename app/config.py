@@ -12,7 +12,8 @@ has eight sections; each key maps to one attribute:
                       ``first_dt``, ``seed``
 - ``init.sigma_p`` / ``init.sigma_r`` -> ``config.init_sigma_p`` / ``init_sigma_r``; ``init.method``
   ('auto' | 'pose' | 'point'), ``point_sigma``, ``restarts``, ``budget_s`` -> ``config.init_method`` ... (the
-  one-point initialiser, :mod:`app.filter.smc_init`)
+  one-point initialiser, :mod:`app.filter.smc_init`); ``init.detector_*`` -> ``config.detector``
+  (:class:`app.tracking.detector.StartSearch`: the start's search)
 - ``motion.*``     -> ``config.motion`` (:class:`app.filter.motion.MotionParams`)
 - ``likelihood.*`` -> ``config.likelihood`` (:class:`app.filter.likelihood_ref.LikelihoodParams`)
 - ``status.*``     -> ``config.status`` (:class:`app.filter.status.StatusThresholds`)
@@ -42,6 +43,7 @@ from app.filter.motion import MotionParams
 from app.filter.observation import BACKENDS
 from app.filter.particle_filter import SAMPLING_MODES, FilterConfig
 from app.filter.recovery import RecoveryConfig
+from app.tracking.detector import StartSearch
 from app.filter.refine_track import RefineConfig
 from app.filter.resampling import SCHEMES
 
@@ -69,6 +71,8 @@ class TrackerConfig(FilterConfig):
     init_point_sigma : m, σ_t, how far the pointed point may lie off the bone's surface
     init_restarts, init_budget_s : independent runs of the initialiser (the most likely kept), and
         a wall-time safety net only (s; the budget is counted in likelihood evaluations, smc_init.py)
+    detector : the detector's search for a start from a point or from nothing
+        (:class:`app.tracking.detector.StartSearch`: ``init.detector_*``)
     refine : the local refinement and its own track (app/filter/refine_track.py)
     recovery : the automatic re-initialisation of a lost track (app/filter/recovery.py)
 
@@ -93,6 +97,7 @@ class TrackerConfig(FilterConfig):
     init_point_sigma: float = 0.005
     init_restarts: int = 3
     init_budget_s: float = 600.0
+    detector: StartSearch = field(default_factory=StartSearch)
     motion: MotionParams = field(default_factory=lambda: MotionParams(sigma_a=2.0, sigma_alpha=20.0))
     likelihood: LikelihoodParams = field(default_factory=lambda: LikelihoodParams(background_ratio=True,
                                                                                   pixel_weight=0.2))
@@ -133,6 +138,11 @@ KEYS: dict[str, _Key] = {
     "init.point_sigma": _f("init_point_sigma", 0.0, 0.1, lo_open=True),
     "init.restarts": _i("init_restarts", 1, 100),
     "init.budget_s": _f("init_budget_s", 0.0, 3600.0, lo_open=True),
+    "init.detector_evaluations": _i("detector.evaluations", 100, 10_000_000),
+    "init.detector_clusters": _i("detector.clusters", 1, 1000),
+    "init.detector_verified": _i("detector.refine_top", 1, 1000),
+    "init.detector_tilt": _f("detector.tilt_rad", 0.0, math.pi / 2),
+    "init.detector_tilt_directions": _i("detector.tilt_directions", 0, 64),
     "motion.sigma_a": _f("motion.sigma_a", 0.0, 1000.0),
     "motion.sigma_alpha": _f("motion.sigma_alpha", 0.0, 10_000.0),
     "motion.lambda_v": _f("motion.lambda_v", 0.0, 1.0),

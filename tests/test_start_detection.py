@@ -59,20 +59,68 @@ def crest_frame(crest_trial):
 
 def test_the_search_detector_finds_a_ct_crest_within_1_mm_from_a_point_3_mm_off(crest_frame):
     """A point 3 mm off the crest's top, no pose: the wide search around it, verified by the
-    refinement, finds the truth within 1 mm, within the recovery's budget of work."""
+    refinement, finds the truth within 1 mm, within the start's budget of work (init.detector_*).
+    The simulator's seed 3 tilts this crest's top 21 deg from up: found only with the tilted starts
+    (StartSearch.tilt_rad), for three points."""
     from app.sim.point_start import offset_point
     from app.tracking.detector import SearchDetector
 
     tracker, small, depth, T_base_camera, T_true, top = crest_frame
-    point = offset_point(top, POINT_OFF_M, np.random.default_rng(4))
-    assert abs(np.linalg.norm(point - top) - POINT_OFF_M) < 1e-9
-    detector = SearchDetector(tracker.wide_search, np.random.default_rng(5))
-    found = detector.detect(small, depth, T_base_camera, point)
-    assert found is not None
-    assert 1e3 * metrics.add(found.T_base_bone, T_true, tracker.mesh_vertices) < 1.0
-    assert found.score >= tracker.wide_search.config.min_sharp and found.fitness >= 0.6
-    assert 0 < found.evaluations <= tracker.config.recovery.search_evaluations
-    assert 0 < found.refinements <= 5 * tracker.wide_search.config.refine_top
+    assert np.degrees(np.arccos(T_true[2, 2])) > 20.0          # the view this test is about: a tilted crest
+    start = tracker.config.detector
+    for seed in (4, 6, 7):
+        point = offset_point(top, POINT_OFF_M, np.random.default_rng(seed))
+        assert abs(np.linalg.norm(point - top) - POINT_OFF_M) < 1e-9
+        detector = SearchDetector(tracker.wide_search, np.random.default_rng(seed + 1), start)
+        found = detector.detect(small, depth, T_base_camera, point)
+        assert found is not None
+        assert 1e3 * metrics.add(found.T_base_bone, T_true, tracker.mesh_vertices) < 1.0
+        assert found.score >= tracker.wide_search.config.min_sharp and found.fitness >= 0.6
+        assert 0 < found.evaluations <= start.evaluations
+        assert 0 < found.refinements <= 5 * start.refine_top
+
+
+def test_tilt_rotations_tilt_the_bones_top_by_the_angle_towards_evenly_spaced_directions():
+    """R_k = exp(θ [cos b_k, sin b_k, 0]^): R_k z makes the angle θ with z, its horizontal part points
+    along b_k + 90 deg (a turn about an axis in the xy plane), and 0 directions or θ = 0 gives none."""
+    from app.tracking.detector import BONE_TOP, tilt_rotations
+
+    theta = np.radians(15.0)
+    rotations = tilt_rotations(theta, 6)
+    assert len(rotations) == 6 and tilt_rotations(0.0, 6) == () and tilt_rotations(theta, 0) == ()
+    for k, R in enumerate(rotations):
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        top = R @ BONE_TOP
+        assert np.degrees(np.arccos(top[2])) == pytest.approx(15.0, abs=1e-9)
+        b = 2.0 * np.pi * k / 6
+        np.testing.assert_allclose(top[:2] / np.linalg.norm(top[:2]), [np.sin(b), -np.cos(b)], atol=1e-12)
+
+
+def test_a_starts_batched_hypotheses_are_the_wide_searchs_and_drawn_with_its_spread():
+    """The start's batched anchored hypotheses (PriorSearch._anchored) equal the wide search's one at
+    a time (WideSearch._anchored) with no draws, and its draws about each scatter with ANCHOR_SIGMA_M."""
+    from app.filter.wide_search import ANCHOR_SIGMA_M, SearchConfig, WideSearch, ridge_points
+    from app.geometry import quaternion as quat
+    from app.tracking.detector import PriorSearch
+
+    rng = np.random.default_rng(0)
+    vertices = rng.normal(0.0, 0.03, (300, 3))
+    vertices -= vertices.mean(axis=0)          # the centroid at the origin: a turn about it leaves p0 in place
+    search = PriorSearch(None, None, None, vertices, SearchConfig())
+    T = np.eye(4)
+    T[:3, :3] = quat.to_matrix(quat.exp_map(np.array([0.2, -0.1, 0.5])))
+    anchors = rng.normal(0.0, 0.1, (3, 3))
+    p_batch, q_batch = search._anchored(anchors, T, 1, np.random.default_rng(1))
+    p_one, q_one = WideSearch._anchored(search, anchors, T, 1, np.random.default_rng(1))
+    assert p_batch.shape == (3 * 24 * len(ridge_points(vertices, T[:3, :3])), 3)
+    np.testing.assert_allclose(p_batch, p_one, atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.sum(q_batch * q_one, axis=1)), 1.0, atol=1e-12)
+    p_draws, _ = search._anchored(anchors, T, 50, np.random.default_rng(2))
+    scatter = p_draws.reshape(-1, 50, 3)[:, 1:] - p_draws.reshape(-1, 50, 3)[:, :1]
+    assert np.all(p_draws.reshape(-1, 50, 3)[:, 0] == p_batch)
+    # turned about the centroid, which is the bone frame's origin here: p' - p0 = ε ~ N(0, ANCHOR_SIGMA_M² I)
+    assert np.mean(scatter) == pytest.approx(0.0, abs=0.05 * ANCHOR_SIGMA_M)
+    assert np.std(scatter) == pytest.approx(ANCHOR_SIGMA_M, rel=0.03)
 
 
 def test_the_search_detector_declines_a_point_over_an_empty_table(crest_frame):

@@ -232,7 +232,7 @@ def _smc(tracker, depth_small, T_base_camera, point, budget, rng, errors, cpu0) 
 def _detector(tracker, depth_small, depth_m, T_base_camera, point, rng, errors, cpu0) -> SamplerRun:
     from app.tracking.detector import SearchDetector
 
-    detector = SearchDetector(tracker.wide_search, rng)
+    detector = SearchDetector(tracker.wide_search, rng, tracker.config.detector)
     found = detector.detect(depth_small, depth_m, T_base_camera, point)
     evaluations, refinements = detector.last_work
     if found is None:

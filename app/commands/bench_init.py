@@ -19,6 +19,9 @@ def register(subparsers) -> None:
                    "from the other side and from 0.65 m, static_occluded has a hand and an instrument)")
     p.add_argument("--views", type=positive_int, default=1,
                    help="simulator seeds per crest and scenario (bone tilt, tissue), >= 1 (default 1)")
+    p.add_argument("--first-view", type=int_at_least(0), default=0,
+                   help="the first simulator seed: views FIRST-VIEW .. FIRST-VIEW + VIEWS - 1, >= 0 (default 0; "
+                   "views never used to choose the defaults, e.g. --first-view 6)")
     p.add_argument("--seeds", type=positive_int, default=1, help="point draws per view, >= 1 (default 1)")
     p.add_argument("--first-seed", type=int_at_least(0), default=0,
                    help="the first point draw: draws FIRST-SEED .. FIRST-SEED + SEEDS - 1, >= 0 (default 0; "
@@ -69,7 +72,7 @@ def run(args) -> int:
     rows = []
     for mesh in meshes:
         for scenario in args.scenarios:
-            for view in range(args.views):
+            for view in range(args.first_view, args.first_view + args.views):
                 for seed in range(args.first_seed, args.first_seed + args.seeds):
                     rows.extend(_one(args, work, mesh, scenario, view, seed, first=not rows))
     if args.samplers:

@@ -190,7 +190,7 @@ class DepthTracker:
         search = self.wide_search or build_wide_search(self.config, self.backend, self.camera,
                                                        self.refined_track.refiner, self.mesh_vertices)     # recovery.search off: built alike
         self._new_lifecycle()
-        self._start_detection = StartByDetection(SearchDetector(search, self.filter.rng), point, point_source,
+        self._start_detection = StartByDetection(SearchDetector(search, self.filter.rng, self.config.detector), point, point_source,
                                                  retry_s=self.config.recovery.search_retry_s)
         if self.recovery_runner is not None and self.recovery_runner.worker is not None:
             self._start_detection.worker = self.recovery_runner.worker      # a live session: off the frame loop

@@ -68,6 +68,7 @@ class DetectJob:
     T_base_camera: np.ndarray
     point: np.ndarray | None
     stamp: float
+    start: object = None    # the detector's StartSearch (app/tracking/detector.py; None: its defaults)
 
 
 @dataclass
@@ -148,7 +149,7 @@ class SearchWorker:
         if isinstance(job, DetectJob):
             from app.tracking.detector import SearchDetector
 
-            detector = SearchDetector(self._search, self.rng)
+            detector = SearchDetector(self._search, self.rng, job.start)
             found = detector.detect(job.depth_small, job.depth_m, job.T_base_camera, job.point)
             result = (found, detector.last_work)
         else:

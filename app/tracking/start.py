@@ -139,7 +139,8 @@ class StartByDetection:
                                    0.0 if outcome is None else outcome.wall_s, stamp)
         if stamp >= self._next_stamp:
             worker.submit(DetectJob(depth_small.copy(), depth_m.copy(), np.array(T_base_camera, float),
-                                    None if self.point is None else self.point.copy(), float(stamp)))
+                                    None if self.point is None else self.point.copy(), float(stamp),
+                                    getattr(self.detector, "start", None)))
         return None
 
     def _attempted(self, found, spent: tuple, cpu_s: float, wall_s: float, stamp: float) -> np.ndarray | None:
