@@ -81,3 +81,22 @@ def test_bench_init_without_samplers_plots_the_replays_start_against_its_evaluat
     if run["found_1mm"]:
         assert counts[result["budgets"].index(run["evaluations"])] == 1
     assert out.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_bench_init_simulates_the_sensor_and_the_views_asked_for(tmp_path):
+    """``--sensor stereo --first-view 2``: the start's trial is the stereo model's (its trial.yaml says so)
+    of the simulator's seed 2, and each row names its sensor and view (held-out views and sensors)."""
+    _pelvis_or_skip()
+    import yaml
+
+    from app.cli import main
+
+    out = tmp_path / "init.json"
+    code = main(["bench-init", "--crests", "crest_left_02.ply", "--seconds", "0.2", "--sensor", "stereo",
+                 "--first-view", "2", "--work", str(tmp_path / "work"), "--json", str(out)])
+    report = json.loads(out.read_text())
+    (row,) = report["runs"]
+    assert (row["sensor"], row["view"], row["seed"]) == ("stereo", 2, 0)
+    assert code == (0 if row["found_1mm"] and not row["ok_off_2mm"] else 1)
+    meta = yaml.safe_load((tmp_path / "work" / "crest_left_02_static_clear_stereo_v2_s0" / "trial.yaml").read_text())
+    assert meta["sensor"]["model"] == "stereo"

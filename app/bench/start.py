@@ -31,17 +31,21 @@ SAFE_MM = 2.0
 
 def simulate_point_trial(out: Path, mesh: Path, view: int, seed: int, seconds: float,
                          off_range_m: tuple[float, float], keep_point: bool = True,
-                         scenario: str = "static_clear") -> float:
-    """The crest's ``scenario`` trial of this view (cached under ``out``'s parent by crest, scenario and
-    view), copied to ``out`` and made point-only with a point ``off`` m off (drawn from ``off_range_m``
+                         scenario: str = "static_clear", sensor: str | None = None) -> float:
+    """The crest's ``scenario`` trial of this view (cached under ``out``'s parent by crest, scenario,
+    view and ``sensor``: the simulator's depth model, app/sim/sensors/, None its default), copied to ``out`` and made point-only with a point ``off`` m off (drawn from ``off_range_m``
     by ``seed``), or with no point either (``keep_point`` False: the whole image); returns ``off``."""
     from app.sim.point_start import make_point_only
     from app.sim.simulator import simulate
 
-    tag = "" if scenario == "static_clear" else f"_{scenario}"
+    from app.sim.sensors import DEFAULT_SENSOR
+
+    sensor = sensor or DEFAULT_SENSOR
+    tag = ("" if scenario == "static_clear" else f"_{scenario}") + ("" if sensor == DEFAULT_SENSOR else f"_{sensor}")
     cached = out.parent / f"{mesh.stem}{tag}_view{view}_{seconds:g}s"
     if not (cached / "trial.yaml").exists():
-        simulate(cached, mesh_path=mesh, scenario_name=scenario, seconds=seconds, seed=view, overwrite=True)
+        simulate(cached, mesh_path=mesh, scenario_name=scenario, seconds=seconds, seed=view, overwrite=True,
+                 sensor=sensor)
     if out.exists():
         shutil.rmtree(out)
     shutil.copytree(cached, out)

@@ -17,6 +17,11 @@ def register(subparsers) -> None:
     p.add_argument("--scenarios", nargs="+", default=["static_clear"], choices=sorted(SCENARIOS), metavar="SCENARIO",
                    help="simulated scenes (default: static_clear; static_other_side and static_far see the bone "
                    "from the other side and from 0.65 m, static_occluded has a hand and an instrument)")
+    from app.sim.sensors import SENSORS
+
+    p.add_argument("--sensor", default=None, choices=sorted(SENSORS), metavar="NAME",
+                   help="the simulator's depth sensor model (independent, stereo, tof; default: the simulator's, "
+                   "independent): a start on a stereo camera's correlated noise and shadows")
     p.add_argument("--views", type=positive_int, default=1,
                    help="simulator seeds per crest and scenario (bone tilt, tissue), >= 1 (default 1)")
     p.add_argument("--first-view", type=int_at_least(0), default=0,
@@ -95,10 +100,12 @@ def _one(args, work, mesh, scenario: str, view: int, seed: int, first: bool) -> 
 
     from app.bench import start
 
-    trial = work / f"{mesh.stem}_{scenario}_v{view}_s{seed}{'_nopoint' if args.no_point else ''}"
+    sensor = f"_{args.sensor}" if args.sensor else ""
+    trial = work / f"{mesh.stem}_{scenario}{sensor}_v{view}_s{seed}{'_nopoint' if args.no_point else ''}"
     off = start.simulate_point_trial(trial, mesh, view, seed, args.seconds, (1e-3 * args.off_mm[0], 1e-3 * args.off_mm[1]),
-                                     not args.no_point, scenario)
-    key = {"crest": mesh.stem, "scenario": scenario, "view": view, "seed": seed, "off_mm": 1e3 * off}
+                                     not args.no_point, scenario, args.sensor)
+    key = {"crest": mesh.stem, "scenario": scenario, "sensor": args.sensor or "independent", "view": view,
+           "seed": seed, "off_mm": 1e3 * off}
     if args.samplers:
         runs = [{**key, **asdict(r)} for r in _compare(trial, args.budget, seed)]
         for r in runs:
