@@ -1058,12 +1058,13 @@ def test_a_kept_track_moves_onto_its_refined_pose_when_the_search_refined_it_awa
     local minimum at a consistent sharp share of 0.26-0.30; the incumbent's wider chain had refined
     it to 0.1 mm (0.91), but a kept search changed nothing: found 2.54 s after the bone was in view.
     A kept track whose own fit is below the search's bar and whose refined pose lies more than
-    KEPT_MOVE_M / KEPT_MOVE_RAD away is moved there (the cloud shifted, the refined track seeded);
+    recovery.kept_move_m / kept_move_angle away is moved there (the cloud shifted, the refined track seeded);
     within that, or with its own fit over the bar, nothing moves. Either way it is no re-initialisation."""
     from types import SimpleNamespace
 
     from app.filter.wide_search import MIN_SHARP, SearchResult
-    from app.pipeline.recovery_runner import KEPT_MOVE_M, RecoveryRunner
+    from app.filter.recovery import KEPT_MOVE_M
+    from app.pipeline.recovery_runner import RecoveryRunner
 
     T_now = se3.from_rotvec_trans(np.zeros(3), np.array([0.05, 0.0, 0.0]))
     for gap, own, moves in [(3.3 * KEPT_MOVE_M, 0.28, True), (0.5 * KEPT_MOVE_M, 0.28, False),

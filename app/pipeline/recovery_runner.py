@@ -27,8 +27,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from app.filter.recovery import (FOUND_SIGMA_M, FOUND_SIGMA_RAD, KEPT_MOVE_M, KEPT_MOVE_RAD, RESPREAD, SEARCH, SMC,  # noqa: F401
-                                 RecoveryPolicy)
+from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD, RESPREAD, SEARCH, SMC, RecoveryPolicy
 from app.filter.refine_track import RefinedTrack, pose_gap
 from app.filter.visibility import point_visible, visible_share
 from app.geometry.camera import PinholeCamera
