@@ -189,7 +189,6 @@ KEYS: dict[str, _Key] = {
     "refine.competitor_angle": _f("refine.competitor_angle", 0.0, math.pi),
     "refine.competitor_margin": _f("refine.competitor_margin", 0.0, 1.0),
     "refine.feedback": _Key(("refine", "feedback"), "bool"),
-    "refine.feedback_fitness": _f("refine.feedback_fitness", 0.0, 1.0),
     "refine.static_prior": _Key(("refine", "static_prior"), "bool"),
     "refine.prior_release_chi2": _f("refine.prior_release_chi2", 0.0, 1e6, lo_open=True),
     "refine.prior_clear_ratio": _f("refine.prior_clear_ratio", 1.0, 1e6),
@@ -207,7 +206,6 @@ KEYS: dict[str, _Key] = {
     "refine.nearby_starts": _i("refine.nearby_starts", 0, 1_000),
     "refine.nearby_sigma_p": _f("refine.nearby_sigma_p", 0.0, 0.05, lo_open=True),
     "refine.nearby_sigma_r": _f("refine.nearby_sigma_r", 0.0, math.pi, lo_open=True),
-    "refine.nearby_gap": _f("refine.nearby_gap", 0.0, 0.05),
     "refine.nearby_margin": _f("refine.nearby_margin", 0.0, 1.0),
     "refine.nearby_hold": _i("refine.nearby_hold", 1, 100_000),
     "refine.nearby_followups": _i("refine.nearby_followups", 0, 100),
@@ -225,14 +223,13 @@ KEYS: dict[str, _Key] = {
     "recovery.confirm_frames": _i("recovery.confirm_frames", 0, 1_000_000),
     "recovery.search": _Key(("recovery", "search"), "bool"),
     "recovery.search_evaluations": _i("recovery.search_evaluations", 100, 10_000_000),
-    "recovery.far_m": _f("recovery.far_m", 0.0, 1.0, lo_open=True),
-    "recovery.far_angle": _f("recovery.far_angle", 0.0, math.pi, lo_open=True),
     "recovery.search_retry_s": _f("recovery.search_retry_s", 0.0, 3600.0),
-    "recovery.never_ok_search_s": _f("recovery.never_ok_search_s", 0.0, 3600.0),
     "recovery.sliding_factor": _f("recovery.sliding_factor", 1.0, 1000.0),
     "recovery.start_sigmas": _f("recovery.start_sigmas", 0.0, 100.0, lo_open=True),
     "recovery.still_window_s": _f("recovery.still_window_s", 0.0, 60.0),
     "recovery.max_backoff_doublings": _i("recovery.max_backoff_doublings", 0, 20),
+    "recovery.kept_move_m": _f("recovery.kept_move_m", 0.0, 1.0),
+    "recovery.kept_move_angle": _f("recovery.kept_move_angle", 0.0, math.pi),
     "recovery.confirm_moved": _Key(("recovery", "confirm_moved"), "bool"),
     "recovery.search_worker": _Key(("recovery", "search_worker"), "choice", choices=("auto", "inline", "thread")),
     "render.resolution": _Key(("resolution",), "resolution", 8, 4096),
@@ -371,6 +368,18 @@ RENAMED = {   # keys of earlier configurations: what replaced them
                                        "frames whatever their rate): frames / 90 at 90 Hz, e.g. 90 -> 1.0; 0 = off",
     "recovery.cooldown_frames": "replaced by recovery.cooldown_s, in seconds (counted in processed frames whatever "
                                 "their rate): frames / 90 at 90 Hz, e.g. 15 -> 0.16",
+    # issue 32: exact duplicates merged (same value, same meaning; replays byte-identical, BENCHMARKS.md)
+    "recovery.far_m": "replaced by refine.competitor_distance (the same 5 mm: two poses this far apart are different "
+                      "answers, for the competitor rule and for the recovery's \"far from the last ok pose\"); "
+                      "move its value there",
+    "recovery.far_angle": "replaced by refine.competitor_angle (the same 5 deg, for the competitor rule and the "
+                          "recovery's \"far\"); move its value there",
+    "recovery.never_ok_search_s": "replaced by recovery.after_uncertain_s (the same 1 s of still, not-ok frames: a "
+                                  "never-ok track's one search waits as long as the slow trigger); remove the key",
+    "refine.nearby_gap": "replaced by status.max_template_std (the same 1 mm clinical tolerance: a nearby fit moving "
+                         "the template by more is a different answer); move its value there",
+    "refine.feedback_fitness": "replaced by status.min_fitness (the same 0.6: only a fit confirming the share ok "
+                               "needs shifts the particle cloud); move its value there",
 }
 
 

@@ -4,7 +4,8 @@ Usage: nice .venv/bin/python scripts/occlusion_probe.py TRIAL [--variant default
     [--every N] [--max-frames N] [--json OUT]
 
 Variants (BENCHMARKS.md §6c): ``default`` (the tracker's defaults); ``trackonly`` (the refinement's own
-track alone: never re-seeded from the filter, no feedback); ``nofeedback``; ``filteronly`` (refinement off);
+track alone: never re-seeded from the filter, no feedback; its competitor gap of 1e9 is, since issue 32,
+also the recovery's "far": no pose is far, so the recovery's far-gated triggers never fire); ``nofeedback``; ``filteronly`` (refinement off);
 ``noprior`` (without the static prior, app/filter/static_prior.py: the tracker before §6c) and
 ``trackonly_noprior`` (§6c's "track alone" probe).
 """

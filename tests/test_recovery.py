@@ -613,13 +613,17 @@ def test_a_due_search_runs_where_the_last_ok_pose_is_out_of_the_image():
 
 def test_the_slow_trigger_needs_an_ok_frame_since_the_start():
     """A track never ok (residual tissue) sits ~5 mm from the coarse start it converged from: no
-    re-initialisation for that alone; after an ok frame the same gap counts."""
+    slow-trigger re-initialisation for that alone (only the never-ok track's one search, at the same
+    after_uncertain_s: issue 32 merged never_ok_search_s into it); after an ok frame the same gap counts."""
     unc = TrackingStatus.UNCERTAIN
     T_off = se3.from_rotvec_trans(np.zeros(3), np.array([0.006, 0.0, 0.0]))
     never = _policy(after_uncertain_s=0.5, cooldown_s=0.1)   # 5 and 1 frames at the stamps' 10 Hz
-    for k in range(8):                                       # 0.8 s: before the never-ok search's 1 s (below)
+    for k in range(4):                                       # 0.4 s: before after_uncertain_s
         never.update(unc, True, True, 0.9, T_off, 0.1 * k)
     assert never.pending is None
+    for k in range(4, 8):
+        never.update(unc, True, True, 0.9, T_off, 0.1 * k)
+    assert never.pending is not None and never.pending.startswith("never ok") and never.due_code == "never_ok_once"
     was_ok = _policy(after_uncertain_s=0.5, cooldown_s=0.1)
     was_ok.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0)
     for k in range(10):
@@ -641,21 +645,24 @@ def test_a_never_ok_track_outside_the_start_prior_is_searched_for():
                                 np.array([0.0, 0.0, 0.01]), refine_enabled=True, start_sigmas=(0.01, 0.1))
         policy.set_start(np.eye(4))
         T = se3.from_rotvec_trans(np.array([0.0, 0.0, angle_rad]), np.array([offset_m, 0.0, 0.0]))
-        for k in range(9):   # 0.9 s: before the never-ok search's 1 s
+        for k in range(9):   # 0.9 s
             policy.update(unc, True, True, 0.9, T, 0.1 * k)
         return policy.pending
 
-    assert run(offset_m=0.006) is None
-    assert run(offset_m=0.99 * START_SIGMAS * 0.01) is None
-    assert run(angle_rad=0.99 * START_SIGMAS * 0.1) is None
+    def never_ok_once(pending):  # inside the prior only the never-ok track's one search (same after_uncertain_s)
+        return pending is not None and pending.startswith("never ok")
+
+    assert never_ok_once(run(offset_m=0.006))
+    assert never_ok_once(run(offset_m=0.99 * START_SIGMAS * 0.01))
+    assert never_ok_once(run(angle_rad=0.99 * START_SIGMAS * 0.1))
     assert "not ok" in run(offset_m=1.01 * START_SIGMAS * 0.01)
     assert "not ok" in run(angle_rad=1.01 * START_SIGMAS * 0.1)
     assert "not ok" in run(offset_m=0.045, angle_rad=math.radians(80.0))
     # without a start prior (the policy's default) a never-ok track is never searched for by this rule
     default = _policy(after_lost_s=1.0, after_uncertain_s=0.5, cooldown_s=0.1)
-    for k in range(9):   # 0.9 s: before the never-ok search's 1 s
+    for k in range(9):   # 0.9 s
         default.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.2, 0, 0])), 0.1 * k)
-    assert default.pending is None
+    assert never_ok_once(default.pending)
 
 
 def test_a_never_ok_track_sliding_outside_the_start_prior_is_searched_for_without_waiting_to_be_still():
@@ -733,7 +740,7 @@ def test_a_track_never_ok_and_still_gets_one_wide_search():
     searched for by the slow trigger, which needs an ok frame. After NEVER_OK_SEARCH_S of still,
     weighed, not-ok frames it gets one wide search; a declined one is not repeated by this rule, nor
     does the rule fire after a re-initialisation or once a frame was ok."""
-    from app.filter.recovery import NEVER_OK_SEARCH_S
+    NEVER_OK_SEARCH_S = RecoveryConfig().after_uncertain_s   # the never-ok search waits the slow trigger's time (issue 32)
 
     unc = TrackingStatus.UNCERTAIN
     T_near = se3.from_rotvec_trans(np.zeros(3), np.array([0.003, 0.0, 0.0]))   # 3 mm from the start
@@ -883,7 +890,7 @@ def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
     far from it needs confirm_frames, as a found one); the slow trigger's count
     restarts, and the never-ok rule's one search is spent. Far from the last ok pose the search is
     retried, after the backed-off cooldown (a wrong track can explain an image without the bone)."""
-    from app.filter.recovery import NEVER_OK_SEARCH_S
+    NEVER_OK_SEARCH_S = RecoveryConfig().after_uncertain_s   # the never-ok search waits the slow trigger's time (issue 32)
 
     unc = TrackingStatus.UNCERTAIN
     T_near = se3.from_rotvec_trans(np.zeros(3), np.array([0.003, 0.0, 0.0]))
@@ -955,7 +962,7 @@ def test_a_track_sliding_while_never_ok_is_searched_for_after_twice_the_slow_tri
     policy = _policy(after_uncertain_s=slow_s)               # near the last ok pose (a hand over a held track)
     policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), -1 / hz)
     for k in range(int(4 * hz)):
-        x = 0.004 * math.sin(2 * math.pi * 1.25 * k / hz)   # within FAR_M, moving
+        x = 0.004 * math.sin(2 * math.pi * 1.25 * k / hz)   # within the far gap (refine.competitor_distance), moving
         policy.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([x, 0, 0])), k / hz)
     assert policy.pending is None
 
@@ -1051,12 +1058,13 @@ def test_a_kept_track_moves_onto_its_refined_pose_when_the_search_refined_it_awa
     local minimum at a consistent sharp share of 0.26-0.30; the incumbent's wider chain had refined
     it to 0.1 mm (0.91), but a kept search changed nothing: found 2.54 s after the bone was in view.
     A kept track whose own fit is below the search's bar and whose refined pose lies more than
-    KEPT_MOVE_M / KEPT_MOVE_RAD away is moved there (the cloud shifted, the refined track seeded);
+    recovery.kept_move_m / kept_move_angle away is moved there (the cloud shifted, the refined track seeded);
     within that, or with its own fit over the bar, nothing moves. Either way it is no re-initialisation."""
     from types import SimpleNamespace
 
     from app.filter.wide_search import MIN_SHARP, SearchResult
-    from app.pipeline.recovery_runner import KEPT_MOVE_M, RecoveryRunner
+    from app.filter.recovery import KEPT_MOVE_M
+    from app.pipeline.recovery_runner import RecoveryRunner
 
     T_now = se3.from_rotvec_trans(np.zeros(3), np.array([0.05, 0.0, 0.0]))
     for gap, own, moves in [(3.3 * KEPT_MOVE_M, 0.28, True), (0.5 * KEPT_MOVE_M, 0.28, False),

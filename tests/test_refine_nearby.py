@@ -73,7 +73,7 @@ def _run(track, n):
 
 
 def test_the_template_gap_is_the_largest_point_displacement():
-    """The gap the search compares with ``nearby_gap`` (app.metrics.mdd), against closed forms."""
+    """The gap the search compares with ``status.max_template_std`` (app.metrics.mdd), against closed forms."""
     points = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0], [0.0, 0.02, 0.0]])
     T_shift = _pose(0.0015)
     assert metrics.mdd(T_shift, _pose(), points) == pytest.approx(0.0015, abs=1e-12)
@@ -153,7 +153,7 @@ def _after_first_frame(minima, **config):
 
 def test_a_better_fit_within_the_gap_is_searched_about_until_a_competitor_shows():
     """The follow-up searches (``nearby_followups``): the search at frame 11 finds a fit 0.8 mm away that
-    explains the image better (within ``nearby_gap``: no competitor yet); the next frame searches about
+    explains the image better (within ``status.max_template_std``: no competitor yet); the next frame searches about
     that fit and finds one 1.6 mm from the track. Without them the competitor stays unseen."""
     minima = [(_pose(), 0.70), (_pose(0.0008), 0.90), (_pose(0.0016), 0.95)]
     refiner, track = _after_first_frame(minima, nearby_every=10, nearby_followups=3)

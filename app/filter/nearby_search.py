@@ -8,7 +8,7 @@ Is the kept pose the best explanation of the image around it? Every ``nearby_eve
 the track, refine (default first width) from ``nearby_starts`` poses drawn about the kept pose at
 ``nearby_sigma_p`` / ``nearby_sigma_r`` (turned about the bone's centroid,
 :func:`app.filter.motion.draws_about_centroid`);
-a fit whose template lies more than ``nearby_gap`` from the kept pose's (the largest displacement
+a fit whose template lies more than ``gap`` (status.max_template_std) from the kept pose's (the largest displacement
 of the template's points, max_k |T_base_fit p_k − T_base_kept p_k|: :func:`app.metrics.mdd`)
 and whose consistency (:func:`app.filter.refine_track.consistent_sharp`) exceeds the kept fit's by at least
 ``nearby_margin`` is a competitor near the track: it explains the image better. The search
@@ -26,7 +26,7 @@ competitor and the kept pose, both as they are, are scored on the new image: the
 unless it explains it better. A validated one is checked so again on each search's frame instead of
 being searched for again, and stays the answer while it still explains the image better.
 
-Follow-ups: a search that finds no competitor but a fit within ``nearby_gap`` scoring at least
+Follow-ups: a search that finds no competitor but a fit within ``gap`` (status.max_template_std) scoring at least
 ``nearby_margin`` above the track's searches again on the next frame, its draws about that
 fit, up to ``nearby_followups`` frames in a row; meanwhile the answer is that fit's gap (the
 status below ok: the image prefers a pose the track is not at, and how far the better poses
@@ -62,6 +62,7 @@ from typing import Callable
 import numpy as np
 
 from app import metrics
+from app.filter.status import MAX_TEMPLATE_STD_M
 from app.geometry import se3
 
 NEARBY_RNG = 20261125          # the search's own generator seed: a replay repeats
@@ -82,10 +83,13 @@ class NearbySearch:
     config : the ``nearby_*`` fields of app/filter/refine_track.py's ``RefineConfig``
     points_bone : (N, 3) the template's points (bone frame, m): the gap is their largest displacement
     draws : the track's multi-start draws (``RefinedTrack._draws``)
+    gap : m, a fit moving the template's points by more than this is a different answer (the clinical
+        tolerance, ``status.max_template_std``; ``refine.nearby_gap`` before issue 32)
     """
 
-    def __init__(self, config, points_bone: np.ndarray, draws: Draws):
+    def __init__(self, config, points_bone: np.ndarray, draws: Draws, gap: float = MAX_TEMPLATE_STD_M):
         self.config, self.points_bone, self.draws = config, np.asarray(points_bone, float), draws
+        self.gap = float(gap)
         self.reset()
 
     def reset(self) -> None:
@@ -167,7 +171,7 @@ class NearbySearch:
     def _search(self, fit: Fit, T_base_kept: np.ndarray, own: float):
         """Refine from the retried competitor's pose, then from ``nearby_starts`` draws about the kept pose
         or, in a follow-up, about the better fit followed. Returns (competitor, better): the first fit
-        more than ``nearby_gap`` away scoring at least ``nearby_margin`` above ``own``, and else the best
+        more than ``gap`` (status.max_template_std) away scoring at least ``nearby_margin`` above ``own``, and else the best
         such fit within the gap, each as (gap m, pose relative to the kept one), or None."""
         c = self.config
         T_base_centre = T_base_kept if self._T_kept_follow is None else T_base_kept @ self._T_kept_follow
@@ -185,7 +189,7 @@ class NearbySearch:
             if score < threshold:
                 continue
             gap = metrics.mdd(T_base_fit, T_base_kept, self.points_bone)
-            if gap > c.nearby_gap:
+            if gap > self.gap:
                 return (gap, T_kept_base @ T_base_fit), None
             if score >= best_score:
                 better, best_score = (gap, T_kept_base @ T_base_fit), score

@@ -41,23 +41,23 @@ first re-initialisation: a pose the search found may rightly lie outside the sta
 moved before it was ever ok), and its settling frames must not search again. A bone being
 repositioned is uncertain for seconds (status.py's motion rule), and a re-spread around its pose
 before the move would lose it. The low-fit and the slow trigger also need the estimate more than
-``FAR_M`` / ``FAR_RAD`` = 5 mm / 5 deg (refine_track.py's competitor gap) from the last confident
+FAR = 5 mm / 5 deg (``refine.competitor_distance`` / ``competitor_angle``, the competitor gap) from the last confident
 pose: under an 80 % hand a correct track is uncertain for seconds (the predicted template error),
 and re-initialising it there raised crest_left_05's lost share from 1.6 to 16 %. It did not save
 crest_right_04 / _05, whose tracks had been > 5 mm off for a moment (and came back by themselves
 without recovery; BENCHMARKS.md §6b). A third: a weighed frame after at least ``after_lost_s`` of
-frames not weighed (the estimate out of the image or hidden) while not ok and more than FAR_M / FAR_RAD
+frames not weighed (the estimate out of the image or hidden) while not ok and more than FAR
 from the last confident pose: a bone moved out of view and back (or_fast_reposition) is searched for
 as soon as it is seen again; the slow trigger took 1.5 s more there. The re-initialisation runs on
 the next frame that has a camera pose and valid depth. A fourth, once: a track never ok since the start, still, weighed
-and not ok for NEVER_OK_SEARCH_S (1 s), before any re-initialisation or declined search, gets one
+and not ok for ``after_uncertain_s`` (1 s; the slow trigger's wait), before any re-initialisation or declined search, gets one
 wide search, wherever it lies (or_coarse_start crest_left_02 seed 1 converged into a wrong minimum
 11.9 mm off, fit 0.64, within the start's prior and 5 mm of the start; it escaped by chance at
 0.65 s, and with the static prior's release at 4 (tried) sat there for the whole 4 s: found at
 1.1 s with this rule. On or_deep_tissue it runs one search that finds nothing better:
 7 of 8 crests, ADD within 0.12 mm of before, never ok; static_far seed 1: identical; BENCHMARKS.md §6f).
 A fifth: SLIDING_FACTOR (2) times ``after_uncertain_s`` of weighed frames in a row not ok, more than
-FAR_M / FAR_RAD from the last confident pose, moving or not (with the slow trigger's own condition:
+FAR from the last confident pose, moving or not (with the slow trigger's own condition:
 an ok frame since the start, or outside the start's prior). A wrong track that slides over the
 tissue at a good fit restarts the slow trigger's count with every move, and nothing else fired:
 or_fast_reposition crest_left_03 seed 2 slid from 76 to 175 mm off over 5 s at a fit of 0.77-0.95,
@@ -141,8 +141,8 @@ uncertain, and counting those frames fired a re-spread at the old pose before it
 uncertain, whatever the rules say; then the usual rules (status.py, with the refinement's fit,
 predicted template error and competitor check) decide. That alone was not enough: on crest_right_05
 the wrong pose a re-spread settled on was ok in 81 frames after the hold (BENCHMARKS.md §6b). So
-after a re-initialisation a pose is ok only when it agrees with the last ok pose (within FAR_M /
-FAR_RAD: the bone is usually static in the robot's base frame), or, away from it (the bone was
+after a re-initialisation a pose is ok only when it agrees with the last ok pose (within FAR: the
+bone is usually static in the robot's base frame), or, away from it (the bone was
 moved while hidden), after ``confirm_frames`` (90, ~1 s) weighed frames in a row that the rules
 find ok: evidence, not a timer.
 
@@ -168,7 +168,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.filter.motion import ParticleState, draws_about_centroid
-from app.filter.refine_track import pose_gap
+from app.filter.refine_track import RefineConfig, pose_gap
 from app.filter.status import TrackingStatus
 from app.filter.weights import uniform_log_weights
 from app.geometry import quaternion as quat
@@ -182,8 +182,7 @@ NOMINAL_PERIOD_S = 1.0 / 90.0        # the frame period until two stamps are kno
 PERIOD_FRAMES = 31                   # the period is the median of the last 30 stamp differences
 TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 of the last 90 not-lost estimates
 MAX_BACKOFF_DOUBLINGS = 3
-FAR_M, FAR_RAD = 0.005, math.radians(5.0)
-NEVER_OK_SEARCH_S = 1.0              # a track never ok for this long (still) gets one wide search
+KEPT_MOVE_M, KEPT_MOVE_RAD = 0.001, math.radians(1.0)   # a kept track below the search's bar moves onto its refined pose beyond this
 SLIDING_FACTOR = 2.0                 # x after_uncertain_s: not ok this long, far, moving or not: a search
 START_SIGMAS = math.sqrt(16.27)   # chi-square, 3 dof, 99.9 %: a never-ok track this many start sigmas off
 STILL_WINDOW_S = 0.5
@@ -202,9 +201,11 @@ class RecoveryConfig:
     weighed frames in a row that the rules find ok before a pose away from the last ok one may be ok);
     search (the wide search, app/filter/wide_search.py, replaces the one-point SMC attempts);
     search_evaluations (its likelihood evaluations per search); the triggers' numbers (module
-    docstring, "Trigger"; defaults the module constants): far_m / far_angle (a pose this far from the
-    last ok one is "far"), search_retry_s, never_ok_search_s, sliding_factor, start_sigmas,
-    still_window_s, max_backoff_doublings."""
+    docstring, "Trigger"; defaults the module constants): search_retry_s, sliding_factor, start_sigmas,
+    still_window_s, max_backoff_doublings; kept_move_m / kept_move_angle (app/pipeline/recovery_runner.py).
+    Since issue 32 the "far" gap is ``refine.competitor_distance`` / ``competitor_angle`` (it was
+    recovery.far_m / far_angle, the same 5 mm / 5 deg; :class:`RecoveryPolicy`'s ``far``) and the never-ok
+    track's one search waits ``after_uncertain_s`` (it was recovery.never_ok_search_s, the same 1 s)."""
 
     enabled: bool = True
     after_lost_s: float = 0.11
@@ -219,14 +220,13 @@ class RecoveryConfig:
     confirm_frames: int = 90
     search: bool = True
     search_evaluations: int = 4000
-    far_m: float = FAR_M
-    far_angle: float = FAR_RAD
     search_retry_s: float = SEARCH_RETRY_S
-    never_ok_search_s: float = NEVER_OK_SEARCH_S
     sliding_factor: float = SLIDING_FACTOR
     start_sigmas: float = START_SIGMAS
     still_window_s: float = STILL_WINDOW_S
     max_backoff_doublings: int = MAX_BACKOFF_DOUBLINGS
+    kept_move_m: float = KEPT_MOVE_M
+    kept_move_angle: float = KEPT_MOVE_RAD
     search_worker: str = "auto"
     confirm_moved: bool = True
 
@@ -278,13 +278,17 @@ class RecoveryPolicy:
     min_fitness : a refined fit below this counts as bad (status.min_fitness)
     still : (speed m/s, angular speed rad/s, window s) below which the estimate is still
         (status.uncertain_speed, uncertain_angular_speed, motion_window_s; the window at least STILL_WINDOW_S)
+    far : (m, rad) a pose farther than this from the last ok one is "far" (``refine.competitor_distance`` /
+        ``competitor_angle``: two poses this far apart are different answers; default RefineConfig's)
     """
 
     def __init__(self, config: RecoveryConfig, centroid_bone: np.ndarray, surface_point_bone: np.ndarray,
                  refine_enabled: bool, min_fitness: float = 0.6,
                  still: tuple[float, float, float] = (0.03, math.radians(20.0), 0.2),
-                 start_sigmas: tuple[float, float] = (math.inf, math.inf), search_bar: float = math.nan):
+                 start_sigmas: tuple[float, float] = (math.inf, math.inf), search_bar: float = math.nan,
+                 far: tuple[float, float] | None = None):
         self.config = config
+        self.far = (RefineConfig.competitor_distance, RefineConfig.competitor_angle) if far is None else far
         self.search_bar = search_bar           # the wide search's MIN_SHARP: a found pose below it is searched again
         self.start_sigmas = start_sigmas       # init.sigma_p (m), sigma_r (rad): the start pose's prior
         self.centroid_bone = np.asarray(centroid_bone, float).reshape(3)
@@ -407,7 +411,7 @@ class RecoveryPolicy:
             untried=not self.events and not self.declined_searches and not self.kept_searches,
             weighed=weighed, rules_ok=rules_ok, after_lost=frames(c.after_lost_s),
             uncertain=frames(c.after_uncertain_s) if c.after_uncertain_s else 0,
-            sliding=frames(self._sliding_factor() * c.after_uncertain_s), never_ok=frames(c.never_ok_search_s),
+            sliding=frames(self._sliding_factor() * c.after_uncertain_s),
             gap_m=gap_m, gap_rad=gap_rad, sharp=float(sharp), search_bar=self.search_bar,
             declined=self.declined_searches, kept=self.kept_searches)
 
@@ -435,7 +439,7 @@ class RecoveryPolicy:
 
     def _confirmed(self, status: TrackingStatus, weighed: bool, T_base_bone: np.ndarray) -> TrackingStatus:
         """After a re-initialisation (module docstring, "Honesty"): ok only at a pose that agrees with
-        the last ok pose (within FAR_M / FAR_RAD: the bone is usually static in the base frame), or
+        the last ok pose (within FAR: the bone is usually static in the base frame), or
         after ``confirm_frames`` weighed frames in a row that the rules find ok. A track that comes back
         to ok far from the last ok pose without any re-initialisation (it followed or slid with a
         moved bone while not ok) is such a hypothesis too (``recovery.confirm_moved``): on the
@@ -461,14 +465,15 @@ class RecoveryPolicy:
         return pose_gap(self.T_base_bone_confident, T_base_bone)
 
     def _far(self, T_base_bone: np.ndarray) -> bool:
-        """Whether the estimate lies more than FAR_M / FAR_RAD from the last confident pose."""
+        """Whether the estimate lies more than FAR from the last confident pose."""
         if self.T_base_bone_confident is None:
             return True
         return self._far_gap(*self._gap(T_base_bone))
 
     def _far_gap(self, dist: float, angle: float) -> bool:
-        """Whether a gap (m, rad) to the last confident pose is far (``recovery.far_m`` / ``far_angle``)."""
-        return dist > self.config.far_m or angle > self.config.far_angle
+        """Whether a gap (m, rad) to the last confident pose is far (``far``: refine.competitor_distance /
+        competitor_angle)."""
+        return dist > self.far[0] or angle > self.far[1]
 
     def _beyond_start(self, T_base_bone: np.ndarray) -> bool:
         """Never ok and outside the start's prior: more than START_SIGMAS start sigmas from it."""

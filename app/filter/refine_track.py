@@ -45,14 +45,14 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
 - the output pose is the refined one when its fitness >= ``keep_fitness``, else the filter's;
 - feedback (``feedback``): when the filter's cloud has converged (its status not lost, its spread
   under status.uncertain_position_spread / uncertain_rotation_spread), the kept fit reaches
-  ``feedback_fitness`` and no competitor exists,
+  ``status.min_fitness`` and no competitor exists,
   the particle cloud is shifted rigidly so that its mean lands on the refined pose
   (:meth:`app.filter.particle_filter.ParticleFilter.shift_to`): the filter stays inside the
   refinement's capture range (issue 12: seeded 0-3 mm off, 98 % of ICP frames ended under 2 mm,
   5-7.5 mm off only 16 %). Measured in BENCHMARKS.md §6;
 - a competitor near the track (``RefineOutcome.nearby``, :class:`app.filter.nearby_search.NearbySearch`): every
   ``nearby_every`` (10) frames the track also refines from ``nearby_starts`` (4) draws 2 mm / 2 deg
-  about its pose; a fit moving the template by more than ``nearby_gap`` (1 mm) whose consistent share
+  about its pose; a fit moving the template by more than ``status.max_template_std`` (1 mm) whose consistent share
   exceeds the track's by ``nearby_margin`` (0.015) keeps the status below ok: under residual tissue
   the refinement's minimum is a plateau 1-2 mm wide on which the track's fit is not the best
   (BENCHMARKS.md §6j). A fit within 1 mm that explains the image better is searched about on the
@@ -77,6 +77,7 @@ from app.filter.nearby_search import NearbySearch
 from app.filter.refine import RENDER_LEVER as REFINE_LEVER
 from app.filter.refine import Refiner, RefineResult, template_std
 from app.filter.static_prior import StaticPrior, StaticPriorConfig
+from app.filter.status import StatusThresholds
 from app.geometry import se3
 
 FALLBACK_BEHIND_SHARE = 0.02   # the former fixed share, when too few pixels estimate the noise
@@ -90,15 +91,17 @@ SEED_STARTS_RNG = 20261124     # the multi-start's own generator seed (:meth:`Re
 class RefineConfig:
     """``refine.*`` of the configuration (module docstring). enabled; stride (1 full / 2 half sensor
     resolution); iterations; samples (model points); keep_fitness; reseed_fitness;
-    competitor_distance (m) / competitor_angle (rad); competitor_margin; feedback; feedback_fitness;
+    competitor_distance (m) / competitor_angle (rad), also the recovery's "far"; competitor_margin; feedback (from
+    fits confirming status.min_fitness, which was refine.feedback_fitness before issue 32);
     static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames, prior_motion_frames,
     prior_forget_ratio (app/filter/static_prior.py); seed_starts, seed_spread (the seeded first frame's multi-start,
     :meth:`RefinedTrack._start_fits`); outline_ring (the model's z-buffer grown by a pixel:
     app/filter/refine.py :func:`~app.filter.refine.fill_holes`); tissue_border (a measurement beside a
     buried one is left out of the fit: app/filter/refine.py step 5); behind_frames (the behind rule
     tested over this many of the track's last fits: app/filter/behind_pool.py); nearby_every, nearby_starts,
-    nearby_sigma_p (m), nearby_sigma_r (rad), nearby_gap (m), nearby_margin, nearby_hold, nearby_followups (the search
-    for a competitor near the track: :class:`app.filter.nearby_search.NearbySearch`)."""
+    nearby_sigma_p (m), nearby_sigma_r (rad), nearby_margin, nearby_hold, nearby_followups (the search
+    for a competitor near the track: :class:`app.filter.nearby_search.NearbySearch`; its gap is the status's
+    tolerance, status.max_template_std, which was refine.nearby_gap before issue 32)."""
 
     enabled: bool = True
     stride: int = 2
@@ -110,7 +113,6 @@ class RefineConfig:
     competitor_angle: float = math.radians(5.0)
     competitor_margin: float = 0.05
     feedback: bool = True
-    feedback_fitness: float = 0.6
     static_prior: bool = True
     prior_release_chi2: float = 25.0
     prior_clear_ratio: float = 1.5
@@ -128,7 +130,6 @@ class RefineConfig:
     nearby_starts: int = 4
     nearby_sigma_p: float = 0.002
     nearby_sigma_r: float = math.radians(2.0)
-    nearby_gap: float = 0.001
     nearby_margin: float = 0.015
     nearby_hold: int = 2
     nearby_followups: int = 3
@@ -194,9 +195,12 @@ class RefinedTrack:
     plan_points : (K, 3) bone-frame points whose predicted error the status bounds (the template's;
         the mesh's vertices, subsampled, when the plan is not known: a conservative bound)
     inflation : Σ = inflation H⁻¹ (correlated pixels; status.covariance_inflation)
+    tolerance : m, the nearby search's gap: a fit moving the template more than this is a different answer
+        (status.max_template_std, the clinical tolerance)
     """
 
-    def __init__(self, refiner: Refiner, config: RefineConfig, plan_points: np.ndarray, inflation: float):
+    def __init__(self, refiner: Refiner, config: RefineConfig, plan_points: np.ndarray, inflation: float,
+                 tolerance: float = StatusThresholds.max_template_std):
         self.refiner = refiner
         self.config = config
         self.plan_points = np.asarray(plan_points, float).reshape(-1, 3) - refiner.center
@@ -206,7 +210,7 @@ class RefinedTrack:
                                          config.prior_forget_ratio)
         self.prior = StaticPrior(prior_config, refiner.center, inflation) if config.static_prior else None
         self.behind_pool = BehindPool(config.behind_frames, refiner.params.behind_z)
-        self.nearby = NearbySearch(config, self.plan_points + refiner.center, self._draws)
+        self.nearby = NearbySearch(config, self.plan_points + refiner.center, self._draws, tolerance)
         self.reset()
 
     def reset(self) -> None:

@@ -92,7 +92,7 @@ then lowered to UNCERTAIN, never raised, when
   ``refine.competitor_margin`` = 0.05 apart (tests/test_refine_status.py builds such a frame).
 - a pose near the track explains the image better: every ``refine.nearby_every`` = 10 frames
   the track refines from ``refine.nearby_starts`` = 4 poses drawn 2 mm / 2 deg about its pose, and a fit
-  that moves the template by more than ``refine.nearby_gap`` = 1 mm (its largest point displacement)
+  that moves the template by more than ``max_template_std`` = 1 mm (its largest point displacement)
   while its share within 1 σ less its excess behind exceeds the track's own by ``nearby_margin`` = 0.015
   keeps the status below ok until the next search finds none (app/filter/nearby_search.py
   ``NearbySearch``); a fit within 1 mm that scores so (the track is not at the image's best pose)

@@ -11,7 +11,7 @@ module does the policy's attempts on the tracker's parts (app/pipeline/tracker.p
 - **the attempt** (:meth:`RecoveryRunner.run`): the wide search (a found pose seeds the particles,
   FOUND_SIGMA_M / FOUND_SIGMA_RAD about it, and the refinement's track; nothing found changes
   nothing; the current estimate kept as the best explanation is moved onto its refined pose when
-  its own fit is below the search's bar and that pose lies more than KEPT_MOVE_M / KEPT_MOVE_RAD
+  its own fit is below the search's bar and that pose lies more than recovery.kept_move_m / kept_move_angle
   away, and is otherwise left alone), a re-spread around the last confident pose, or the one-point SMC initialiser at the
   policy's point (a re-spread instead while that point is behind a hand,
   :func:`app.filter.visibility.point_visible`);
@@ -34,7 +34,6 @@ from app.geometry.camera import PinholeCamera
 from app.tracking.search_worker import SearchJob
 
 log = logging.getLogger(__name__)
-KEPT_MOVE_M, KEPT_MOVE_RAD = 0.001, math.radians(1.0)
 
 
 class RecoveryRunner:
@@ -171,8 +170,8 @@ class RecoveryRunner:
         return seconds, True
 
     def _refined_in_place(self, T_base_bone_kept: np.ndarray | None, T_base_bone_now: np.ndarray | None) -> None:
-        """A kept track whose own last fit is below the search's bar (:meth:`RecoveryPolicy.fit_below_bar`) moved onto its refined pose when that lies more than KEPT_MOVE_M /
-        KEPT_MOVE_RAD (1 mm / 1 deg) from the current estimate: the cloud shifted onto it, the refined track seeded
+        """A kept track whose own last fit is below the search's bar (:meth:`RecoveryPolicy.fit_below_bar`) moved onto its refined pose when that lies more than
+        ``recovery.kept_move_m`` / ``kept_move_angle`` (1 mm / 1 deg) from the current estimate: the cloud shifted onto it, the refined track seeded
         there (which resets its static prior, as a found pose does). The search verified the incumbent
         with a wider chain than the track's own refinement (width 0 from its last pose), and that
         chain can leave a local minimum: or_fast_reposition crest_left_05 seed 1 at the filter's
@@ -185,7 +184,8 @@ class RecoveryRunner:
         if not self.policy.fit_below_bar():                          # the track's own fit passes the bar: left alone
             return
         dist, angle = pose_gap(T_base_bone_now, T_base_bone_kept)
-        if dist <= KEPT_MOVE_M and angle <= KEPT_MOVE_RAD:
+        c = self.policy.config
+        if dist <= c.kept_move_m and angle <= c.kept_move_angle:
             return
         self.filter.shift_to(T_base_bone_kept, T_base_bone_now)
         self.refined_track.seed(T_base_bone_kept, verified=True)
@@ -229,7 +229,8 @@ def _policy(config, vertices: np.ndarray, search_bar: float) -> RecoveryPolicy:
     st = config.status
     return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, st.min_fitness,
                           (st.uncertain_speed, st.uncertain_angular_speed, st.motion_window_s),
-                          (config.init_sigma_p, config.init_sigma_r), search_bar)
+                          (config.init_sigma_p, config.init_sigma_r), search_bar,
+                          (config.refine.competitor_distance, config.refine.competitor_angle))
 
 
 def _wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedTrack | None, vertices: np.ndarray):

@@ -325,7 +325,7 @@ class DepthTracker:
         converged = (result.status != TrackingStatus.LOST and result.position_spread <= st.uncertain_position_spread
                      and result.rotation_spread <= st.uncertain_rotation_spread)
         if (c.feedback and converged and out.T_base_bone is not None
-                and out.fitness >= c.feedback_fitness and not out.competitor):
+                and out.fitness >= st.min_fitness and not out.competitor):
             self.filter.shift_to(out.T_base_bone, result.T_base_bone)
         evidence = RefinementEvidence(out.fitness, out.template_std, out.competitor, out.behind, out.held_chi2,
                                       out.nearby)
@@ -532,4 +532,5 @@ def _refined_track(config: TrackerConfig, mesh: trimesh.Trimesh, camera: Pinhole
     vertices, faces = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
     refiner = Refiner(vertices, faces, camera, refine_params(config), seed=config.seed)
     step = max(1, len(vertices) // PLAN_POINTS)
-    return RefinedTrack(refiner, c, vertices[::step], config.status.covariance_inflation)
+    return RefinedTrack(refiner, c, vertices[::step], config.status.covariance_inflation,
+                        config.status.max_template_std)

@@ -23,10 +23,10 @@ class Evidence:
     says which); ``outside``: never ok and beyond the start's prior; ``back``: the unseen frames this
     weighed one ended (0 unless at least ``after_lost``); ``not_ok``: not ok while still; ``not_ok_moving``:
     not ok, moving or not; ``below_bar``: a hypothesis' fit below the search's bar; ``far``: more than
-    ``recovery.far_m`` / ``far_angle`` from the last ok pose; ``beyond``: never ok and outside the start's
+    ``refine.competitor_distance`` / ``competitor_angle`` from the last ok pose; ``beyond``: never ok and outside the start's
     prior; ``ever_ok``, ``retrying`` (the lifecycle's), ``untried`` (no attempt, declined or kept search
-    yet); the thresholds in frames (``after_lost``, ``uncertain``: after_uncertain_s or 0 when off,
-    ``sliding``, ``never_ok``); ``gap_m`` / ``gap_rad``: the pose's distance and angle to the last ok pose
+    yet); the thresholds in frames (``after_lost``, ``uncertain``: after_uncertain_s or 0 when off, also
+    the never-ok track's one search, ``sliding``); ``gap_m`` / ``gap_rad``: the pose's distance and angle to the last ok pose
     (NaN without one), formatted only when a trigger fires (:func:`gap_text`)."""
 
     bad_reason: str | None
@@ -46,7 +46,6 @@ class Evidence:
     after_lost: int
     uncertain: int
     sliding: int
-    never_ok: int
     gap_m: float
     gap_rad: float
     sharp: float
@@ -86,7 +85,7 @@ TRIGGERS: tuple[Trigger, ...] = (
     Trigger("back_in_view",
             lambda e: bool(e.back) and e.far,
             lambda e: f"weighed again after {e.back} frames unseen, {gap_text(e)} from the last ok pose",
-            "recovery.after_lost_s, recovery.far_m",
+            "recovery.after_lost_s, refine.competitor_distance",
             "weighed again after after_lost_s unseen, far from the last ok pose"),
     Trigger("not_ok_still",
             lambda e: _slow(e) and e.not_ok >= e.uncertain,
@@ -105,10 +104,10 @@ TRIGGERS: tuple[Trigger, ...] = (
             "recovery.after_lost_s",
             "a hypothesis' fit below the search's bar for after_lost_s, far"),
     Trigger("never_ok_once",
-            lambda e: bool(e.uncertain) and not e.ever_ok and e.untried and e.not_ok >= e.never_ok,
+            lambda e: bool(e.uncertain) and not e.ever_ok and e.untried and e.not_ok >= e.uncertain,
             lambda e: f"never ok for {e.not_ok} weighed frames since the start: one wide search",
-            "recovery.never_ok_search_s",
-            "never ok for never_ok_search_s (still), before any attempt: one search"),
+            "recovery.after_uncertain_s",
+            "never ok for after_uncertain_s (still), before any attempt: one search"),
     Trigger("still_searching",
             lambda e: e.retrying and e.weighed and not e.rules_ok and e.far,
             lambda e: (f"still searching ({e.declined} searches found nothing, {e.kept} kept the track), "
