@@ -22,8 +22,13 @@ Two strategies, wrapped, not rewritten:
   recovery's own form (anchors everywhere, the pose as the track); with nothing, every anchor. The
   bone's orientation before the turns about up: its top direction (the mesh's +z: the CT's head
   direction, the crest's top, pelvis README; the simulator stands the bone so) along the base's up,
-  as the wide search assumes for a bone on the table, then ``yaw_steps`` turns about up
-  (``app.filter.wide_search.WideSearch._anchored``). The recovery keeps calling the same
+  as the wide search assumes for a bone on the table, and that orientation tilted by
+  ``StartSearch.tilt_rad`` towards ``tilt_directions`` directions (a patient's crest is not level:
+  from up alone every start of the simulator's views tilted 21 deg was missed or confirmed up to
+  15 mm off), each then turned ``yaw_steps`` times about up (``app.filter.wide_search.WideSearch._anchored``,
+  drawn in one batch here). A start spends more than a recovery's search (``StartSearch``: twice the
+  evaluations, more candidates verified): it happens once, and its winner is the most consistent
+  confirmed fit, so each right candidate verified is a chance to beat a wrong one. The recovery keeps calling the same
   :class:`~app.filter.wide_search.WideSearch` object directly (its incumbent and track rules are
   the recovery's): its results are unchanged.
 - :class:`SMCDetector`, the one-point SMC initialiser (app/filter/smc_init/) from a point (a pose's
