@@ -19,7 +19,11 @@ slows both alike:
 - the tracker once per ``filter.stages`` mode (app/pipeline/stages.py; default ``serial`` and
   ``parallel``), each its own DepthTracker on the same frames, in turn (their order swapped every
   frame): a row each, ``stages_ratio`` (parallel frames/s over serial) and ``stages_cpu_ratio``
-  (parallel CPU per frame over serial), and whether their outputs were identical on every frame,
+  (parallel CPU per frame over serial), ``stages_main_cpu_ratio`` (the calling thread's CPU per frame,
+  ``main_cpu_ms``, serial over parallel: the frame's work left on the calling thread, the rest running on numba's
+  threads and the stage worker; a lower bound of the frame's wall time, so the ratio is the most
+  the stages gain when the other work hides entirely on a free second core, and other jobs on the
+  machine do not inflate it), and whether their outputs were identical on every frame,
   warm-up included (pose bit for bit, status, reasons, state: ``stages_identical``,
   ``stages_differing_frames``). ``tracker`` is the row of the configured mode (``filter.stages``
   resolved), which the ratio to ICP uses. The worker's refinement beside the filter's step is
@@ -131,6 +135,8 @@ def measure(trial: str | Path, config: TrackerConfig | None = None, frames: int 
             "stages": rows, "configured_stages": configured if configured in rows else modes[0],
             "stages_ratio": rows["parallel"]["fps"] / rows["serial"]["fps"] if both else None,
             "stages_cpu_ratio": rows["parallel"]["cpu_ms"] / rows["serial"]["cpu_ms"] if both else None,
+            "stages_main_cpu_ratio": (rows["serial"]["main_cpu_ms"] / rows["parallel"]["main_cpu_ms"]
+                                      if both and rows["parallel"]["main_cpu_ms"] > 0 else None),
             "stages_identical": differing == 0, "stages_differing_frames": differing, "stages_compared_frames": n}
 
 
@@ -147,7 +153,7 @@ class _Timed:
 
     def __init__(self, engine):
         self.engine = engine
-        self.wall = self.cpu = 0.0
+        self.wall = self.cpu = self.thread_cpu = 0.0
         self.frames = 0
         self.refined = 0
         self.searched = 0
@@ -160,13 +166,14 @@ class _Timed:
     def process(self, depth, stamp, pose, timed: bool):
         """The engine's ``process`` of one frame, timed when ``timed``; its output."""
         searched_before = self._search_s()
-        t0, c0 = time.perf_counter(), time.process_time()
+        t0, c0, m0 = time.perf_counter(), time.process_time(), time.thread_time()
         result = self.engine.process(depth, stamp, pose)
-        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        wall, cpu, main = time.perf_counter() - t0, time.process_time() - c0, time.thread_time() - m0
         if not timed:
             return result
         self.wall += wall
         self.cpu += cpu
+        self.thread_cpu += main
         self.frames += 1
         self.refined += bool(getattr(result, "refined", False))
         status = str(getattr(result.status, "value", result.status))
@@ -178,7 +185,8 @@ class _Timed:
         frame_ms = 1e3 * self.wall / max(self.frames, 1)
         return {"frames": self.frames, "wall_s": self.wall, "frame_ms": frame_ms,
                 "fps": 1e3 / frame_ms if frame_ms > 0 else float("inf"),
-                "cpu_ms": 1e3 * self.cpu / max(self.frames, 1), "status_counts": dict(self.statuses)}
+                "cpu_ms": 1e3 * self.cpu / max(self.frames, 1),
+                "main_cpu_ms": 1e3 * self.thread_cpu / max(self.frames, 1), "status_counts": dict(self.statuses)}
 
 
 def _tracker_row(run: _Timed, tracker, config: TrackerConfig) -> dict:
@@ -209,19 +217,22 @@ def table(result: dict) -> str:
     t, i = result["tracker"], result["icp"]
     rows = result.get("stages") or {t.get("stages_mode", "-"): t}
     configured = result.get("configured_stages")
-    lines = [f"{'engine':<19} {'frames':>6} {'fps':>7} {'frame ms':>9} {'cpu ms':>8}  notes", "-" * 82]
+    lines = [f"{'engine':<19} {'frames':>6} {'fps':>7} {'frame ms':>9} {'cpu ms':>8} {'main cpu':>9}  notes", "-" * 92]
     for mode, row in rows.items():
         mark = " *" if mode == configured and len(rows) > 1 else ""
         lines.append(f"{'tracker ' + mode + mark:<19} {row['frames']:>6} {row['fps']:>7.1f} {row['frame_ms']:>9.2f} "
-                     f"{row['cpu_ms']:>8.2f}  refined {row['refined_frames']}/{row['frames']}, wide search on "
+                     f"{row['cpu_ms']:>8.2f} {row['main_cpu_ms']:>9.2f}  refined {row['refined_frames']}/{row['frames']}, wide search on "
                      f"{row['search_frames']} ({100 * row['search_share']:.0f} %), status {_counts(row['status_counts'])}")
-    lines.append(f"{'icp':<19} {i['frames']:>6} {i['fps']:>7.1f} {i['frame_ms']:>9.2f} {i['cpu_ms']:>8.2f}  "
+    lines.append(f"{'icp':<19} {i['frames']:>6} {i['fps']:>7.1f} {i['frame_ms']:>9.2f} {i['cpu_ms']:>8.2f} {i['main_cpu_ms']:>9.2f}  "
                  f"Open3D point-to-plane, status {_counts(i['status_counts'])}")
     if result.get("stages_ratio") is not None:
         same = (f"outputs identical on all {result['stages_compared_frames']} frames" if result["stages_identical"] else
                 f"OUTPUTS DIFFER on {result['stages_differing_frames']} of {result['stages_compared_frames']} frames")
+        main = result.get("stages_main_cpu_ratio")
         lines.append(f"parallel / serial stages: {result['stages_ratio']:.2f}x the frames/s, "
-                     f"{result['stages_cpu_ratio']:.2f}x the CPU per frame; {same}")
+                     f"{result['stages_cpu_ratio']:.2f}x the CPU per frame, the calling thread's CPU per frame "
+                     f"{'-' if main is None else f'{1 / main:.2f}'}x (up to {'-' if main is None else f'{main:.2f}'}x "
+                     f"the frames/s with a second core free); {same}")
     elif len(rows) > 1:
         same = "identical" if result["stages_identical"] else "DIFFERENT"
         lines.append(f"outputs of the modes: {same}")
