@@ -32,7 +32,7 @@ changing the results; the rest of the refinement (the choice, the static prior, 
 the filter's frame. Measured (BENCHMARKS.md "Filter rate and CPU"): ``osteonav bench-rate --whole``
 prints serial and parallel side by side.
 
-``serial`` is the default: on the shared 2-core sandbox, loaded by other jobs, parallel ran 0.98-1.07x
+``serial`` is the default: on the shared 2-core sandbox, loaded by other jobs, parallel ran 0.98-1.03x
 serial's frames/s (the machine gave the process about one core), though it leaves the calling
 thread 0.67x of serial's CPU per frame. ``auto`` is ``parallel`` when the refinement is on and the
 process may run on two or more cores, else ``serial``.
