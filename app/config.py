@@ -46,6 +46,7 @@ from app.filter.recovery import RecoveryConfig
 from app.tracking.detector import StartSearch
 from app.filter.refine_track import RefineConfig
 from app.filter.resampling import SCHEMES
+from app.pipeline.stages import MODES as STAGES
 
 INIT_METHODS = ("auto", "pose", "point")
 
@@ -63,6 +64,9 @@ class TrackerConfig(FilterConfig):
     backend : likelihood backend, 'auto' (cpu on a software GL renderer such as llvmpipe, gl on a
         GPU), 'gl' or 'cpu' (app/render/backends.py)
     seed : seed of the filter's np.random.Generator (a replay with one seed is reproducible)
+    stages : 'serial' (the default), 'parallel' or 'auto' (parallel on two or more cores with the
+        refinement on): the refinement's work that needs nothing of the filter's frame runs on a second
+        thread beside the filter's step, with the same results (app/pipeline/stages.py)
     init_method : 'auto' (the default: the coarse initial pose when there is one, else the point prior
         through the detector, app/tracking/detector.py: the wide search around the point, verified by the
         refinement, ok only once confirmed; else, experimentally, the detector over the whole image),
@@ -93,6 +97,7 @@ class TrackerConfig(FilterConfig):
     cull_back_faces: bool = True
     backend: str = "auto"
     seed: int = 0
+    stages: str = "serial"
     init_method: str = "auto"
     init_point_sigma: float = 0.005
     init_restarts: int = 3
@@ -132,6 +137,7 @@ KEYS: dict[str, _Key] = {
     "filter.resampling": _Key(("resampling",), "choice", choices=tuple(sorted(SCHEMES))),
     "filter.first_dt": _f("first_dt", 0.0, 1.0, lo_open=True),
     "filter.seed": _i("seed", 0, 2**63 - 1),
+    "filter.stages": _Key(("stages",), "choice", choices=STAGES),
     "init.sigma_p": _f("init_sigma_p", 0.0, 0.5),
     "init.sigma_r": _f("init_sigma_r", 0.0, math.pi),
     "init.method": _Key(("init_method",), "choice", choices=INIT_METHODS),

@@ -113,6 +113,32 @@ def test_whole_runs_both_engines_on_the_same_frames_and_its_rows_add_up(tmp_path
     assert all(k.startswith(f"{t['description'].split(', ')[1].split()[0]}_") for k in t["backend_stages_ms"])
     assert 0 <= t["refined_frames"] <= 4 and 0 <= t["search_frames"] <= 4
     assert t["search_share"] == pytest.approx(t["search_frames"] / 4)
+    # filter.stages side by side (app/pipeline/stages.py): a row each, the same statuses, identical outputs
+    rows = result["stages"]
+    assert set(rows) == {"serial", "parallel"} and rows[result["configured_stages"]] == t
+    assert rows["serial"]["stages_mode"] == "serial" and rows["parallel"]["stages_mode"] == "parallel"
+    assert rows["serial"]["status_counts"] == rows["parallel"]["status_counts"]
+    assert result["stages_identical"] and result["stages_differing_frames"] == 0
+    assert result["stages_compared_frames"] == 4 + result["warmup"]
+    assert result["stages_ratio"] == pytest.approx(rows["parallel"]["fps"] / rows["serial"]["fps"])
+    assert result["stages_cpu_ratio"] == pytest.approx(rows["parallel"]["cpu_ms"] / rows["serial"]["cpu_ms"])
+    assert all(0 < row["main_cpu_ms"] <= row["cpu_ms"] + 1e-6 for row in rows.values())
+    assert "refine_ahead" in rows["parallel"]["overlapped_ms"] and not rows["serial"]["overlapped_ms"]
+    assert "refine_ahead" not in rows["parallel"]["stages_ms"]          # not a share of the frame: it overlapped
+
+
+def test_whole_runs_one_stages_mode_when_asked(tmp_path, tiny_trial, capsys):
+    import json
+
+    from app.cli import main
+
+    out = tmp_path / "whole.json"
+    assert main(["bench-rate", "--whole", "--trial", str(tiny_trial), "--frames", "1", "--stages", "serial",
+                 "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert set(result["stages"]) == {"serial"} and result["stages_ratio"] is None
+    assert result["tracker"]["stages_mode"] == "serial"
+    assert "tracker serial" in capsys.readouterr().out
 
 
 def test_whole_refuses_bad_input_with_one_line(tmp_path, tiny_trial, capsys):
@@ -125,4 +151,6 @@ def test_whole_refuses_bad_input_with_one_line(tmp_path, tiny_trial, capsys):
     assert main(["bench-rate", "--whole", "--trial", str(tiny_trial), "--frames", "4", "--particles", "100",
                  "--json", str(tmp_path / "c.json")]) != 0
     assert "--config" in capsys.readouterr().err
-    assert not any((tmp_path / n).exists() for n in ("a.json", "b.json", "c.json"))
+    assert main(["bench-rate", "--stages", "serial", "--json", str(tmp_path / "d.json")]) != 0
+    assert "--whole" in capsys.readouterr().err
+    assert not any((tmp_path / n).exists() for n in ("a.json", "b.json", "c.json", "d.json"))

@@ -19,6 +19,9 @@ def register(subparsers) -> None:
                         "trial, beside the Open3D ICP baseline on the same frames, as a ratio (--frames frames timed)")
     p.add_argument("--trial", help="with --whole: the trial directory to run on (default: a static_clear trial of the "
                                    "first ../shared/data/pelvis crest, simulated once into recordings/bench/)")
+    p.add_argument("--stages", nargs="+", choices=("serial", "parallel"), default=None,
+                   help="with --whole: the filter.stages modes to run the tracker in side by side, each on the same "
+                        "frames, with their ratio and whether their outputs were identical (default: serial parallel)")
     p.add_argument("--seconds", type=positive_seconds, default=1.0,
                    help="with --whole and no --trial: the simulated trial's length in seconds, > 0 (default 1.0)")
     p.add_argument("--json", help="where to write the results (an existing file needs --overwrite; default: "
@@ -51,6 +54,10 @@ def _parse(args):
 def run(args) -> int:
     if args.whole:
         return run_whole(args)
+    if args.stages is not None:
+        from app.errors import OsteonavError
+
+        raise OsteonavError("--stages is for --whole (the filter alone has no refinement to overlap): add --whole")
     if args.trial is not None:
         from app.errors import OsteonavError
 
@@ -105,11 +112,12 @@ def run_whole(args) -> int:
         print(f"trial: {whole.SCENARIO}, {args.seconds:g} s of {mesh.name} (simulated once into {DEFAULT_CACHE})", flush=True)
         trial = whole.simulated_trial(mesh, args.seconds, DEFAULT_CACHE)
     try:
-        result = whole.measure(trial, config, frames=args.frames)
+        result = whole.measure(trial, config, frames=args.frames, stages=tuple(args.stages or whole.STAGE_MODES))
     except ValueError as exc:
         raise OsteonavError(f"--trial: {exc}") from exc
     print(f"tracker: {result['tracker']['description']}; {result['frames']} frames timed after "
-          f"{result['warmup']} warm-up frames, one engine after the other on each frame")
+          f"{result['warmup']} warm-up frames, one engine after the other on each frame (the stages modes' "
+          "order swapped every frame)")
     print()
     print(whole.table(result))
     Path(args.json).write_text(json.dumps(result, indent=2))

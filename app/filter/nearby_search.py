@@ -90,6 +90,7 @@ class NearbySearch:
     def __init__(self, config, points_bone: np.ndarray, draws: Draws, gap: float = MAX_TEMPLATE_STD_M):
         self.config, self.points_bone, self.draws = config, np.asarray(points_bone, float), draws
         self.gap = float(gap)
+        self.map = map          # fit over the starts, lazily in order (app/pipeline/stages.py: two at a time)
         self.reset()
 
     def reset(self) -> None:
@@ -181,8 +182,7 @@ class NearbySearch:
         self._T_kept_competitor, self._T_kept_follow = None, None
         T_kept_base, threshold = se3.inverse(T_base_kept), own + self._margin
         better, best_score = None, threshold
-        for T_start in starts:
-            scored = fit(T_start)
+        for scored in self.map(fit, starts):
             if scored is None:
                 continue
             T_base_fit, score = scored

@@ -371,8 +371,20 @@ class RefinedTrack:
                               img_std_mm=1e3 * std, grid_std_mm=1e3 * grid_std)
         return source, T_held, best, std
 
-    def update(self, depth: np.ndarray, T_base_camera: np.ndarray, T_base_bone_filter: np.ndarray) -> RefineOutcome:
-        """Refine on one weighed frame (full-resolution depth, metres) and update the track."""
+    def track_fit(self, depth: np.ndarray, T_base_camera: np.ndarray):
+        """The refinement from the track's own pose that :meth:`update` makes on a frame after the
+        first (width 0), or None where it makes none (no track, its fitness below ``keep_fitness``, the
+        seeded first frame). It needs nothing of the filter's frame: the tracker may run it beside the
+        filter's step and hand it to :meth:`update` (app/pipeline/stages.py)."""
+        if self.T_base_bone is None or not self.fitness >= self.config.keep_fitness or self._seeded:
+            return None
+        return ("track", *self._refine(depth, se3.inverse(T_base_camera), self.T_base_bone, start_width=0.0))
+
+    def update(self, depth: np.ndarray, T_base_camera: np.ndarray, T_base_bone_filter: np.ndarray,
+               track_fit=None) -> RefineOutcome:
+        """Refine on one weighed frame (full-resolution depth, metres) and update the track.
+        ``track_fit``: :meth:`track_fit` of this frame, computed since the track last changed (beside the
+        filter's step), or None to compute it here."""
         t0 = time.perf_counter()
         c = self.config
         T_camera_base = se3.inverse(T_base_camera)
@@ -381,7 +393,7 @@ class RefinedTrack:
             if self._seeded:
                 fits += self._seed_fits(depth, T_camera_base) + self._start_fits(depth, T_camera_base)
             else:
-                fits.append(("track", *self._refine(depth, T_camera_base, self.T_base_bone, start_width=0.0)))
+                fits.append(track_fit or ("track", *self._refine(depth, T_camera_base, self.T_base_bone, start_width=0.0)))
         self._seeded = False
         if self._needs_filter(T_base_bone_filter):
             fits.append(("filter", *self._refine(depth, T_camera_base, T_base_bone_filter)))

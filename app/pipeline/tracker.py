@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections import defaultdict
 from dataclasses import replace
 
@@ -33,6 +34,7 @@ from app.tracking.lifecycle import Lifecycle, State, frame_event
 from app.geometry.camera import PinholeCamera
 from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD
 from app.pipeline.recovery_runner import build_wide_search, make_recovery, usable_frame
+from app.pipeline.stages import PARALLEL, StageWorker, stages_mode
 from app.tracking.search_worker import THREAD, SearchWorker, search_worker_mode
 from app.tracking.start import StartByDetection
 
@@ -73,6 +75,10 @@ class DepthTracker:
         self.backend_name = self.backend.name
         self.filter = ParticleFilter(_filter_config(config), self.backend, np.random.default_rng(config.seed))
         self.refined_track = _refined_track(config, mesh, camera)
+        self.stages = stages_mode(config.stages, self.refined_track is not None)
+        self._stage_worker = StageWorker() if self.stages == PARALLEL else None     # app/pipeline/stages.py
+        if self._stage_worker is not None:
+            self.refined_track.nearby.map = self._stage_worker.pairs
         self._timings: dict[str, float] = defaultdict(float)
         self._frames = 0
         self._pending_point: np.ndarray | None = None
@@ -249,11 +255,15 @@ class DepthTracker:
                     and self._initialise_from_point(depth_small, depth_m, T_base_camera, stamp)):
                 return self._not_started(stamp)
         reinitialised = self._recover(depth_small, depth_m, T_base_camera, stamp)
-        result = self.filter.step(depth_small, stamp, T_base_camera)
+        ahead = self._track_fit_ahead(depth_m, T_base_camera)
+        try:
+            result = self.filter.step(depth_small, stamp, T_base_camera)
+        finally:
+            track_fit = self._take(ahead)
         if self.refined_track is not None:
             if reinitialised:
                 self.motion_gate.reset()
-            result = self._steady(self._refine(result, depth_m, T_base_camera), stamp)
+            result = self._steady(self._refine(result, depth_m, T_base_camera, track_fit), stamp)
         result = self._caps(result, stamp, reinitialised)
         state = self._state(result)
         result = replace(result, state=state.value,
@@ -310,7 +320,26 @@ class DepthTracker:
             self._timings[f"{self.backend_name}_{stage}"] += seconds
         self._frames += 1
 
-    def _refine(self, result: FilterOutput, depth_m: np.ndarray, T_base_camera: np.ndarray | None) -> FilterOutput:
+    def _track_fit_ahead(self, depth_m: np.ndarray, T_base_camera: np.ndarray | None):
+        """With ``filter.stages`` parallel: the refined track's refinement from its own pose
+        (``RefinedTrack.track_fit``, which needs nothing of the filter's frame), started on the stage
+        worker to run beside the filter's step (app/pipeline/stages.py); None when serial or when the
+        frame has no camera pose (no refinement then)."""
+        if self._stage_worker is None or T_base_camera is None:
+            return None
+        return self._stage_worker.submit(_timed, self.refined_track.track_fit, depth_m, T_base_camera)
+
+    def _take(self, ahead):
+        """The fit started by :meth:`_track_fit_ahead` (waited for; None when none was started or the
+        track made none); its worker seconds are the ``refine_ahead`` timing, beside the filter's step."""
+        if ahead is None:
+            return None
+        fit, seconds = ahead.result()
+        self._timings["refine_ahead"] += seconds
+        return fit
+
+    def _refine(self, result: FilterOutput, depth_m: np.ndarray, T_base_camera: np.ndarray | None,
+                track_fit=None) -> FilterOutput:
         """The local refinement on a weighed frame (app/filter/refine_track.py): the refined pose is
         the output, the cloud is shifted onto it (feedback, only once the filter's cloud has converged:
         a refinement started from an unconverged filter can lock onto a wrong fit that is nearly as
@@ -319,7 +348,7 @@ class DepthTracker:
         with the refinement's evidence (app/filter/status.py)."""
         if not result.weighed or T_base_camera is None:
             return result
-        out = self.refined_track.update(depth_m, T_base_camera, result.T_base_bone)
+        out = self.refined_track.update(depth_m, T_base_camera, result.T_base_bone, track_fit)
         c = self.config.refine
         st = self.config.status
         converged = (result.status != TrackingStatus.LOST and result.position_spread <= st.uncertain_position_spread
@@ -397,7 +426,15 @@ class DepthTracker:
     def release(self) -> None:
         if self.recovery_runner is not None and self.recovery_runner.worker is not None:
             self.recovery_runner.worker.close()
+        if self._stage_worker is not None:
+            self._stage_worker.close()
         self.backend.release()
+
+
+def _timed(fn, *args):
+    """(fn(*args), its wall seconds)."""
+    t0 = time.perf_counter()
+    return fn(*args), time.perf_counter() - t0
 
 
 def _at_most_uncertain(status: TrackingStatus) -> TrackingStatus:
