@@ -35,8 +35,12 @@ KEEP_SERIES = ("t", "add_mm", "status")
 
 
 def simulate(mesh: str, seed: int, out: str, seconds: float) -> dict:
-    """One trial through the CLI; writes ``<out>.done`` (the exit code) for the replays waiting on it."""
+    """One trial through the CLI (an existing one, with its trial.yaml, is reused); writes ``<out>.done``
+    (the exit code) for the replays waiting on it."""
     t0 = time.time()
+    if (Path(out) / "trial.yaml").exists():                     # simulated by an earlier run: reused as it is
+        Path(f"{out}.done").write_text("0")
+        return {"kind": "sim", "trial": out, "rc": 0, "wall_s": 0.0, "tail": "", "reused": True}
     log = Path(out).parent / f"{Path(out).name}.log"
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "app.cli", "simulate", "--out", out, "--mesh", mesh, "--scenario",
