@@ -229,6 +229,7 @@ KEYS: dict[str, _Key] = {
     "recovery.confirm_frames": _i("recovery.confirm_frames", 0, 1_000_000),
     "recovery.search": _Key(("recovery", "search"), "bool"),
     "recovery.search_evaluations": _i("recovery.search_evaluations", 100, 10_000_000),
+    "recovery.search_min_sharp": _f("recovery.search_min_sharp", 0.0, 1.0),
     "recovery.search_retry_s": _f("recovery.search_retry_s", 0.0, 3600.0),
     "recovery.sliding_factor": _f("recovery.sliding_factor", 1.0, 1000.0),
     "recovery.start_sigmas": _f("recovery.start_sigmas", 0.0, 100.0, lo_open=True),

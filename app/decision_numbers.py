@@ -38,8 +38,6 @@ _LINE = re.compile(r"^  (?P<key>[a-z_0-9]+): (?P<value>[^#]+?)\s*(?:#\s?(?P<comm
 
 # (file, constant, kind, unit, what it decides): decision numbers not (yet) in configs/default.yaml
 IN_CODE: tuple[tuple[str, str, str, str, str], ...] = (
-    ("app/filter/wide_search.py", "MIN_SHARP", "lifecycle", "share",
-     "a search's pose is accepted (and a hypothesis searched again below it: the below_bar trigger)"),
     ("app/filter/refine_track.py", "FALLBACK_BEHIND_SHARE", "status", "share",
      "the behind test's level when too few pixels measure the noise (used by the wide search too)"),
 )

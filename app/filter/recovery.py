@@ -200,7 +200,9 @@ class RecoveryConfig:
     silhouette at the last confident pose is not hidden by an occluder); confirm_frames (after one,
     weighed frames in a row that the rules find ok before a pose away from the last ok one may be ok);
     search (the wide search, app/filter/wide_search.py, replaces the one-point SMC attempts);
-    search_evaluations (its likelihood evaluations per search); the triggers' numbers (module
+    search_evaluations (its likelihood evaluations per search); search_min_sharp (the consistent sharp
+    share a search's verified fit needs to be found, and below which a found pose is searched again:
+    wide_search.MIN_SHARP's default); the triggers' numbers (module
     docstring, "Trigger"; defaults the module constants): search_retry_s, sliding_factor, start_sigmas,
     still_window_s, max_backoff_doublings; kept_move_m / kept_move_angle (app/pipeline/recovery_runner.py).
     Since issue 32 the "far" gap is ``refine.competitor_distance`` / ``competitor_angle`` (it was
@@ -220,6 +222,7 @@ class RecoveryConfig:
     confirm_frames: int = 90
     search: bool = True
     search_evaluations: int = 4000
+    search_min_sharp: float = 0.5
     search_retry_s: float = SEARCH_RETRY_S
     sliding_factor: float = SLIDING_FACTOR
     start_sigmas: float = START_SIGMAS
