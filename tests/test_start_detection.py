@@ -96,28 +96,35 @@ def test_tilt_rotations_tilt_the_bones_top_by_the_angle_towards_evenly_spaced_di
         np.testing.assert_allclose(top[:2] / np.linalg.norm(top[:2]), [np.sin(b), -np.cos(b)], atol=1e-12)
 
 
-def test_a_starts_batched_hypotheses_are_the_wide_searchs_and_drawn_with_its_spread():
-    """The start's batched anchored hypotheses (PriorSearch._anchored) equal the wide search's one at
-    a time (WideSearch._anchored) with no draws, and its draws about each scatter with ANCHOR_SIGMA_M."""
-    from app.filter.wide_search import ANCHOR_SIGMA_M, SearchConfig, WideSearch, ridge_points
+def test_the_anchored_hypotheses_put_each_ridge_point_on_each_anchor_at_each_yaw_and_scatter_as_drawn():
+    """WideSearch._anchored (one batch): hypothesis (anchor a, yaw ψ, ridge point r) is q = exp(ψ up) ⊗ q_ok,
+    p = a − R(q) r (the ridge point r lands on a), in that order, each first of its ``per_hypothesis``;
+    its draws, turned about the centroid (the bone frame's origin here), scatter p by ANCHOR_SIGMA_M."""
+    from app.filter.wide_search import ANCHOR_SIGMA_M, UP_BASE, SearchConfig, WideSearch, ridge_points
     from app.geometry import quaternion as quat
-    from app.tracking.detector import PriorSearch
 
     rng = np.random.default_rng(0)
     vertices = rng.normal(0.0, 0.03, (300, 3))
     vertices -= vertices.mean(axis=0)          # the centroid at the origin: a turn about it leaves p0 in place
-    search = PriorSearch(None, None, None, vertices, SearchConfig())
+    search = WideSearch(None, None, None, vertices, SearchConfig())
     T = np.eye(4)
     T[:3, :3] = quat.to_matrix(quat.exp_map(np.array([0.2, -0.1, 0.5])))
     anchors = rng.normal(0.0, 0.1, (3, 3))
-    p_batch, q_batch = search._anchored(anchors, T, 1, np.random.default_rng(1))
-    p_one, q_one = WideSearch._anchored(search, anchors, T, 1, np.random.default_rng(1))
-    assert p_batch.shape == (3 * 24 * len(ridge_points(vertices, T[:3, :3])), 3)
-    np.testing.assert_allclose(p_batch, p_one, atol=1e-12)
-    np.testing.assert_allclose(np.abs(np.sum(q_batch * q_one, axis=1)), 1.0, atol=1e-12)
+    p, q = search._anchored(anchors, T, 1, np.random.default_rng(1))
+    ridge = ridge_points(vertices, T[:3, :3])
+    k = 0
+    for a in anchors:
+        for step in range(search.config.yaw_steps):
+            R = quat.to_matrix(quat.exp_map(2.0 * np.pi * step / search.config.yaw_steps * UP_BASE)) @ T[:3, :3]
+            for r in ridge:
+                np.testing.assert_allclose(quat.to_matrix(q[k]), R, atol=1e-12)
+                np.testing.assert_allclose(p[k] + R @ r, a, atol=1e-12)
+                k += 1
+    assert k == len(p) == len(q)
     p_draws, _ = search._anchored(anchors, T, 50, np.random.default_rng(2))
-    scatter = p_draws.reshape(-1, 50, 3)[:, 1:] - p_draws.reshape(-1, 50, 3)[:, :1]
-    assert np.all(p_draws.reshape(-1, 50, 3)[:, 0] == p_batch)
+    hypotheses = p_draws.reshape(-1, 50, 3)
+    np.testing.assert_allclose(hypotheses[:, 0], p, atol=1e-15)
+    scatter = hypotheses[:, 1:] - hypotheses[:, :1]
     # turned about the centroid, which is the bone frame's origin here: p' - p0 = ε ~ N(0, ANCHOR_SIGMA_M² I)
     assert np.mean(scatter) == pytest.approx(0.0, abs=0.05 * ANCHOR_SIGMA_M)
     assert np.std(scatter) == pytest.approx(ANCHOR_SIGMA_M, rel=0.03)

@@ -254,24 +254,32 @@ class WideSearch:
         return p, q, source
 
     def _anchored(self, anchors: np.ndarray, T_base_bone_ok: np.ndarray, per_hypothesis: int, rng):
-        """Poses putting the bone's top on each anchor, turned about up by each yaw step (module
-        docstring, 1), with ``per_hypothesis`` - 1 draws around each."""
+        """Poses putting the bone's top (each of its ridge points) on each anchor, turned about up by each
+        yaw step (module docstring, 1), with ``per_hypothesis`` - 1 draws about each (turned about the
+        bone's centroid, :func:`app.filter.motion.draws_about_centroid`'s model), all in one batch: a
+        start tries every tilt's hypotheses (thousands; app/tracking/detector.py), which one call per
+        hypothesis spent a third of the start's CPU on, and the Python loop held the GIL while the
+        frames waited (a search on the worker, app/tracking/search_worker.py)."""
         if len(anchors) == 0:
             return np.zeros((0, 3)), np.zeros((0, 4))
-        ridge = ridge_points(self.vertices, T_base_bone_ok[:3, :3])
         R_ok = T_base_bone_ok[:3, :3]
+        ridge = ridge_points(self.vertices, R_ok)
         yaws = 2.0 * np.pi * np.arange(self.config.yaw_steps) / self.config.yaw_steps
         q_yaw = quat.multiply(quat.exp_map(yaws[:, None] * UP_BASE[None]),
                               np.broadcast_to(quat.from_matrix(R_ok), (len(yaws), 4)))
-        ps, qs = [], []
-        for anchor in anchors:
-            for qk in q_yaw:
-                p0 = anchor[None] - quat.rotate(np.broadcast_to(qk, (len(ridge), 4)), ridge)
-                for pj in p0:
-                    pk, qk_ = self._around(pj, qk, per_hypothesis, ANCHOR_SIGMA_M, ANCHOR_SIGMA_RAD, rng, keep_first=True)
-                    ps.append(pk)
-                    qs.append(qk_)
-        return np.concatenate(ps), np.concatenate(qs)
+        A, Y, K, n = len(anchors), len(yaws), len(ridge), per_hypothesis
+        q0 = np.broadcast_to(q_yaw[None, :, None], (A, Y, K, 4)).reshape(-1, 4)
+        ridge_base = quat.rotate(np.broadcast_to(q_yaw[:, None], (Y, K, 4)), np.broadcast_to(ridge[None], (Y, K, 3)))
+        p0 = (anchors[:, None, None] - ridge_base[None]).reshape(-1, 3)
+        centre = p0 + quat.rotate(q0, np.broadcast_to(self.centroid_bone, p0.shape))
+        r = rng.normal(0.0, ANCHOR_SIGMA_RAD, (len(p0), n, 3))
+        eps = rng.normal(0.0, ANCHOR_SIGMA_M, (len(p0), n, 3))
+        r[:, 0], eps[:, 0] = 0.0, 0.0                       # each hypothesis itself first
+        dq = quat.exp_map(r).reshape(-1, 4)
+        c = np.repeat(centre, n, axis=0)
+        p = c + quat.rotate(dq, np.repeat(p0, n, axis=0) - c) + eps.reshape(-1, 3)
+        q = quat.normalize(quat.multiply(dq, np.repeat(q0, n, axis=0)))
+        return p, q
 
     def _around(self, p0, q0, n, sigma_p, sigma_r, rng, keep_first=False):
         """n poses about (p0, q0) turned about the bone's centroid (the recovery's re-spread,

@@ -25,8 +25,7 @@ Two strategies, wrapped, not rewritten:
   as the wide search assumes for a bone on the table, and that orientation tilted by
   ``StartSearch.tilt_rad`` towards ``tilt_directions`` directions (a patient's crest is not level:
   from up alone every start of the simulator's views tilted 21 deg was missed or confirmed up to
-  15 mm off), each then turned ``yaw_steps`` times about up (``app.filter.wide_search.WideSearch._anchored``,
-  drawn in one batch here). A start spends more than a recovery's search (``StartSearch``: twice the
+  15 mm off), each then turned ``yaw_steps`` times about up (``app.filter.wide_search.WideSearch._anchored``). A start spends more than a recovery's search (``StartSearch``: twice the
   evaluations, more candidates verified): it happens once, and its winner is the most consistent
   confirmed fit, so each right candidate verified is a chance to beat a wrong one. The recovery keeps calling the same
   :class:`~app.filter.wide_search.WideSearch` object directly (its incumbent and track rules are
@@ -47,8 +46,7 @@ from typing import Protocol
 import numpy as np
 
 from app.filter.smc_init.geometry import rotation_between
-from app.filter.wide_search import (ANCHOR_SHARE, ANCHOR_SIGMA_M, ANCHOR_SIGMA_RAD, RIDGE_POINTS, TRACK_CLUSTERS, UP_BASE,
-                                    WideSearch, image_anchors, ridge_points)
+from app.filter.wide_search import ANCHOR_SHARE, RIDGE_POINTS, TRACK_CLUSTERS, UP_BASE, WideSearch, image_anchors
 from app.geometry import quaternion as quat
 from app.geometry import se3
 
@@ -121,32 +119,6 @@ class PriorSearch(WideSearch):
         ps, qs = zip(*(self._anchored(anchors, T, per_hypothesis, rng) for T in starts))
         p, q = np.concatenate(ps), np.concatenate(qs)
         return p, q, np.array(["image"] * len(p))
-
-    def _anchored(self, anchors: np.ndarray, T_base_bone_ok: np.ndarray, per_hypothesis: int, rng):
-        """The wide search's anchored hypotheses (:meth:`WideSearch._anchored`: the bone's top on each
-        anchor, turned about up by each yaw step, ``per_hypothesis`` - 1 draws about each), drawn in
-        one batch: a start tries every tilt's hypotheses (thousands), which one call per hypothesis
-        spent a third of the start's CPU on."""
-        if len(anchors) == 0:
-            return np.zeros((0, 3)), np.zeros((0, 4))
-        R_ok = T_base_bone_ok[:3, :3]
-        ridge = ridge_points(self.vertices, R_ok)
-        yaws = 2.0 * np.pi * np.arange(self.config.yaw_steps) / self.config.yaw_steps
-        q_yaw = quat.multiply(quat.exp_map(yaws[:, None] * UP_BASE[None]),
-                              np.broadcast_to(quat.from_matrix(R_ok), (len(yaws), 4)))
-        A, Y, K, n = len(anchors), len(yaws), len(ridge), per_hypothesis
-        q0 = np.broadcast_to(q_yaw[None, :, None], (A, Y, K, 4)).reshape(-1, 4)
-        ridge_base = quat.rotate(np.broadcast_to(q_yaw[:, None], (Y, K, 4)), np.broadcast_to(ridge[None], (Y, K, 3)))
-        p0 = (anchors[:, None, None] - ridge_base[None]).reshape(-1, 3)
-        centre = p0 + quat.rotate(q0, np.broadcast_to(self.centroid_bone, p0.shape))
-        r = rng.normal(0.0, ANCHOR_SIGMA_RAD, (len(p0), n, 3))
-        eps = rng.normal(0.0, ANCHOR_SIGMA_M, (len(p0), n, 3))
-        r[:, 0], eps[:, 0] = 0.0, 0.0                       # each hypothesis itself first
-        dq = quat.exp_map(r).reshape(-1, 4)
-        c = np.repeat(centre, n, axis=0)
-        p = c + quat.rotate(dq, np.repeat(p0, n, axis=0) - c) + eps.reshape(-1, 3)
-        q = quat.normalize(quat.multiply(dq, np.repeat(q0, n, axis=0)))
-        return p, q
 
     def _prior_anchors(self, depth_small, T_base_camera) -> np.ndarray:
         """The point (when given) and the image's height maxima near it (POINT_RADIUS_M, at
