@@ -98,5 +98,12 @@ def test_bench_init_simulates_the_sensor_and_the_views_asked_for(tmp_path):
     (row,) = report["runs"]
     assert (row["sensor"], row["view"], row["seed"]) == ("stereo", 2, 0)
     assert code == (0 if row["found_1mm"] and not row["ok_off_2mm"] else 1)
-    meta = yaml.safe_load((tmp_path / "work" / "crest_left_02_static_clear_stereo_v2_s0" / "trial.yaml").read_text())
-    assert meta["sensor"]["model"] == "stereo"
+    start = tmp_path / "work" / "crest_left_02_static_clear_stereo_v2_s0"
+    meta = yaml.safe_load((start / "trial.yaml").read_text())
+    assert meta["sensor"]["model"] == "stereo" and "initial_pose" not in meta
+    # the start's trial shares the cached trial's frames (hard links), with its own trial.yaml; the cache keeps its pose
+    cached = tmp_path / "work" / "crest_left_02_stereo_view2_0.2s"
+    assert "initial_pose" in yaml.safe_load((cached / "trial.yaml").read_text())
+    files = [p for p in start.rglob("*") if p.is_file() and p.name != "trial.yaml"]
+    assert files and all(p.stat().st_ino == (cached / p.relative_to(start)).stat().st_ino for p in files)
+    assert (start / "trial.yaml").stat().st_ino != (cached / "trial.yaml").stat().st_ino

@@ -19,6 +19,7 @@ crest's top, 2-5 mm in a uniform direction, drawn per crest, view and seed) and 
 """
 from __future__ import annotations
 
+import os
 import shutil
 import zlib
 from pathlib import Path
@@ -48,11 +49,26 @@ def simulate_point_trial(out: Path, mesh: Path, view: int, seed: int, seconds: f
                  sensor=sensor)
     if out.exists():
         shutil.rmtree(out)
-    shutil.copytree(cached, out)
+    shutil.copytree(cached, out, copy_function=_link_frames)
     rng = np.random.default_rng([seed, view, 33, zlib.crc32(mesh.stem.encode())])
     off = float(rng.uniform(*off_range_m))
     make_point_only(out, off, rng, keep_point)
     return off
+
+
+def _link_frames(src: str, dst: str) -> None:
+    """Copy a cached trial's file for one start: trial.yaml copied (the start rewrites it), every other
+    file hard-linked (read only by the replay; hundreds of starts each copying a trial's frames filled
+    a 250 GB disk), copied where the file system cannot link."""
+    from app.trial.meta import META_FILE
+
+    if Path(src).name != META_FILE:
+        try:
+            os.link(src, dst)
+            return
+        except OSError:
+            pass
+    shutil.copy2(src, dst)
 
 
 def run_start(trial: Path, config=None, max_frames: int | None = None) -> dict:
