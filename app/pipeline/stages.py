@@ -45,8 +45,6 @@ from typing import Callable, Iterable, Iterator
 
 AUTO, SERIAL, PARALLEL = "auto", "serial", "parallel"
 MODES = (AUTO, SERIAL, PARALLEL)
-SWITCH_INTERVAL_S = 0.0005   # as the search worker's (app/tracking/search_worker.py): the GIL handed over every
-                             # 0.5 ms, not Python's 5, so a thread back from a GIL-free kernel waits less
 
 
 def usable_cores() -> int:
@@ -73,12 +71,11 @@ class StageWorker:
     """One worker thread for the stages that run beside the calling thread (module docstring)."""
 
     def __init__(self):
-        import sys
+        from app.tracking.search_worker import one_numba_thread, shorten_gil_switch
 
-        if sys.getswitchinterval() > SWITCH_INTERVAL_S:
-            sys.setswitchinterval(SWITCH_INTERVAL_S)
+        shorten_gil_switch()
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="osteonav-stage")
-        self._executor.submit(_one_numba_thread).result()
+        self._executor.submit(one_numba_thread).result()
 
     def submit(self, fn: Callable, *args) -> Future:
         """Run ``fn(*args)`` on the worker."""
@@ -108,10 +105,3 @@ class StageWorker:
     def close(self) -> None:
         self._executor.shutdown(wait=True, cancel_futures=True)
 
-
-def _one_numba_thread() -> None:
-    """The worker's numba kernels on one thread (numba's count is per thread; the refinement's kernels
-    are serial anyway): a parallel kernel run there would not take the calling thread's cores."""
-    import numba
-
-    numba.set_num_threads(1)

@@ -25,11 +25,12 @@ Two strategies, wrapped, not rewritten:
   as the wide search assumes for a bone on the table, and that orientation tilted by
   ``StartSearch.tilt_rad`` towards ``tilt_directions`` directions (a patient's crest is not level:
   from up alone every start of the simulator's views tilted 21 deg was missed or confirmed up to
-  15 mm off), each then turned ``yaw_steps`` times about up (``app.filter.wide_search.WideSearch._anchored``). A start spends more than a recovery's search (``StartSearch``: twice the
-  evaluations, more candidates verified): it happens once, and its winner is the most consistent
-  confirmed fit, so each right candidate verified is a chance to beat a wrong one. The recovery keeps calling the same
-  :class:`~app.filter.wide_search.WideSearch` object directly (its incumbent and track rules are
-  the recovery's): its results are unchanged.
+  15 mm off), each then turned ``yaw_steps`` times about up
+  (``app.filter.wide_search.WideSearch._anchored``). A start spends more than a recovery's search
+  (``StartSearch``: twice the evaluations, more candidates verified): it happens once, and its winner
+  is the most consistent confirmed fit, so each right candidate verified is a chance to beat a wrong
+  one. The recovery keeps calling the same :class:`~app.filter.wide_search.WideSearch` object
+  directly (its incumbent and track rules are the recovery's, its budget and orientations its own).
 - :class:`SMCDetector`, the one-point SMC initialiser (app/filter/smc_init/) from a point (a pose's
   prior: the surface point nearest the mesh's centroid), its weighted-mean pose then verified by the
   same refinement chains and bar as a wide-search candidate, so the two strategies are scored alike.

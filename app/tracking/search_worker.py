@@ -91,8 +91,7 @@ class SearchWorker:
 
     def __init__(self, build: Callable[[], object], rng: np.random.Generator):
         self._build, self.rng = build, rng
-        if sys.getswitchinterval() > SWITCH_INTERVAL_S:
-            sys.setswitchinterval(SWITCH_INTERVAL_S)
+        shorten_gil_switch()
         self._search = None
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="osteonav-search")
         self._future: Future | None = None
@@ -167,9 +166,7 @@ class SearchWorker:
         """The worker's search, built once; its numba kernels on one thread (numba's count is per
         thread): the other core stays with the frame loop."""
         if self._search is None:
-            import numba
-
-            numba.set_num_threads(1)
+            one_numba_thread()
             self._search = self._build()
 
     def close(self) -> None:
@@ -185,3 +182,18 @@ class SearchWorker:
         if backend is not None and hasattr(backend, "release"):
             backend.release()
         self._search = None
+
+
+def shorten_gil_switch() -> None:
+    """Hand the GIL over every ``SWITCH_INTERVAL_S`` (never lengthen a shorter interval): a thread back
+    from a GIL-free kernel waits less for the other (this worker, app/pipeline/stages.py's)."""
+    if sys.getswitchinterval() > SWITCH_INTERVAL_S:
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
+
+
+def one_numba_thread() -> None:
+    """The calling thread's numba kernels on one thread (numba's count is per thread): a worker's
+    parallel kernel would otherwise take the frame loop's cores."""
+    import numba
+
+    numba.set_num_threads(1)
