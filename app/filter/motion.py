@@ -177,16 +177,20 @@ def initialise_from_point(point_base: np.ndarray, q_base_bone: np.ndarray, n: in
 
 
 def draws_about_centroid(centre: np.ndarray, p0: np.ndarray, q0: np.ndarray, n: int, sigma_p: float,
-                         sigma_r: float, rng: np.random.Generator, keep_first: bool = False):
+                         sigma_r: float, rng: np.random.Generator, keep_first: bool = False, every: int = 0):
     """n poses (p, q) about (p0, q0) turned about the bone's centroid ``centre`` (base frame):
     r ~ N(0, σ_r² I), ε ~ N(0, σ_p² I), p' = c + R(r)(p0 - c) + ε, q' = exp(r) ⊗ q0 (app/filter/recovery.py,
     "What": turning about the bone frame's origin would throw the crest centimetres away); with
-    ``keep_first`` the first is (p0, q0) itself."""
+    ``keep_first`` the first is (p0, q0) itself. ``centre``, ``p0``, ``q0`` are one pose or one per
+    draw ((n, 3), (n, 3), (n, 4): many poses' draws in one batch); with ``every`` > 0 (and
+    ``keep_first``) each ``every``-th draw from the first is its pose itself."""
     r = rng.normal(0.0, sigma_r, (n, 3))
     eps = rng.normal(0.0, sigma_p, (n, 3))
     if keep_first:
-        r[0], eps[0] = 0.0, 0.0
+        first = slice(0, n, every) if every > 0 else 0
+        r[first], eps[first] = 0.0, 0.0
     dq = quat.exp_map(r)
-    p = centre[None] + quat.rotate(dq, np.broadcast_to(p0 - centre, (n, 3))) + eps
+    c = np.broadcast_to(centre, (n, 3))
+    p = c + quat.rotate(dq, np.broadcast_to(p0 - centre, (n, 3))) + eps
     q = quat.normalize(quat.multiply(dq, np.broadcast_to(q0, (n, 4))))
     return p, q

@@ -272,14 +272,8 @@ class WideSearch:
         ridge_base = quat.rotate(np.broadcast_to(q_yaw[:, None], (Y, K, 4)), np.broadcast_to(ridge[None], (Y, K, 3)))
         p0 = (anchors[:, None, None] - ridge_base[None]).reshape(-1, 3)
         centre = p0 + quat.rotate(q0, np.broadcast_to(self.centroid_bone, p0.shape))
-        r = rng.normal(0.0, ANCHOR_SIGMA_RAD, (len(p0), n, 3))
-        eps = rng.normal(0.0, ANCHOR_SIGMA_M, (len(p0), n, 3))
-        r[:, 0], eps[:, 0] = 0.0, 0.0                       # each hypothesis itself first
-        dq = quat.exp_map(r).reshape(-1, 4)
-        c = np.repeat(centre, n, axis=0)
-        p = c + quat.rotate(dq, np.repeat(p0, n, axis=0) - c) + eps.reshape(-1, 3)
-        q = quat.normalize(quat.multiply(dq, np.repeat(q0, n, axis=0)))
-        return p, q
+        return draws_about_centroid(np.repeat(centre, n, axis=0), np.repeat(p0, n, axis=0), np.repeat(q0, n, axis=0),
+                                    len(p0) * n, ANCHOR_SIGMA_M, ANCHOR_SIGMA_RAD, rng, keep_first=True, every=n)
 
     def _around(self, p0, q0, n, sigma_p, sigma_r, rng, keep_first=False):
         """n poses about (p0, q0) turned about the bone's centroid (the recovery's re-spread,
