@@ -353,3 +353,54 @@ def test_a_live_start_detects_on_the_worker_while_the_frames_go_on(crest_trial):
     report = tracker.start_report
     assert report["found"] and report["attempts"] == 1 and report["found_stamp"] == pytest.approx(frames[1].stamp)
     tracker.release()
+
+
+class _Landscape:
+    """A likelihood over the bone's position alone (rotations ignored): a narrow peak of 400 at the
+    truth (the origin; 100 at 6 mm) and a broad ridge of wrong poses 75 mm away (200-330, never above 340)."""
+
+    def score(self, p, q):
+        d = np.linalg.norm(p, axis=1)
+        truth = 400.0 - 300.0 * (d / 0.006) ** 2
+        wrong = 330.0 - 2000.0 * np.abs(p[:, 1] - 0.075) - 0.2 * np.abs(1e3 * p[:, 0]) + 10.0 * np.cos(40.0 * p[:, 0])
+        return np.maximum(truth, np.minimum(wrong, 340.0))
+
+
+def _landscape_search(screened: int):
+    from app.filter.wide_search import SearchConfig
+    from app.tracking.detector import PriorSearch
+
+    vertices = np.random.default_rng(0).normal(0.0, 0.03, (200, 3))
+    vertices -= vertices.mean(axis=0)            # the centroid at the origin: draws turn about it, p stays
+    search = PriorSearch(None, None, None, vertices, SearchConfig(evaluations=8000, clusters=12, refine_top=8))
+    search.screened = screened
+    # 40 hypotheses along the wrong ridge (15 mm apart) and one 6 mm from the truth, ranked last
+    p = np.vstack([np.column_stack([np.linspace(-0.3, 0.3, 40), np.full(40, 0.075), np.zeros(40)]), [[0.006, 0, 0]]])
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (len(p), 1))
+    ll = _Landscape().score(p, q)
+    assert np.argsort(-ll)[-1] == 40                      # the truth's neighbour scores below every wrong one
+    return search, p, q, ll
+
+
+@pytest.mark.parametrize("screened", [0, 60])
+def test_the_start_s_screening_round_lifts_a_hypothesis_near_the_truth_above_a_wrong_family(screened):
+    """PriorSearch._search_locally (successive halving): every one of the ``screened`` best distinct
+    hypotheses gets one round of draws, and the clusters are the best of the screened. A hypothesis 6 mm
+    from a narrow peak, ranked below 40 of a broad wrong ridge, is lifted into the clusters and its local
+    search reaches the peak; without the round (screened 0: the recovery's local search) the ten
+    clusters are all on the ridge. The budget is the configured evaluations, every round as many draws."""
+    search, p, q, ll = _landscape_search(screened)
+    evaluations0 = 3360
+    found, evaluations = search._search_locally(_Landscape(), p, q, ll, np.array(["image"] * len(p)), evaluations0,
+                                                np.random.default_rng(7))
+    clusters = found["image"]
+    assert len(clusters) == 10 and found["track"] == []
+    assert evaluations <= search.config.evaluations
+    nearest = min(np.linalg.norm(c[1]) for c in clusters)
+    best = max(clusters, key=lambda c: c[0])
+    if screened:
+        per_round = (8000 - evaluations0) // (41 + 10 * 2)      # 41 hypotheses screened, 10 clusters x 2 rounds
+        assert evaluations == evaluations0 + per_round * (41 + 20)
+        assert nearest < 0.001 and best[0] > 390.0 and np.linalg.norm(best[1]) < 0.001
+    else:
+        assert nearest > 0.05 and best[0] <= 340.0

@@ -216,6 +216,19 @@ class WideSearch:
         p, q, source = self._candidates(depth_small, T_base_camera, T_base_bone_ok, track, rng)
         ll = _finite(level.score(p, q))
         evaluations = len(p)
+        found, evaluations = self._search_locally(level, p, q, ll, source, evaluations, rng)
+        n_verify_track = min(1, len(found["track"]), c.refine_top - 1)
+        best = sorted(found["image"], key=lambda f: -f[0])[:c.refine_top - n_verify_track] + \
+            sorted(found["track"], key=lambda f: -f[0])[:n_verify_track]
+        if incumbent is not None:
+            best.append((math.nan, *_pose_pq(incumbent), INCUMBENT))
+        return self._verify(best, depth_full, T_base_camera, evaluations)
+
+    def _search_locally(self, level, p, q, ll, source, evaluations: int, rng) -> tuple[dict, int]:
+        """The local search (module docstring, 4): ``clusters`` distinct best candidates (``TRACK_CLUSTERS``
+        of them from the track), each searched by :meth:`_cem` with the budget left; ({'image': [...],
+        'track': [...]} of (ll, p, q, source), the evaluations spent in all)."""
+        c = self.config
         from_track = source == "track"
         n_track = min(TRACK_CLUSTERS, c.clusters - 1)
         seeds = _distinct_best(p, q, np.where(from_track, -np.inf, ll), c.clusters - n_track) + \
@@ -226,12 +239,7 @@ class WideSearch:
             pk, qk, llk, spent = self._cem(level, p[k], q[k], ll[k], per_cluster, rng)
             evaluations += spent
             found[source[k]].append((llk, pk, qk, source[k]))
-        n_verify_track = min(1, len(found["track"]), c.refine_top - 1)
-        best = sorted(found["image"], key=lambda f: -f[0])[:c.refine_top - n_verify_track] + \
-            sorted(found["track"], key=lambda f: -f[0])[:n_verify_track]
-        if incumbent is not None:
-            best.append((math.nan, *_pose_pq(incumbent), INCUMBENT))
-        return self._verify(best, depth_full, T_base_camera, evaluations)
+        return found, evaluations
 
     # -- candidates ---------------------------------------------------------------------------
     def _candidates(self, depth_small, T_base_camera, T_base_bone_ok, track, rng):
