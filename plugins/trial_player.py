@@ -16,7 +16,9 @@ same way: the simplest honest live source without hardware. Both plugins of a se
 same parameters play the same trial. ``streams: depth,ir,color`` simulates the infrared and colour
 images too (:mod:`app.sim.appearance`); the camera then delivers them with each frame. ``sensor:``
 names the depth sensor model (:mod:`app.sim.sensors`: ``independent``, the default, ``stereo``,
-``tof``, or ``NAME:KEY=VALUE,...``).
+``tof``, or ``NAME:KEY=VALUE,...``). ``pointer: true`` (with ``ir`` in ``streams``) draws a pointer tool
+held on the crest into the infrared images (:mod:`app.sim.pointer`): a session whose ``bone.pointer``
+reads it starts from its tip (configs/sessions/simulated_pointer.yaml).
 
 A trial also knows its calibration, robot model, mesh and initial pose: ``session_defaults``
 offers them to the session, which uses them for any key its file leaves out.
@@ -67,9 +69,12 @@ def _trial_origin(reader) -> float:
 
 
 def simulated_trial(scenario: str, seconds: float | None, seed: int, mesh: str | None, trial_dir: str | None,
-                    streams: str = "depth", sensor: str = "independent") -> Path:
-    """Simulate once per (scenario, seconds, seed, mesh, streams, sensor) into ``trial_dir`` (or a cache dir);
-    return it."""
+                    streams: str = "depth", sensor: str = "independent", pointer: bool = False) -> Path:
+    """Simulate once per (scenario, seconds, seed, mesh, streams, sensor, pointer) into ``trial_dir`` (or a
+    cache dir); return it. ``pointer``: a pointer tool held on the crest is drawn into the infrared images
+    (app/sim/pointer.py's default tool, read by a session's ``bone.pointer`` of
+    ``SimulatedPointer().session_block()``; streams must include ir)."""
+    from app.sim.pointer import SimulatedPointer
     from app.sim.sensors import parse_sensor, sensor_label
     from app.sim.simulator import simulate
 
@@ -78,13 +83,14 @@ def simulated_trial(scenario: str, seconds: float | None, seed: int, mesh: str |
         tag = f"{scenario}-s{seed}-{seconds or 'default'}s" + (f"-{Path(mesh).stem}" if mesh else "")
         tag += "" if streams == "depth" else "-" + streams.replace(",", "-")
         tag += "" if sensor_label(model) == "independent" else "-" + sensor_label(model)
+        tag += "-pointer" if pointer else ""
         trial_dir = Path(tempfile.gettempdir()) / "osteonav-sim" / tag
     out = Path(trial_dir)
     with _SIM_LOCK:
         if not (out / "trial.yaml").is_file() or not (out / "simulation.yaml").is_file():
             log.info("simulating %s (%s s, seed %d) into %s", scenario, seconds, seed, out)
             simulate(out, mesh_path=mesh, scenario_name=scenario, seconds=seconds, seed=seed, overwrite=True,
-                     streams=streams, sensor=model)
+                     streams=streams, sensor=model, pointer=SimulatedPointer() if pointer else None)
     return out
 
 
@@ -220,6 +226,17 @@ def _check_sensor(sensor: str, kind: str) -> None:
         raise ConfigError(f"{kind}.params.sensor", str(exc)) from None
 
 
+def _check_pointer(pointer, streams: str, kind: str) -> None:
+    """A ConfigError naming ``<kind>.params.pointer`` unless it is a bool, and with the infrared stream."""
+    from app.errors import ConfigError
+
+    if not isinstance(pointer, bool):
+        raise ConfigError(f"{kind}.params.pointer", f"expected true or false, got {pointer!r}")
+    if pointer and "ir" not in [s.strip() for s in str(streams).split(",")]:
+        raise ConfigError(f"{kind}.params.pointer", f"the pointer's marker is drawn into the infrared images: set "
+                          f"{kind}.params.streams to include ir (e.g. \"depth,ir\"), got {streams!r}")
+
+
 class SimulatedCamera(RecordedCamera):
     """A simulated trial (``app.sim``) played as a live camera; see the module docstring."""
 
@@ -227,9 +244,10 @@ class SimulatedCamera(RecordedCamera):
 
     def __init__(self, scenario: str = "static_clear", seconds: float | None = None, seed: int = 0,
                  mesh: str | None = None, trial_dir: str | None = None, loop: bool = False, streams: str = "depth",
-                 sensor: str = "independent"):
+                 sensor: str = "independent", pointer: bool = False):
         _check_sensor(sensor, "camera")
-        self._sim = (scenario, seconds, seed, mesh, trial_dir, streams, sensor)
+        _check_pointer(pointer, streams, "camera")
+        self._sim = (scenario, seconds, seed, mesh, trial_dir, streams, sensor, bool(pointer))
         super().__init__(trial="", loop=loop)
 
     def open(self, clock: SessionClock, event):
@@ -244,9 +262,10 @@ class SimulatedRobot(RecordedRobot):
 
     def __init__(self, scenario: str = "static_clear", seconds: float | None = None, seed: int = 0,
                  mesh: str | None = None, trial_dir: str | None = None, loop: bool = False, streams: str = "depth",
-                 sensor: str = "independent"):
+                 sensor: str = "independent", pointer: bool = False):
         _check_sensor(sensor, "robot")
-        self._sim = (scenario, seconds, seed, mesh, trial_dir, streams, sensor)
+        _check_pointer(pointer, streams, "robot")
+        self._sim = (scenario, seconds, seed, mesh, trial_dir, streams, sensor, bool(pointer))
         super().__init__(trial="", loop=loop)
 
     def open(self, clock: SessionClock, event) -> None:

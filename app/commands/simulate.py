@@ -26,6 +26,9 @@ def register(subparsers) -> None:
                    help=f"depth sensor model, one of: {', '.join(SENSORS)} (default %(default)s); parameters as e.g. "
                    "stereo:window_px=9,sigma_d_px=0.1 (app/sim/sensors/); written into trial.yaml's 'sensor'")
     p.add_argument("--emitter", choices=("on", "off"), default="on", help="IR dot projector in the ir images (default on)")
+    p.add_argument("--pointer", action="store_true", help="draw a pointer tool held on the crest (its tip 3 mm off the "
+                   "crest's top) into the ir images, as a session's bone.pointer reads it (app/sim/pointer.py; needs "
+                   "--streams with ir)")
     p.set_defaults(func=run)
 
 
@@ -34,6 +37,7 @@ def run(args) -> int:
 
     from app.errors import OsteonavError
     from app.sim.images import parse_streams
+    from app.sim.pointer import SimulatedPointer
     from app.sim.sensors import parse_sensor
     from app.sim.simulator import simulate
 
@@ -45,6 +49,9 @@ def run(args) -> int:
         sensor = parse_sensor(args.sensor)
     except ValueError as exc:
         raise OsteonavError(f"--sensor: {exc}") from None
+    if args.pointer and "ir" not in streams.split(","):
+        raise OsteonavError(f"--pointer: the pointer's marker is drawn into the infrared images: add ir to --streams "
+                            f"(e.g. --streams depth,ir), got {streams!r}")
     if args.mesh:
         from app.mesh import load_mesh
 
@@ -57,7 +64,8 @@ def run(args) -> int:
         bar.update(done - bar.n)
 
     summary = simulate(args.out, args.mesh, args.scenario, args.seconds, args.seed, overwrite=True, progress=progress,
-                       streams=streams, emitter=args.emitter == "on", sensor=sensor)
+                       streams=streams, emitter=args.emitter == "on", sensor=sensor,
+                       pointer=SimulatedPointer() if args.pointer else None)
     bar.close()
     print(f"wrote {summary.frames} frames ({summary.seconds:.1f} s, scenario {summary.scenario}, sensor {sensor.name}, "
           f"occlusion mean {100 * summary.mean_occlusion:.0f} % max {100 * summary.max_occlusion:.0f} %) to {summary.out}")

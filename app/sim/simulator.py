@@ -128,17 +128,21 @@ class _GraftCut:
 def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name: str | Scenario = "static_occluded",
              seconds: float | None = None, seed: int = 0, overwrite: bool = False,
              camera: PinholeCamera = D415_640x480, progress=None, streams: str = "depth",
-             emitter: bool = True, sensor=DEFAULT_SENSOR) -> SimulationSummary:
+             emitter: bool = True, sensor=DEFAULT_SENSOR, pointer=None) -> SimulationSummary:
     """Simulate ``scenario_name`` and write the trial to ``out`` (see the module docstring).
 
     streams : 'depth' or e.g. 'depth,ir,color' (:func:`app.sim.images.parse_streams`)
     emitter : whether the infrared image shows the dot projector's pattern
     sensor : the depth sensor model: a model of :mod:`app.sim.sensors`, or its name or
         ``NAME:KEY=VALUE,...`` text (:func:`app.sim.sensors.parse_sensor`); default ``independent``
+    pointer : an :class:`app.sim.pointer.SimulatedPointer` held on the crest, its marker drawn into the
+        infrared images (``streams`` must include ``ir``), or None
     """
     from app.sim.images import parse_streams
 
     stream_names = parse_streams(streams)
+    if pointer is not None and "ir" not in stream_names:
+        raise ValueError(f"a simulated pointer is drawn into the infrared images: streams must include ir, got {streams!r}")
     sensor = parse_sensor(sensor) if isinstance(sensor, str) else sensor
     from app.mesh import check_units, load_mesh
     from app.render.context import shared_context
@@ -184,6 +188,12 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
     initial_pose = perturb_pose(T_base_bone[0], scenario.init_error_mm, scenario.init_error_deg, rng)
     top = bone.vertices[np.argmax(bone.vertices[:, 2])]
     point_prior = T_base_bone[0, :3, :3] @ top + T_base_bone[0, :3, 3]
+    drawing = None
+    if pointer is not None:
+        from app.sim.pointer import PointerDrawing
+
+        drawing = PointerDrawing.held(pointer, point_prior, T_base_bone[0], T_base_camera[0],
+                                      np.random.default_rng([seed, 33]))
     meta = TrialMeta(
         camera=camera, depth_scale=DEPTH_SCALE_MM, robot={"model": "ur5e"}, dh=dh,
         T_flange_camera=hand_eye_in_file, mesh=mesh_path.name, initial_pose=initial_pose,
@@ -216,6 +226,8 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
                 ir = rgb = None
                 if images is not None:
                     ir, rgb = images.frame(depth, labels, poses, T_camera_base, float(t_rel[k]))
+                if drawing is not None:
+                    ir = drawing.draw(ir, camera, T_camera_bone)
                 writer.write_frame(int(frame_id), float(stamp), measured, infrared=ir, color=rgb)
                 writer.write_groundtruth(float(stamp), T_base_bone[k])
                 sim_csv.write(f"{frame_id},{stamp:.6f},{occlusion:.4f},{n_bone}\n")
@@ -223,7 +235,7 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
                     progress(k + 1, len(stamps))
         wrote(out / CAMERA_TRUTH_FILE)
         write_tum(out / CAMERA_TRUTH_FILE, stamps, T_base_camera)
-        _write_simulation_yaml(out, scenario, seed, T_flange_camera, mesh_path, sensor)
+        _write_simulation_yaml(out, scenario, seed, T_flange_camera, mesh_path, sensor, drawing)
     renderer.release()
     if images is not None:
         images.release()
@@ -308,7 +320,7 @@ def _tissue_patch(depth: np.ndarray, labels: np.ndarray, camera: PinholeCamera, 
 
 
 def _write_simulation_yaml(out: Path, scenario: Scenario, seed: int, T_flange_camera_true: np.ndarray, mesh_path: Path,
-                           sensor) -> None:
+                           sensor, pointer=None) -> None:
     info = {
         "generator": "osteonav simulate",
         "scenario": _plain(asdict(scenario)),
@@ -317,6 +329,9 @@ def _write_simulation_yaml(out: Path, scenario: Scenario, seed: int, T_flange_ca
         "sensor": _plain(sensor_to_dict(sensor)),
         "true_hand_eye": T_flange_camera_true.tolist(),
     }
+    if pointer is not None:       # the tool drawn into the infrared images and where its tip touches
+        info["pointer"] = {**_plain(pointer.tool.session_block()), "off_m": float(pointer.tool.off_m),
+                           "tip_base": [float(v) for v in pointer.tip_base]}
     wrote(out / "simulation.yaml")
     (out / "simulation.yaml").write_text(yaml.safe_dump(info, sort_keys=False))
 
