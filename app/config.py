@@ -150,6 +150,7 @@ KEYS: dict[str, _Key] = {
     "init.detector_tilt": _f("detector.tilt_rad", 0.0, math.pi / 2),
     "init.detector_tilt_directions": _i("detector.tilt_directions", 0, 64),
     "init.detector_screened": _i("detector.screened", 0, 100_000),
+    "init.detector_chains": _Key(("detector", "chains"), "choice", choices=("wide", "both")),
     "motion.sigma_a": _f("motion.sigma_a", 0.0, 1000.0),
     "motion.sigma_alpha": _f("motion.sigma_alpha", 0.0, 10_000.0),
     "motion.lambda_v": _f("motion.lambda_v", 0.0, 1.0),

@@ -404,3 +404,23 @@ def test_the_start_s_screening_round_lifts_a_hypothesis_near_the_truth_above_a_w
         assert nearest < 0.001 and best[0] > 390.0 and np.linalg.norm(best[1]) < 0.001
     else:
         assert nearest > 0.05 and best[0] <= 340.0
+
+
+def test_the_start_s_verification_chains_are_chosen_by_name_and_a_bad_name_is_refused(tmp_path):
+    """init.detector_chains: 'wide' verifies a start's candidates with the wide search's first chain alone
+    (2 refinements each), 'both' with the recovery's two (5); another name names the key and the choices."""
+    from app.config import load_config
+    from app.errors import ConfigError
+    from app.filter.wide_search import VERIFY_CHAINS, SearchConfig, WideSearch
+    from app.tracking.detector import SearchDetector, StartSearch
+
+    search = WideSearch(None, None, None, np.zeros((4, 3)), SearchConfig())
+    wide = SearchDetector(search, np.random.default_rng(0), StartSearch(chains="wide")).prior_search
+    both = SearchDetector(search, np.random.default_rng(0), StartSearch(chains="both")).prior_search
+    assert wide.verify_chains == VERIFY_CHAINS[:1] and both.verify_chains == VERIFY_CHAINS
+    assert search.verify_chains == VERIFY_CHAINS                       # the recovery's own search keeps both
+    assert load_config(None).detector.chains == "wide"
+    path = tmp_path / "bad.yaml"
+    path.write_text("init:\n  detector_chains: narrow\n")
+    with pytest.raises(ConfigError, match=r"init\.detector_chains.*wide"):
+        load_config(path)

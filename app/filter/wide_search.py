@@ -199,6 +199,8 @@ class WideSearch:
     config : SearchConfig
     """
 
+    verify_chains = VERIFY_CHAINS     # a candidate's verification chains (module docstring, 5)
+
     def __init__(self, backend, camera, refiner, vertices: np.ndarray, config: SearchConfig):
         self.backend, self.camera, self.refiner, self.config = backend, camera, refiner, config
         self.vertices = np.asarray(vertices, float)
@@ -358,7 +360,7 @@ class WideSearch:
         the higher consistent sharp share."""
         default = self.refiner.params.start_width
         best, best_key, spent = None, None, 0
-        for first, seconds in (INCUMBENT_CHAINS if incumbent else VERIFY_CHAINS):
+        for first, seconds in (INCUMBENT_CHAINS if incumbent else self.verify_chains):
             start = self.refiner.refine(depth_full, T_camera_bone, first * default)
             spent += 1
             for second in seconds:

@@ -48,13 +48,17 @@ import numpy as np
 
 from app.filter.smc_init.geometry import rotation_between
 from app.filter.wide_search import (ANCHOR_SHARE, CEM_ROUNDS, CEM_SIGMA_M, CEM_SIGMA_RAD, RIDGE_POINTS, TRACK_CLUSTERS,
-                                    UP_BASE, WideSearch, _distinct_best, _finite, image_anchors)
+                                    UP_BASE, VERIFY_CHAINS, WideSearch, _distinct_best, _finite, image_anchors)
 from app.geometry import quaternion as quat
 from app.geometry import se3
 
 POINT_RADIUS_M = 0.02       # a point prior's anchors: height maxima within this of the point (2-5 mm pointing error)
 POINT_SPACING_M = 0.01      # their non-maximum suppression: finer than the recovery's 3 cm (module docstring)
 POINT_ANCHORS = 4           # at most this many of them, the point itself included
+# a start's verification chains (StartSearch.chains): 'wide' the wide search's first chain alone (from twice
+# the first Tukey width, then the default), 'both' also its chain from width 0 (the recovery's, for a bone
+# mostly out of the image after a move: app/filter/wide_search.py's module docstring, 5)
+START_CHAINS = {"wide": VERIFY_CHAINS[:1], "both": VERIFY_CHAINS}
 SEARCH = "search"
 SMC = "smc"
 STRATEGIES = (SEARCH, SMC)
@@ -174,7 +178,11 @@ class StartSearch:
     the start orientation (the bone's top up) also tilted by ``tilt_rad`` towards ``tilt_directions``
     directions (:func:`tilt_rotations`): the simulator's bone tilts 8 deg per axis (a Rayleigh tilt
     of the top, median 9 deg, 95 % under 20 deg), and from up alone the search missed or
-    mis-confirmed every start of the views tilted 21 deg (BENCHMARKS.md, "Start from a point")."""
+    mis-confirmed every start of the views tilted 21 deg (BENCHMARKS.md, "Start from a point");
+    ``screened`` hypotheses given one round of local search first (:meth:`PriorSearch._search_locally`);
+    ``chains``: the verification chains (``START_CHAINS``): 'wide' alone found as many as 'both' on
+    the left crests' starts at three quarters of the CPU (a pointed crest is in view; the width-0
+    chain is the recovery's, for a bone mostly out of the image)."""
 
     evaluations: int = 8000
     clusters: int = 10
@@ -182,6 +190,7 @@ class StartSearch:
     tilt_rad: float = math.radians(15.0)
     tilt_directions: int = 6
     screened: int = 60
+    chains: str = "wide"
 
 
 class SearchDetector:
@@ -206,6 +215,7 @@ class SearchDetector:
         self.prior_search = PriorSearch(search.backend, search.camera, search.refiner, search.vertices, config)
         self.prior_search.tilts = tilt_rotations(start.tilt_rad, start.tilt_directions)
         self.prior_search.screened = start.screened
+        self.prior_search.verify_chains = START_CHAINS[start.chains]
         self.last_work = (0, 0)
 
     def detect(self, depth_small, depth_m, T_base_camera, prior) -> Detection | None:
