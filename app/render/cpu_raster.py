@@ -62,7 +62,7 @@ def _njit(parallel: bool = False, inline: str = "never"):
     uncached. ``nogil``: a kernel releases the GIL, so a search on the worker thread
     (app/tracking/search_worker.py) and the frame loop run side by side. ``inline="always"``: numba
     inlines the function into its callers (no call with its array arguments per use: for the
-    per-triangle :func:`_raster_triangle` 8 % of the likelihood's CPU)."""
+    per-face rasteriser, 8 % of the likelihood kernel's CPU; BENCHMARKS.md "Filter rate and CPU")."""
     def wrap(fn):
         try:
             return numba.njit(parallel=parallel, fastmath=False, cache=True, nogil=True, inline=inline)(fn)
@@ -224,8 +224,9 @@ def _render_one(T, vertices, faces, cam, cull, p, poly, zbuf, box):
             if za > far and zb > far and zc > far:
                 continue
             # _raster_triangle's steps written out: its tests in this loop, before the pixels' code,
-            # took 0.65-0.7x the CPU of the inlined call (a third of the faces are culled, and of the
-            # rest a fifth hold no pixel centre: BENCHMARKS.md "Filter rate and CPU")
+            # took 0.84-0.89x the kernel's CPU of the same tests inside the inlined call (a third of
+            # the faces are culled, a fifth of the rest hold no pixel centre; BENCHMARKS.md "Filter
+            # rate and CPU"); the results are the same bit for bit
             ua, va, ub, vb, uc, vc = p[a, 3], p[a, 4], p[b, 3], p[b, 4], p[c, 3], p[c, 4]
             area = _signed_area(ua, va, ub, vb, uc, vc)
             if not _drawn(area, cull):
