@@ -64,9 +64,10 @@ class TrackerConfig(FilterConfig):
     backend : likelihood backend, 'auto' (cpu on a software GL renderer such as llvmpipe, gl on a
         GPU), 'gl' or 'cpu' (app/render/backends.py)
     seed : seed of the filter's np.random.Generator (a replay with one seed is reproducible)
-    stages : 'serial' (the default), 'parallel' or 'auto' (parallel on two or more cores with the
-        refinement on): the refinement's work that needs nothing of the filter's frame runs on a second
-        thread beside the filter's step, with the same results (app/pipeline/stages.py)
+    stages : 'auto' (the default: parallel on two or more cores with the refinement on, else serial),
+        'serial' or 'parallel': the refinement's work that needs nothing of the filter's frame runs on a
+        second thread beside the filter's step, with the same results (app/pipeline/stages.py; measured
+        1.11-1.12x serial's frames/s on the idle 2-core sandbox, BENCHMARKS.md "Filter rate and CPU")
     init_method : 'auto' (the default: the coarse initial pose when there is one, else the point prior
         through the detector, app/tracking/detector.py: the wide search around the point, verified by the
         refinement, ok only once confirmed; else, experimentally, the detector over the whole image),
@@ -97,7 +98,7 @@ class TrackerConfig(FilterConfig):
     cull_back_faces: bool = True
     backend: str = "auto"
     seed: int = 0
-    stages: str = "serial"
+    stages: str = "auto"
     init_method: str = "auto"
     init_point_sigma: float = 0.005
     init_restarts: int = 3

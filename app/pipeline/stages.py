@@ -32,10 +32,10 @@ changing the results; the rest of the refinement (the choice, the static prior, 
 the filter's frame. Measured (BENCHMARKS.md "Filter rate and CPU"): ``osteonav bench-rate --whole``
 prints serial and parallel side by side.
 
-``serial`` is the default: on the shared 2-core sandbox, loaded by other jobs, parallel ran 0.98-1.03x
-serial's frames/s (the machine gave the process about one core), though it leaves the calling
-thread 0.67x of serial's CPU per frame. ``auto`` is ``parallel`` when the refinement is on and the
-process may run on two or more cores, else ``serial``.
+``auto`` is the default: ``parallel`` when the refinement is on and the process may run on two or
+more cores, else ``serial``. On the idle 2-core sandbox parallel ran 1.11-1.12x serial's frames/s
+(2026-11-27, BENCHMARKS.md "Filter rate and CPU"); on the same machine loaded by other jobs, which
+gave the process about one core, 0.98-1.03x.
 """
 from __future__ import annotations
 

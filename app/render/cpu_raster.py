@@ -56,18 +56,20 @@ _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 _SQRT1_2 = 1.0 / math.sqrt(2.0)
 
 
-def _njit(parallel: bool = False):
+def _njit(parallel: bool = False, inline: str = "never"):
     """``numba.njit(cache=True, fastmath=False, nogil=True)``; without a writable cache location (a
     read-only package directory and no usable NUMBA_CACHE_DIR or user cache) the kernel compiles
     uncached. ``nogil``: a kernel releases the GIL, so a search on the worker thread
-    (app/tracking/search_worker.py) and the frame loop run side by side."""
+    (app/tracking/search_worker.py) and the frame loop run side by side. ``inline="always"``: numba
+    inlines the function into its callers (no call with its array arguments per use: for the
+    per-face rasteriser, 8 % of the likelihood kernel's CPU; BENCHMARKS.md "Filter rate and CPU")."""
     def wrap(fn):
         try:
-            return numba.njit(parallel=parallel, fastmath=False, cache=True, nogil=True)(fn)
+            return numba.njit(parallel=parallel, fastmath=False, cache=True, nogil=True, inline=inline)(fn)
         except RuntimeError as exc:  # numba: "cannot cache function ...: no locator available"
             log.warning("numba cannot cache %s (%s); it compiles on every start. Set NUMBA_CACHE_DIR "
                         "to a writable folder to cache it", fn.__name__, exc)
-            return numba.njit(parallel=parallel, fastmath=False, cache=False, nogil=True)(fn)
+            return numba.njit(parallel=parallel, fastmath=False, cache=False, nogil=True, inline=inline)(fn)
     return wrap
 
 
@@ -98,18 +100,45 @@ def _max3(a, b, c):
     return m if m > c else c
 
 
-@_njit()
+@_njit(inline="always")
+def _signed_area(ua, va, ub, vb, uc, vc):
+    """Twice the projected triangle's signed area (pixel units; >= 0: facing away, :func:`_render_one`)."""
+    return (ub - ua) * (vc - va) - (uc - ua) * (vb - va)
+
+
+@_njit(inline="always")
+def _drawn(area, cull):
+    """Whether a triangle of signed area ``area`` (:func:`_signed_area`) is drawn: not flat, and facing
+    the camera when ``cull``."""
+    return not (area == 0.0 or (cull and area > 0.0))
+
+
+@_njit(inline="always")
+def _span(a, b, c, size):
+    """(lo, hi): the pixel centres 0 .. size - 1 between min(a, b, c) and max(a, b, c) (lo > hi: none)."""
+    return max(math.ceil(_min3(a, b, c)), 0), min(math.floor(_max3(a, b, c)), size - 1)
+
+
+@_njit(inline="always")
 def _raster_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, cam, cull, zbuf):
     """Z-buffer one projected triangle (pixel coordinates u, v and 1 / z of its vertices, all with
     z >= near); with ``cull`` a triangle of area >= 0 (n · a >= 0: facing away) is skipped."""
-    area = (ub - ua) * (vc - va) - (uc - ua) * (vb - va)
-    if area == 0.0 or (cull and area > 0.0):
+    area = _signed_area(ua, va, ub, vb, uc, vc)
+    if not _drawn(area, cull):
         return
     h, w = zbuf.shape
-    i_u0, i_u1 = max(math.ceil(_min3(ua, ub, uc)), 0), min(math.floor(_max3(ua, ub, uc)), w - 1)
-    i_v0, i_v1 = max(math.ceil(_min3(va, vb, vc)), 0), min(math.floor(_max3(va, vb, vc)), h - 1)
+    i_u0, i_u1 = _span(ua, ub, uc, w)
+    i_v0, i_v1 = _span(va, vb, vc, h)
     if i_u0 > i_u1 or i_v0 > i_v1:
         return
+    _fill_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, area, i_u0, i_u1, i_v0, i_v1, cam, zbuf)
+
+
+@_njit(inline="always")
+def _fill_triangle(ua, va, iza, ub, vb, izb, uc, vc, izc, area, i_u0, i_u1, i_v0, i_v1, cam, zbuf):
+    """:func:`_raster_triangle`'s pixels: the centres (u, v) of the box [i_u0, i_u1] x [i_v0, i_v1]
+    inside the triangle of signed area ``area`` (drawn, :func:`_drawn`) whose depth z is within the
+    clip planes and nearer than the z-buffer's (0: empty)."""
     # barycentrics as affine functions of the pixel centre: b_k = (C_k + A_k u + B_k v) / area
     inv_area = 1.0 / area
     a_a, b_a, c_a = (vb - vc) * inv_area, (uc - ub) * inv_area, (ub * vc - uc * vb) * inv_area
@@ -194,8 +223,19 @@ def _render_one(T, vertices, faces, cam, cull, p, poly, zbuf, box):
         if za >= near and zb >= near and zc >= near:
             if za > far and zb > far and zc > far:
                 continue
-            _raster_triangle(p[a, 3], p[a, 4], p[a, 5], p[b, 3], p[b, 4], p[b, 5], p[c, 3], p[c, 4], p[c, 5],
-                             cam, cull, zbuf)
+            # _raster_triangle's steps written out: its tests in this loop, before the pixels' code,
+            # took 0.84-0.89x the kernel's CPU of the same tests inside the inlined call (a third of
+            # the faces are culled, a fifth of the rest hold no pixel centre; BENCHMARKS.md "Filter
+            # rate and CPU"); the results are the same bit for bit
+            ua, va, ub, vb, uc, vc = p[a, 3], p[a, 4], p[b, 3], p[b, 4], p[c, 3], p[c, 4]
+            area = _signed_area(ua, va, ub, vb, uc, vc)
+            if not _drawn(area, cull):
+                continue
+            i_u0, i_u1 = _span(ua, ub, uc, w)
+            i_v0, i_v1 = _span(va, vb, vc, h)
+            if i_u0 > i_u1 or i_v0 > i_v1:
+                continue
+            _fill_triangle(ua, va, p[a, 5], ub, vb, p[b, 5], uc, vc, p[c, 5], area, i_u0, i_u1, i_v0, i_v1, cam, zbuf)
         elif za >= near or zb >= near or zc >= near:
             if cull:
                 e1x, e1y, e1z = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1], p[b, 2] - p[a, 2]
