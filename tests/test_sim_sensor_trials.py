@@ -95,7 +95,7 @@ def test_a_session_simulated_source_takes_a_sensor_model(tmp_path):
         create("camera", "simulated", {"sensor": "kinect"})
     with pytest.raises(ConfigError, match=r"'robot.params.sensor'.*no parameter 'sigma'"):
         create("robot", "simulated", {"sensor": "tof:sigma=1"})
-    assert create("camera", "simulated", {"sensor": "tof"})._sim[-1] == "tof"
+    assert create("camera", "simulated", {"sensor": "tof"})._sim[6] == "tof"         # (scenario, ..., streams, sensor, pointer)
     out = simulated_trial("static_clear", 0.03, 1, None, str(tmp_path / "t"), sensor="tof")
     assert open_trial(out).meta.extra["sensor"]["model"] == "tof"
 
