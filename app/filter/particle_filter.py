@@ -322,7 +322,6 @@ class ParticleFilter:
             position_spread=pose.position_spread, rotation_spread=pose.rotation_spread,
             ess_ratio=update.ess / self.state.n, inlier_fraction=evidence.inlier_fraction,
             covered_pixels=evidence.covered_pixels,
-            image_pixels=int(np.size(depth_meas)) if depth_meas is not None else 0,
             n_nan=update.n_nan, n_particles=self.state.n, weighed=weighed, seconds_without_pose=stamp - since,
             speed=speed, angular_speed=angular_speed, seconds_since_motion=since_motion,
         ), self.config.status)

@@ -264,6 +264,8 @@ class DepthTracker:
             if reinitialised:
                 self.motion_gate.reset()
             result = self._steady(self._refine(result, depth_m, T_base_camera, track_fit), stamp)
+        else:
+            result = _unrefined(result)
         result = self._caps(result, stamp, reinitialised)
         state = self._state(result)
         result = replace(result, state=state.value,
@@ -538,18 +540,22 @@ def use_projector_plan(tracker, sinks, mesh=None) -> None:
 
 
 def _filter_config(config: TrackerConfig) -> TrackerConfig:
-    """With the refinement on, its tests replace the filter's shares fitted to one simulator
-    (app/filter/status.py): its fitness and predicted template error replace the share of the image
-    (status.min_ok_fraction, tuned on the synthetic crest), and its consistency test on the signed
-    residuals (app/tracking/fit_test.py) replaces the filter's inlier fraction for ok
-    (status.uncertain_inlier_fraction, 0.7 on our simulator: on a held-out stereo sensor 53-70 % of a
-    right pose's pixels were inliers, tissue and silhouette counting against it; issue 32). The lost
-    rule on the inlier fraction stays. The motion test moves to the tracker's output pose
-    (:meth:`DepthTracker._steady`)."""
+    """With the refinement on, the motion test moves to the tracker's output pose
+    (:meth:`DepthTracker._steady`): the filter's gate on its particle mean is switched off."""
     if not config.refine.enabled:
         return config
-    return replace(config, status=replace(config.status, min_ok_fraction=0.0, uncertain_inlier_fraction=0.0,
-                                          uncertain_speed=math.inf, uncertain_angular_speed=math.inf, settle_s=0.0))
+    return replace(config, status=replace(config.status, uncertain_speed=math.inf, uncertain_angular_speed=math.inf,
+                                          settle_s=0.0))
+
+
+def _unrefined(result: FilterOutput) -> FilterOutput:
+    """Without the refinement (``refine.enabled: false``) no frame is ok: the "seen" test, the template's
+    predicted error from the fit's information (DESIGN.md), cannot be made, and the filter's own inlier and
+    image shares that stood in for it were fitted to one simulator (issue 32: removed)."""
+    if result.status != TrackingStatus.OK:
+        return result
+    return replace(result, status=TrackingStatus.UNCERTAIN, reasons=result.reasons + (
+        Reason("not_refined", "the refinement is off (refine.enabled: false): the template's error is not predicted"),))
 
 
 def refine_params(config: TrackerConfig) -> RefineParams:
