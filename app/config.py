@@ -179,7 +179,7 @@ KEYS: dict[str, _Key] = {
     "status.settle_s": _f("status.settle_s", 0.0, 60.0),
     "status.min_fitness": _f("status.min_fitness", 0.0, 1.0),
     "status.max_template_std": _f("status.max_template_std", 0.0, 1.0, lo_open=True),
-    "status.max_held_chi2": _f("status.max_held_chi2", 0.0, 1e6, lo_open=True),
+    "status.alpha": _f("status.alpha", 0.0, 0.5, lo_open=True),
     "status.max_behind_excess": _f("status.max_behind_excess", 0.0, 1.0),
     "status.covariance_inflation": _f("status.covariance_inflation", 1.0, 1e6),
     "refine.enabled": _Key(("refine", "enabled"), "bool"),
@@ -203,7 +203,6 @@ KEYS: dict[str, _Key] = {
     "refine.outline_ring": _Key(("refine", "outline_ring"), "bool"),
     "refine.tissue_border": _Key(("refine", "tissue_border"), "bool"),
     "refine.behind_frames": _i("refine.behind_frames", 1, 100_000),
-    "refine.behind_z": _f("refine.behind_z", 0.0, 10.0),
     "refine.noise_window_px": _i("refine.noise_window_px", 3, 1000),
     "refine.nearby_every": _i("refine.nearby_every", 0, 100_000),
     "refine.nearby_starts": _i("refine.nearby_starts", 0, 1_000),
@@ -229,7 +228,6 @@ KEYS: dict[str, _Key] = {
     "recovery.search_min_sharp": _f("recovery.search_min_sharp", 0.0, 1.0),
     "recovery.search_retry_s": _f("recovery.search_retry_s", 0.0, 3600.0),
     "recovery.sliding_factor": _f("recovery.sliding_factor", 1.0, 1000.0),
-    "recovery.start_sigmas": _f("recovery.start_sigmas", 0.0, 100.0, lo_open=True),
     "recovery.still_window_s": _f("recovery.still_window_s", 0.0, 60.0),
     "recovery.max_backoff_doublings": _i("recovery.max_backoff_doublings", 0, 20),
     "recovery.kept_move_m": _f("recovery.kept_move_m", 0.0, 1.0),
@@ -390,6 +388,14 @@ RENAMED = {   # keys of earlier configurations: what replaced them
                               "little of the bone is seen); without the refinement no frame is ok; remove the key",
     "status.min_ess_ratio": "replaced by status.max_template_std (the rule was off: a small ESS is normal with "
                             "peaked likelihoods); remove the key",
+    # issue 32: one level for the statistical tests (app/tracking/levels.py)
+    "refine.behind_z": "replaced by status.alpha, the one level of every statistical test: z = -Phi^-1(alpha) "
+                       "(alpha 0.00135 gives 3 sd); set status.alpha = Phi(-z) instead",
+    "status.max_held_chi2": "replaced by status.alpha, the one level of every statistical test: the bound is "
+                            "chi2_6(1 - alpha) / status.covariance_inflation (3.62 at the default alpha; 4 was "
+                            "alpha ~5e-4)",
+    "recovery.start_sigmas": "replaced by status.alpha, the one level of every statistical test: k^2 = "
+                             "chi2_3(1 - alpha) (3.95 at the default alpha; 4.03 was alpha 0.001)",
 }
 
 

@@ -31,7 +31,8 @@ over 0.2 s read as motion and kept the count at 0 on crest_left_02 while 64-100 
 estimate restarts that count, and it needs an ok frame since the start (a track that was never ok,
 e.g. or_deep_tissue, sits ~5 mm from the coarse start pose it converged from; measured: it fired 2-3
 times there per run for nothing, BENCHMARKS.md §6b) unless the never-ok estimate lies outside the
-start's own prior: farther than ``START_SIGMAS`` = 4.03 (χ²₃'s 99.9 % point, √16.27) times
+start's own prior: farther than ``START_SIGMAS`` = 3.95 (χ²₃'s point at ``status.alpha``, 0.135 %, √15.6;
+4.03, the 99.9 % point, before issue 32 gave every statistical test one level) times
 ``init.sigma_p`` / ``sigma_r`` from the start pose (or_coarse_start crest_left_03 seed 1 sat 45 mm /
 80 deg off, uncertain, refined at a fit of 0.85, never searched; BENCHMARKS.md §6b). Such an
 estimate is searched for after ``after_lost_s`` of weighed frames outside that prior in any case,
@@ -174,6 +175,7 @@ from app.filter.weights import uniform_log_weights
 from app.geometry import quaternion as quat
 from app.tracking.lifecycle import Lifecycle, frame_event
 from app.tracking.triggers import Evidence, first_trigger
+from app.tracking import levels
 
 RESPREAD, SMC, SEARCH = "respread", "smc", "search"
 FOUND_SIGMA_M, FOUND_SIGMA_RAD = 0.003, math.radians(3.0)   # the cloud about a pose the wide search found
@@ -184,7 +186,7 @@ TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 
 MAX_BACKOFF_DOUBLINGS = 3
 KEPT_MOVE_M, KEPT_MOVE_RAD = 0.001, math.radians(1.0)   # a kept track below the search's bar moves onto its refined pose beyond this
 SLIDING_FACTOR = 2.0                 # x after_uncertain_s: not ok this long, far, moving or not: a search
-START_SIGMAS = math.sqrt(16.27)   # chi-square, 3 dof, 99.9 %: a never-ok track this many start sigmas off
+START_SIGMAS = levels.chi_level(levels.ALPHA, 3)   # status.alpha's chi, 3 dof: a never-ok track this many start sigmas off
 STILL_WINDOW_S = 0.5
 
 
@@ -203,7 +205,7 @@ class RecoveryConfig:
     search_evaluations (its likelihood evaluations per search); search_min_sharp (the consistent sharp
     share a search's verified fit needs to be found, and below which a found pose is searched again:
     wide_search.MIN_SHARP's default); the triggers' numbers (module
-    docstring, "Trigger"; defaults the module constants): search_retry_s, sliding_factor, start_sigmas,
+    docstring, "Trigger"; defaults the module constants): search_retry_s, sliding_factor,
     still_window_s, max_backoff_doublings; kept_move_m / kept_move_angle (app/pipeline/recovery_runner.py).
     Since issue 32 the "far" gap is ``refine.competitor_distance`` / ``competitor_angle`` (it was
     recovery.far_m / far_angle, the same 5 mm / 5 deg; :class:`RecoveryPolicy`'s ``far``) and the never-ok
@@ -225,7 +227,6 @@ class RecoveryConfig:
     search_min_sharp: float = 0.5
     search_retry_s: float = SEARCH_RETRY_S
     sliding_factor: float = SLIDING_FACTOR
-    start_sigmas: float = START_SIGMAS
     still_window_s: float = STILL_WINDOW_S
     max_backoff_doublings: int = MAX_BACKOFF_DOUBLINGS
     kept_move_m: float = KEPT_MOVE_M
@@ -289,11 +290,12 @@ class RecoveryPolicy:
                  refine_enabled: bool, min_fitness: float = 0.6,
                  still: tuple[float, float, float] = (0.03, math.radians(20.0), 0.2),
                  start_sigmas: tuple[float, float] = (math.inf, math.inf), search_bar: float = math.nan,
-                 far: tuple[float, float] | None = None):
+                 far: tuple[float, float] | None = None, start_level: float = START_SIGMAS):
         self.config = config
         self.far = (RefineConfig.competitor_distance, RefineConfig.competitor_angle) if far is None else far
         self.search_bar = search_bar           # the wide search's MIN_SHARP: a found pose below it is searched again
         self.start_sigmas = start_sigmas       # init.sigma_p (m), sigma_r (rad): the start pose's prior
+        self.start_level = start_level         # k: chi_3 at status.alpha (app/tracking/levels.py)
         self.centroid_bone = np.asarray(centroid_bone, float).reshape(3)
         self.surface_point_bone = np.asarray(surface_point_bone, float).reshape(3)
         self.refine_enabled = refine_enabled
@@ -479,11 +481,12 @@ class RecoveryPolicy:
         return dist > self.far[0] or angle > self.far[1]
 
     def _beyond_start(self, T_base_bone: np.ndarray) -> bool:
-        """Never ok and outside the start's prior: more than START_SIGMAS start sigmas from it."""
+        """Never ok and outside the start's prior: more than ``start_level`` start sigmas from it (k² the
+        χ²₃ point at status.alpha, app/tracking/levels.py)."""
         if self.lifecycle.ever_ok or self.T_base_bone_start is None:
             return False
         dist, angle = pose_gap(self.T_base_bone_start, T_base_bone)
-        k = self.config.start_sigmas
+        k = self.start_level
         return dist > k * self.start_sigmas[0] or angle > k * self.start_sigmas[1]
 
     def _moving(self, stamp: float, T_base_bone: np.ndarray) -> bool:

@@ -124,7 +124,6 @@ class RefineConfig:
     outline_ring: bool = False
     tissue_border: bool = True
     behind_frames: int = 30
-    behind_z: float = 3.0
     noise_window_px: int = 15
     nearby_every: int = 10
     nearby_starts: int = 4

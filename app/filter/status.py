@@ -113,7 +113,7 @@ lowered to UNCERTAIN, never raised, when
   camera whose noise is correlated over its matching window, and the rule then blocked right poses
   on 99.8 % of the frames), each measurement lies behind with probability
   e_i = Φ(−σ_i / (σ_n |n_i·r̂_i|)), and the bound is the Poisson-binomial mean plus
-  ``refine.behind_z`` = 3 standard deviations over the M measurements, the variance multiplied by
+  z = 3 standard deviations (one-sided ``status.alpha`` = 0.135 %, app/tracking/levels.py) over the M measurements, the variance multiplied by
   the residuals' spatial correlation factor f = n / n_eff (fit_test.py; behind_noise.py
   ``behind_bound``; app/filter/refine_track.py ``behind_excess``; the fixed 2 % when fewer than 30
   pixels estimate the noise). The 0.2 % margin covers what the noise model leaves out (the mesh's
@@ -135,8 +135,9 @@ lowered to UNCERTAIN, never raised, when
   thirty can. Measured (BENCHMARKS.md §6i, 8 crests x 3 seeds).
 - the static-bone prior (app/filter/static_prior.py) kept a pose that this frame's own fit contradicts:
   its Δχ² = δᵀ (H / ``covariance_inflation``) δ from the kept pose to the image's fit exceeds
-  ``max_held_chi2`` = 4 and the prior did not release onto the fit. Under the image's own inflated
-  covariance Δχ² is χ²₆ / 6: 4 is its 0.05 % tail; the prior itself releases only at 25
+  χ²₆(1 − ``status.alpha``) / ``covariance_inflation`` = 3.62 (it was ``max_held_chi2`` = 4, P ~ 5e-4, until
+  issue 32 gave every statistical test one level) and the prior did not release onto the fit. Under the image's own inflated
+  covariance Δχ² is χ²₆ / 6 (app/tracking/levels.py ``held_level``); the prior itself releases only at 25
   (``refine.prior_release_chi2``; 4 there was tried and not kept, static_prior.py). Why: a bone
   that starts to move slowly (bone_moves: 0.7 mm/s rising to 10 mm/s over 0.2 s) is fused, not
   released, for ~10 frames, and the held pose lagged it by up to 1.0-1.3 mm while every other rule
@@ -157,6 +158,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.tracking import levels
+
 LOST_NO_POSE_S = 0.5
 LOST_POSITION_SPREAD_M = 0.010
 LOST_ROTATION_SPREAD_RAD = math.radians(10.0)
@@ -171,7 +174,6 @@ SETTLE_S = 0.3
 MIN_FITNESS = 0.6
 MAX_BEHIND_EXCESS = 0.002
 MAX_TEMPLATE_STD_M = 0.001
-MAX_HELD_CHI2 = 4.0
 COVARIANCE_INFLATION = 6.0
 
 
@@ -226,7 +228,7 @@ class StatusThresholds:
     min_fitness: float = MIN_FITNESS
     max_behind_excess: float = MAX_BEHIND_EXCESS
     max_template_std: float = MAX_TEMPLATE_STD_M
-    max_held_chi2: float = MAX_HELD_CHI2
+    alpha: float = levels.ALPHA
     covariance_inflation: float = COVARIANCE_INFLATION
 
 
@@ -344,9 +346,10 @@ def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
     if r.behind > t.max_behind_excess:
         reasons.append(Reason("behind", f"{100 * r.behind:.1f} % more of the seen bone lies inside the refined model "
                               "than the noise explains (slid onto tissue?)"))
-    if r.held_chi2 > t.max_held_chi2:
+    held = levels.held_level(t.alpha, t.covariance_inflation)
+    if r.held_chi2 > held:
         reasons.append(Reason("held", f"the image's own fit contradicts the held pose (Δχ² {r.held_chi2:.1f} > "
-                              f"{t.max_held_chi2:g}; the bone starting to move?)"))
+                              f"{held:.2f}; the bone starting to move?)"))
     return reasons
 
 

@@ -32,6 +32,7 @@ from app.filter.refine_track import RefinedTrack, pose_gap
 from app.filter.visibility import point_visible, visible_share
 from app.geometry.camera import PinholeCamera
 from app.tracking.search_worker import SearchJob
+from app.tracking import levels
 
 log = logging.getLogger(__name__)
 
@@ -230,7 +231,8 @@ def _policy(config, vertices: np.ndarray, search_bar: float) -> RecoveryPolicy:
     return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, st.min_fitness,
                           (st.uncertain_speed, st.uncertain_angular_speed, st.motion_window_s),
                           (config.init_sigma_p, config.init_sigma_r), search_bar,
-                          (config.refine.competitor_distance, config.refine.competitor_angle))
+                          (config.refine.competitor_distance, config.refine.competitor_angle),
+                          levels.chi_level(st.alpha, 3))
 
 
 def _wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedTrack | None, vertices: np.ndarray):

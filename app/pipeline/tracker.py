@@ -30,6 +30,7 @@ from app.filter.refine_track import RefinedTrack
 from app.filter.status import (Reason, RefinementEvidence, TrackingStatus, motion_reason, refinement_reasons,
                                with_refinement)
 from app.metrics import STATUS_CODE
+from app.tracking import levels
 from app.tracking.lifecycle import Lifecycle, State, frame_event
 from app.geometry.camera import PinholeCamera
 from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD
@@ -564,7 +565,8 @@ def refine_params(config: TrackerConfig) -> RefineParams:
     c, lk = config.refine, config.likelihood
     return RefineParams(stride=c.stride, iterations=c.iterations, samples=c.samples, k=lk.k,
                         sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin, outline_ring=c.outline_ring,
-                        tissue_border=c.tissue_border, behind_z=c.behind_z, noise_window_px=c.noise_window_px)
+                        tissue_border=c.tissue_border, behind_z=levels.normal_level(config.status.alpha),
+                        noise_window_px=c.noise_window_px)
 
 
 def _refined_track(config: TrackerConfig, mesh: trimesh.Trimesh, camera: PinholeCamera) -> RefinedTrack | None:
