@@ -230,8 +230,6 @@ KEYS: dict[str, _Key] = {
     "recovery.sliding_factor": _f("recovery.sliding_factor", 1.0, 1000.0),
     "recovery.still_window_s": _f("recovery.still_window_s", 0.0, 60.0),
     "recovery.max_backoff_doublings": _i("recovery.max_backoff_doublings", 0, 20),
-    "recovery.kept_move_m": _f("recovery.kept_move_m", 0.0, 1.0),
-    "recovery.kept_move_angle": _f("recovery.kept_move_angle", 0.0, math.pi),
     "recovery.confirm_moved": _Key(("recovery", "confirm_moved"), "bool"),
     "recovery.search_worker": _Key(("recovery", "search_worker"), "choice", choices=("auto", "inline", "thread")),
     "render.resolution": _Key(("resolution",), "resolution", 8, 4096),
@@ -396,6 +394,11 @@ RENAMED = {   # keys of earlier configurations: what replaced them
                             "alpha ~5e-4)",
     "recovery.start_sigmas": "replaced by status.alpha, the one level of every statistical test: k^2 = "
                              "chi2_3(1 - alpha) (3.95 at the default alpha; 4.03 was alpha 0.001)",
+    # issue 32: one tolerance for "a different answer"
+    "recovery.kept_move_m": "replaced by status.max_template_std (the same 1 mm, now the largest displacement of the "
+                            "template's points between the kept and the refined pose); remove the key",
+    "recovery.kept_move_angle": "replaced by status.max_template_std (the template's largest displacement covers the "
+                                "rotation: 1 deg moves points 50 mm out 0.9 mm); remove the key",
 }
 
 

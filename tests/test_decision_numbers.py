@@ -66,6 +66,8 @@ def test_a_number_without_its_kind_is_refused(tmp_path):
     ("status.uncertain_inlier_fraction", "the refinement's consistency test"),
     ("status.min_ok_fraction", "status.max_template_std"),
     ("status.min_ess_ratio", "status.max_template_std"),
+    ("recovery.kept_move_m", "status.max_template_std"),
+    ("recovery.kept_move_angle", "status.max_template_std"),
 ])
 def test_a_merged_key_names_the_key_that_replaced_it(old, new):
     section, name = old.split(".")

@@ -1057,18 +1057,22 @@ def test_a_kept_track_moves_onto_its_refined_pose_when_the_search_refined_it_awa
     6.70 s) kept a track 3.3 mm / 4-6 deg off whose own refinement (from its pose, width 0) sat in a
     local minimum at a consistent sharp share of 0.26-0.30; the incumbent's wider chain had refined
     it to 0.1 mm (0.91), but a kept search changed nothing: found 2.54 s after the bone was in view.
-    A kept track whose own fit is below the search's bar and whose refined pose lies more than
-    recovery.kept_move_m / kept_move_angle away is moved there (the cloud shifted, the refined track seeded);
-    within that, or with its own fit over the bar, nothing moves. Either way it is no re-initialisation."""
+    A kept track whose own fit is below the search's bar and whose refined pose moves the template by more than
+    status.max_template_std (1 mm; recovery.kept_move_m / kept_move_angle before issue 32) is moved there (the
+    cloud shifted, the refined track seeded); within that, or with its own fit over the bar, nothing moves. Either
+    way it is no re-initialisation."""
     from types import SimpleNamespace
 
     from app.filter.wide_search import MIN_SHARP, SearchResult
-    from app.filter.recovery import KEPT_MOVE_M
+    from app import metrics
     from app.pipeline.recovery_runner import RecoveryRunner
 
+    tolerance = 0.001                                   # status.max_template_std
+    points = np.array([[0.0, 0.0, 0.0], [0.04, 0.0, 0.0], [0.0, 0.03, 0.0]])
+
     T_now = se3.from_rotvec_trans(np.zeros(3), np.array([0.05, 0.0, 0.0]))
-    for gap, own, moves in [(3.3 * KEPT_MOVE_M, 0.28, True), (0.5 * KEPT_MOVE_M, 0.28, False),
-                            (3.3 * KEPT_MOVE_M, MIN_SHARP + 0.1, False)]:
+    for gap, own, moves in [(3.3 * tolerance, 0.28, True), (0.5 * tolerance, 0.28, False),
+                            (3.3 * tolerance, MIN_SHARP + 0.1, False)]:
         T_kept = se3.from_rotvec_trans(np.zeros(3), np.array([0.05 + gap, 0.0, 0.0]))
         seen = {"shifts": [], "seeds": []}
 
@@ -1077,11 +1081,13 @@ def test_a_kept_track_moves_onto_its_refined_pose_when_the_search_refined_it_awa
                 return SearchResult(None, 0.99, 0.91, 10, 8, "incumbent", kept=True, T_base_bone_kept=T_kept)
 
         filt = SimpleNamespace(rng=np.random.default_rng(0), shift_to=lambda new, old: seen["shifts"].append((new, old)))
-        track = SimpleNamespace(seed=lambda T, verified=False: seen["seeds"].append(T) if verified else None)
+        track = SimpleNamespace(seed=lambda T, verified=False: seen["seeds"].append(T) if verified else None,
+                                template_gap=lambda a, b: metrics.mdd(a, b, points))
         policy = _policy()
         policy.search_bar, policy.last_sharp = MIN_SHARP, own
         policy.pending = "a test"
-        runner = RecoveryRunner(SimpleNamespace(particles=20), policy, Search(), filt, track, run_smc=None)
+        runner = RecoveryRunner(SimpleNamespace(particles=20, status=SimpleNamespace(max_template_std=tolerance)),
+                                policy, Search(), filt, track, run_smc=None)
         _, reinitialised = runner.run(None, None, np.eye(4), 1.0, T_now)
         assert not reinitialised and not policy.events and runner.work["kept"] == 1
         if moves:

@@ -119,9 +119,9 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
   over the tissue restarts the slow trigger's count). A search whose best verified pose is the
   tracker's current estimate (refined in place; wide_search.py, 6) keeps the track
   (:meth:`RecoveryPolicy.kept`): no attempt, retried after the backed-off cooldown; the track moves
-  only onto its own refined pose when its own fit is below the search's bar and that pose lies more
-  than 1 mm / 1 deg away (app/pipeline/recovery_runner.py,
-  KEPT_MOVE_M: the search's wider chain left the local minimum the track's own refinement sat in;
+  only onto its own refined pose when its own fit is below the search's bar and that pose moves the
+  template by more than status.max_template_std (app/pipeline/recovery_runner.py; 1 mm / 1 deg before issue 32:
+  the search's wider chain left the local minimum the track's own refinement sat in;
   or_fast_reposition crest_left_05 seed 1 at the filter's seed 3, BENCHMARKS.md §6n) (a track
   0.8 mm off with a quarter of the crest in view was replaced by a pose 9 mm off that explained
   the image less well: or_fast_reposition crest_right_04 seed 0, BENCHMARKS.md §6g). Re-spreading around the last ok
@@ -184,7 +184,6 @@ NOMINAL_PERIOD_S = 1.0 / 90.0        # the frame period until two stamps are kno
 PERIOD_FRAMES = 31                   # the period is the median of the last 30 stamp differences
 TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 of the last 90 not-lost estimates
 MAX_BACKOFF_DOUBLINGS = 3
-KEPT_MOVE_M, KEPT_MOVE_RAD = 0.001, math.radians(1.0)   # a kept track below the search's bar moves onto its refined pose beyond this
 SLIDING_FACTOR = 2.0                 # x after_uncertain_s: not ok this long, far, moving or not: a search
 START_SIGMAS = levels.chi_level(levels.ALPHA, 3)   # status.alpha's chi, 3 dof: a never-ok track this many start sigmas off
 STILL_WINDOW_S = 0.5
@@ -206,7 +205,7 @@ class RecoveryConfig:
     share a search's verified fit needs to be found, and below which a found pose is searched again:
     wide_search.MIN_SHARP's default); the triggers' numbers (module
     docstring, "Trigger"; defaults the module constants): search_retry_s, sliding_factor,
-    still_window_s, max_backoff_doublings; kept_move_m / kept_move_angle (app/pipeline/recovery_runner.py).
+    still_window_s, max_backoff_doublings.
     Since issue 32 the "far" gap is ``refine.competitor_distance`` / ``competitor_angle`` (it was
     recovery.far_m / far_angle, the same 5 mm / 5 deg; :class:`RecoveryPolicy`'s ``far``) and the never-ok
     track's one search waits ``after_uncertain_s`` (it was recovery.never_ok_search_s, the same 1 s)."""
@@ -229,8 +228,6 @@ class RecoveryConfig:
     sliding_factor: float = SLIDING_FACTOR
     still_window_s: float = STILL_WINDOW_S
     max_backoff_doublings: int = MAX_BACKOFF_DOUBLINGS
-    kept_move_m: float = KEPT_MOVE_M
-    kept_move_angle: float = KEPT_MOVE_RAD
     search_worker: str = "auto"
     confirm_moved: bool = True
 

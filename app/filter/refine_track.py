@@ -71,6 +71,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app import metrics
 from app.filter.behind_pool import BehindPool
 from app.filter.motion import draws_about_centroid
 from app.filter.nearby_search import NearbySearch
@@ -211,6 +212,11 @@ class RefinedTrack:
         self.behind_pool = BehindPool(config.behind_frames, refiner.params.behind_z)
         self.nearby = NearbySearch(config, self.plan_points + refiner.center, self._draws, tolerance)
         self.reset()
+
+    def template_gap(self, T_base_bone_a: np.ndarray, T_base_bone_b: np.ndarray) -> float:
+        """m, the largest displacement of the template's points between two poses (metrics.mdd): more than
+        status.max_template_std is a different answer."""
+        return metrics.mdd(T_base_bone_a, T_base_bone_b, self.plan_points + self.refiner.center)
 
     def reset(self) -> None:
         self.T_base_bone, self.fitness = None, float("nan")
