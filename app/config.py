@@ -170,8 +170,6 @@ KEYS: dict[str, _Key] = {
     "status.lost_position_spread": _f("status.lost_position_spread", 0.0, 1.0, lo_open=True),
     "status.lost_rotation_spread": _f("status.lost_rotation_spread", 0.0, math.pi, lo_open=True),
     "status.lost_inlier_fraction": _f("status.lost_inlier_fraction", 0.0, 1.0),
-    "status.uncertain_position_spread": _f("status.uncertain_position_spread", 0.0, 1.0, lo_open=True),
-    "status.uncertain_rotation_spread": _f("status.uncertain_rotation_spread", 0.0, math.pi, lo_open=True),
     "status.min_covered_pixels": _i("status.min_covered_pixels", 0, 10_000_000),
     "status.uncertain_speed": _f("status.uncertain_speed", 0.0, 100.0, lo_open=True),
     "status.uncertain_angular_speed": _f("status.uncertain_angular_speed", 0.0, 1000.0, lo_open=True),
@@ -192,6 +190,8 @@ KEYS: dict[str, _Key] = {
     "refine.competitor_angle": _f("refine.competitor_angle", 0.0, math.pi),
     "refine.competitor_margin": _f("refine.competitor_margin", 0.0, 1.0),
     "refine.feedback": _Key(("refine", "feedback"), "bool"),
+    "refine.feedback_spread": _f("refine.feedback_spread", 0.0, 1.0, lo_open=True),
+    "refine.feedback_spread_angle": _f("refine.feedback_spread_angle", 0.0, math.pi, lo_open=True),
     "refine.static_prior": _Key(("refine", "static_prior"), "bool"),
     "refine.prior_release_chi2": _f("refine.prior_release_chi2", 0.0, 1e6, lo_open=True),
     "refine.prior_clear_ratio": _f("refine.prior_clear_ratio", 1.0, 1e6),
@@ -346,12 +346,6 @@ def _check_consistency(c: TrackerConfig, source) -> None:
     if c.far <= c.near:
         raise ConfigError("render.far", f"far ({c.far:g} m) must exceed near ({c.near:g} m)", source)
     st = c.status
-    pairs = [("position_spread", st.uncertain_position_spread, st.lost_position_spread),
-             ("rotation_spread", st.uncertain_rotation_spread, st.lost_rotation_spread)]
-    for name, uncertain, lost in pairs:
-        if uncertain > lost:
-            raise ConfigError(f"status.uncertain_{name}", f"{uncertain:g} exceeds status.lost_{name} "
-                              f"({lost:g}): the uncertain threshold must not exceed the lost one", source)
     forget = c.refine.prior_forget_ratio
     if 0.0 < forget <= 1.0:
         raise ConfigError("refine.prior_forget_ratio", f"{forget:g} would discount the prior on a view no better "
@@ -394,6 +388,14 @@ RENAMED = {   # keys of earlier configurations: what replaced them
                             "alpha ~5e-4)",
     "recovery.start_sigmas": "replaced by status.alpha, the one level of every statistical test: k^2 = "
                              "chi2_3(1 - alpha) (3.95 at the default alpha; 4.03 was alpha 0.001)",
+    # issue 32: the particles' spread no longer lowers the status below the lost one (the template's predicted error
+    # says how precise the refined output is); it still gates the feedback
+    "status.uncertain_position_spread": "replaced by status.max_template_std for the status (the template's predicted "
+                                        "error); the feedback's wait for a converged cloud is refine.feedback_spread "
+                                        "(the same 3 mm); move its value there",
+    "status.uncertain_rotation_spread": "replaced by status.max_template_std for the status; the feedback's wait for a "
+                                        "converged cloud is refine.feedback_spread_angle (the same 2 deg); move its "
+                                        "value there",
     # issue 32: one tolerance for "a different answer"
     "recovery.kept_move_m": "replaced by status.max_template_std (the same 1 mm, now the largest displacement of the "
                             "template's points between the kept and the refined pose); remove the key",

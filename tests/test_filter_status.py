@@ -19,7 +19,6 @@ def test_a_tight_well_supported_track_is_ok():
 
 
 @pytest.mark.parametrize("change", [
-    {"position_spread": 0.004}, {"rotation_spread": math.radians(3)},
     {"covered_pixels": 10, "inlier_fraction": 0.0}, {"n_nan": 3}, {"weighed": False},
     {"weighed": False, "seconds_without_pose": 0.3},
 ])
@@ -40,9 +39,16 @@ def test_low_inliers_without_enough_covered_pixels_is_not_lost():
     assert lost_reasons(s, StatusThresholds()) == []
 
 
+def test_a_spread_below_the_lost_one_does_not_lower_the_status():
+    """Issue 32: the template's predicted error (the refinement's) says how precise the output is; the cloud's
+    spread of a few mm / deg only gates the feedback (refine.feedback_spread), and 10 mm / 10 deg is lost."""
+    assert classify(replace(GOOD, position_spread=0.004, rotation_spread=math.radians(3))) == TrackingStatus.OK
+    assert classify(replace(GOOD, position_spread=0.011)) == TrackingStatus.LOST
+
+
 def test_thresholds_are_configurable():
-    loose = StatusThresholds(uncertain_position_spread=0.005)
-    assert classify(replace(GOOD, position_spread=0.004), loose) == TrackingStatus.OK
+    loose = StatusThresholds(lost_position_spread=0.02)
+    assert classify(replace(GOOD, position_spread=0.011), loose) == TrackingStatus.OK
     strict = StatusThresholds(min_covered_pixels=500)
     assert classify(GOOD, strict) == TrackingStatus.UNCERTAIN
 

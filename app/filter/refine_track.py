@@ -44,7 +44,7 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   BENCHMARKS.md §6c, identical errors), so the slide was the refinement's, not the coupling's;
 - the output pose is the refined one when its fitness >= ``keep_fitness``, else the filter's;
 - feedback (``feedback``): when the filter's cloud has converged (its status not lost, its spread
-  under status.uncertain_position_spread / uncertain_rotation_spread), the kept fit reaches
+  under ``feedback_spread`` / ``feedback_spread_angle``, 3 mm / 2 deg), the kept fit reaches
   ``status.min_fitness`` and no competitor exists,
   the particle cloud is shifted rigidly so that its mean lands on the refined pose
   (:meth:`app.filter.particle_filter.ParticleFilter.shift_to`): the filter stays inside the
@@ -114,6 +114,8 @@ class RefineConfig:
     competitor_angle: float = math.radians(5.0)
     competitor_margin: float = 0.05
     feedback: bool = True
+    feedback_spread: float = 0.003
+    feedback_spread_angle: float = math.radians(2.0)
     static_prior: bool = True
     prior_release_chi2: float = 25.0
     prior_clear_ratio: float = 1.5

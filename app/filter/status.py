@@ -31,7 +31,6 @@ LOST if
   a full occlusion, or a lost track).
 UNCERTAIN if
 - the frame had no camera pose or no valid depth (prediction only), or
-- position spread > ``uncertain_position_spread`` = 3 mm, or rotation spread > ``uncertain_rotation_spread`` = 2°, or
 - fewer than ``min_covered_pixels`` = 30 covered valid pixels (the bone left the view or is
   hidden behind invalid pixels: too little evidence, at 80x60 the crest covers a few hundred), or
 - any NaN log-likelihood, or
@@ -41,9 +40,11 @@ UNCERTAIN if
   along the crest's length the image hardly shows it; measured on or_fast_reposition).
 OK otherwise.
 
-The thresholds of 3 mm / 2° follow the clinical accuracy the navigation needs (a template
-misplaced by more than a few millimetres is not useful); 10 mm matches the replay's definition of
-a lost frame (ADD > 10 mm, app/pipeline/replay.py). The lost inlier fraction comes from a synthetic
+The particles' spread only makes a frame lost (10 mm matches the replay's definition of a lost
+frame, ADD > 10 mm, app/pipeline/replay.py); a spread of a few millimetres no longer lowers an otherwise
+ok frame (issue 32: the template's predicted error from the refined fit says how precise the output is;
+``status.uncertain_position_spread`` / ``uncertain_rotation_spread`` are now ``refine.feedback_spread`` /
+``feedback_spread_angle``, the cloud's convergence the feedback waits for). The lost inlier fraction comes from a synthetic
 run (default crest mesh at 0.42 m, 80x60, 0.5 mm noise): 0.46-0.50 with the estimate 16 mm / 9°
 off, 0.84-1.0 once converged.
 
@@ -164,8 +165,6 @@ LOST_NO_POSE_S = 0.5
 LOST_POSITION_SPREAD_M = 0.010
 LOST_ROTATION_SPREAD_RAD = math.radians(10.0)
 LOST_INLIER_FRACTION = 0.2
-UNCERTAIN_POSITION_SPREAD_M = 0.003
-UNCERTAIN_ROTATION_SPREAD_RAD = math.radians(2.0)
 MIN_COVERED_PIXELS = 30
 UNCERTAIN_SPEED_M_S = 0.03
 UNCERTAIN_ANGULAR_SPEED_RAD_S = math.radians(20.0)
@@ -218,8 +217,6 @@ class StatusThresholds:
     lost_position_spread: float = LOST_POSITION_SPREAD_M
     lost_rotation_spread: float = LOST_ROTATION_SPREAD_RAD
     lost_inlier_fraction: float = LOST_INLIER_FRACTION
-    uncertain_position_spread: float = UNCERTAIN_POSITION_SPREAD_M
-    uncertain_rotation_spread: float = UNCERTAIN_ROTATION_SPREAD_RAD
     min_covered_pixels: int = MIN_COVERED_PIXELS
     uncertain_speed: float = UNCERTAIN_SPEED_M_S
     uncertain_angular_speed: float = UNCERTAIN_ANGULAR_SPEED_RAD_S
@@ -281,10 +278,6 @@ def uncertain_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
     reasons = []
     if not s.weighed:
         reasons.append(Reason("not_weighed", "not weighed (no camera pose, no valid depth, or the bone hidden by an occluder)"))
-    if s.position_spread > t.uncertain_position_spread:
-        reasons.append(Reason("spread", f"position spread {1e3 * s.position_spread:.1f} mm"))
-    if s.rotation_spread > t.uncertain_rotation_spread:
-        reasons.append(Reason("spread", f"rotation spread {math.degrees(s.rotation_spread):.1f} deg"))
     if s.weighed and s.covered_pixels < t.min_covered_pixels:
         reasons.append(Reason("unseen", f"{s.covered_pixels} covered valid pixels"))
     if s.n_nan > 0:

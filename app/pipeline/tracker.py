@@ -354,8 +354,8 @@ class DepthTracker:
         out = self.refined_track.update(depth_m, T_base_camera, result.T_base_bone, track_fit)
         c = self.config.refine
         st = self.config.status
-        converged = (result.status != TrackingStatus.LOST and result.position_spread <= st.uncertain_position_spread
-                     and result.rotation_spread <= st.uncertain_rotation_spread)
+        converged = (result.status != TrackingStatus.LOST and result.position_spread <= c.feedback_spread
+                     and result.rotation_spread <= c.feedback_spread_angle)
         if (c.feedback and converged and out.T_base_bone is not None
                 and out.fitness >= st.min_fitness and not out.competitor):
             self.filter.shift_to(out.T_base_bone, result.T_base_bone)
