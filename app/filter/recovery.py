@@ -25,7 +25,7 @@ slower trigger: ``after_uncertain_s`` of weighed frames in a row that are not ok
 estimate is still (0 = off): on the CT crests under a rising hand the filter and the refinement slid
 together along the crest to 47 mm off with a fit of 0.65-0.9, uncertain (the predicted template
 error), never lost (BENCHMARKS.md §6b). The estimate is still when it moved less than
-``status.uncertain_speed`` / ``uncertain_angular_speed`` over ``STILL_WINDOW_S`` = 0.5 s (longer
+``status.uncertain_speed`` (the template's fastest point; issue 32) over ``STILL_WINDOW_S`` = 0.5 s (longer
 than the status's 0.2 s: a wrong track's refined pose jumps a few millimetres between frames, which
 over 0.2 s read as motion and kept the count at 0 on crest_left_02 while 64-100 mm off); a moving
 estimate restarts that count, and it needs an ok frame since the start (a track that was never ok,
@@ -169,6 +169,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.filter.motion import ParticleState, draws_about_centroid
+from app.filter.motion_gate import template_speed
 from app.filter.refine_track import RefineConfig, pose_gap
 from app.filter.status import TrackingStatus
 from app.filter.weights import uniform_log_weights
@@ -277,17 +278,21 @@ class RecoveryPolicy:
     surface_point_bone : (3,) m, a point on the bone surface near the centroid (bone frame)
     refine_enabled : whether an unrefined weighed frame counts as bad
     min_fitness : a refined fit below this counts as bad (status.min_fitness)
-    still : (speed m/s, angular speed rad/s, window s) below which the estimate is still
-        (status.uncertain_speed, uncertain_angular_speed, motion_window_s; the window at least STILL_WINDOW_S)
+    still : (speed m/s, window s) below which the estimate is still: the largest speed of ``points_bone``
+        (status.uncertain_speed, motion_window_s; the window at least STILL_WINDOW_S)
     far : (m, rad) a pose farther than this from the last ok one is "far" (``refine.competitor_distance`` /
         ``competitor_angle``: two poses this far apart are different answers; default RefineConfig's)
+    start_level : the never-ok track's outside_start radius in start sigmas (chi, 3 dof, at status.alpha)
+    points_bone : (N, 3) m, bone frame: the template's points whose speed the still test watches (default: the
+        bone frame's origin)
     """
 
     def __init__(self, config: RecoveryConfig, centroid_bone: np.ndarray, surface_point_bone: np.ndarray,
                  refine_enabled: bool, min_fitness: float = 0.6,
-                 still: tuple[float, float, float] = (0.03, math.radians(20.0), 0.2),
+                 still: tuple[float, float] = (0.03, 0.2),
                  start_sigmas: tuple[float, float] = (math.inf, math.inf), search_bar: float = math.nan,
-                 far: tuple[float, float] | None = None, start_level: float = START_SIGMAS):
+                 far: tuple[float, float] | None = None, start_level: float = START_SIGMAS,
+                 points_bone: np.ndarray | None = None):
         self.config = config
         self.far = (RefineConfig.competitor_distance, RefineConfig.competitor_angle) if far is None else far
         self.search_bar = search_bar           # the wide search's MIN_SHARP: a found pose below it is searched again
@@ -298,6 +303,7 @@ class RecoveryPolicy:
         self.refine_enabled = refine_enabled
         self.min_fitness = min_fitness
         self.still = still
+        self.points_bone = np.zeros((1, 3)) if points_bone is None else np.asarray(points_bone, float).reshape(-1, 3)
         self._recent: collections.deque = collections.deque()   # (stamp, T_base_bone) over the window
         self.point_prior: np.ndarray | None = None
         self.T_base_bone_confident: np.ndarray | None = None
@@ -487,20 +493,14 @@ class RecoveryPolicy:
         return dist > k * self.start_sigmas[0] or angle > k * self.start_sigmas[1]
 
     def _moving(self, stamp: float, T_base_bone: np.ndarray) -> bool:
-        """Whether the estimate moved faster than ``still`` over the window (ending at this frame)."""
-        speed, angular, window = self.still
+        """Whether the template's points moved faster than ``still`` over the window (ending at this frame)."""
+        speed, window = self.still
         window = max(window, self.config.still_window_s)
         self._recent.append((float(stamp), np.array(T_base_bone, float)))
         while len(self._recent) > 2 and stamp - self._recent[1][0] >= window:
             self._recent.popleft()
         t0, T0 = self._recent[0]
-        dt = stamp - t0
-        if dt <= 0:
-            return False
-        dist = float(np.linalg.norm(T_base_bone[:3, 3] - T0[:3, 3]))
-        cos = (np.trace(T0[:3, :3].T @ T_base_bone[:3, :3]) - 1.0) / 2.0
-        angle = float(np.arccos(np.clip(cos, -1.0, 1.0)))
-        return dist / dt > speed or angle / dt > angular
+        return template_speed(T0, T_base_bone, self.points_bone, stamp - t0) > speed
 
     def _due(self, reason: str, code: str = "") -> None:
         """A trigger fired: the lifecycle's ``search_due``, unless the cooldown runs or one is due already."""

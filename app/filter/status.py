@@ -34,8 +34,9 @@ UNCERTAIN if
 - fewer than ``min_covered_pixels`` = 30 covered valid pixels (the bone left the view or is
   hidden behind invalid pixels: too little evidence, at 80x60 the crest covers a few hundred), or
 - any NaN log-likelihood, or
-- the bone is moving: the estimate's speed over ``motion_window_s`` = 0.2 s exceeds
-  ``uncertain_speed`` = 30 mm/s or ``uncertain_angular_speed`` = 20 deg/s, or it did so less than
+- the bone is moving: the largest speed of the template's points over ``motion_window_s`` = 0.2 s exceeds
+  ``uncertain_speed`` = 30 mm/s (one speed since issue 32; it was 30 mm/s of the bone frame's origin or
+  ``uncertain_angular_speed`` = 20 deg/s), or it did so less than
   ``settle_s`` = 0.3 s ago (:mod:`app.filter.motion_gate`: the estimate lags a moving bone, and
   along the crest's length the image hardly shows it; measured on or_fast_reposition).
 OK otherwise.
@@ -167,7 +168,6 @@ LOST_ROTATION_SPREAD_RAD = math.radians(10.0)
 LOST_INLIER_FRACTION = 0.2
 MIN_COVERED_PIXELS = 30
 UNCERTAIN_SPEED_M_S = 0.03
-UNCERTAIN_ANGULAR_SPEED_RAD_S = math.radians(20.0)
 MOTION_WINDOW_S = 0.2
 SETTLE_S = 0.3
 MIN_FITNESS = 0.6
@@ -219,7 +219,6 @@ class StatusThresholds:
     lost_inlier_fraction: float = LOST_INLIER_FRACTION
     min_covered_pixels: int = MIN_COVERED_PIXELS
     uncertain_speed: float = UNCERTAIN_SPEED_M_S
-    uncertain_angular_speed: float = UNCERTAIN_ANGULAR_SPEED_RAD_S
     motion_window_s: float = MOTION_WINDOW_S
     settle_s: float = SETTLE_S
     min_fitness: float = MIN_FITNESS
@@ -239,7 +238,7 @@ class StatusInputs:
     n_nan : NaN log-likelihoods this frame; n_particles : N
     weighed : the frame had a camera pose and depth and was weighed
     seconds_without_pose : since the last frame that had a camera pose (0 when this one has)
-    speed (m/s), angular_speed (rad/s), seconds_since_motion (s): the estimate's motion
+    speed (m/s, the template's fastest point), seconds_since_motion (s): the estimate's motion
     (:mod:`app.filter.motion_gate`)
     """
 
@@ -253,7 +252,6 @@ class StatusInputs:
     weighed: bool
     seconds_without_pose: float
     speed: float = 0.0
-    angular_speed: float = 0.0
     seconds_since_motion: float = math.inf
 
 
@@ -282,19 +280,17 @@ def uncertain_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
         reasons.append(Reason("unseen", f"{s.covered_pixels} covered valid pixels"))
     if s.n_nan > 0:
         reasons.append(Reason("nan", f"{s.n_nan} NaN log-likelihoods"))
-    motion = motion_reason(s.speed, s.angular_speed, s.seconds_since_motion, t)
+    motion = motion_reason(s.speed, s.seconds_since_motion, t)
     if motion is not None:
         reasons.append(motion)
     return reasons
 
 
-def motion_reason(speed: float, angular_speed: float, seconds_since_motion: float,
-                  t: StatusThresholds) -> Reason | None:
-    """The steady test (app/filter/motion_gate.py's speeds): the bone moving faster than
-    ``uncertain_speed`` (m/s) or ``uncertain_angular_speed`` (rad/s), or less than ``settle_s`` since it
-    did or since the start; None when it is still."""
-    if speed > t.uncertain_speed or angular_speed > t.uncertain_angular_speed:
-        return Reason("moving", f"bone moving ({1e3 * speed:.0f} mm/s, {math.degrees(angular_speed):.0f} deg/s)")
+def motion_reason(speed: float, seconds_since_motion: float, t: StatusThresholds) -> Reason | None:
+    """The steady test (app/filter/motion_gate.py's speed): the template's points moving faster than
+    ``uncertain_speed`` (m/s), or less than ``settle_s`` since they did or since the start; None when still."""
+    if speed > t.uncertain_speed:
+        return Reason("moving", f"bone moving (the template at {1e3 * speed:.0f} mm/s)")
     if seconds_since_motion < t.settle_s:
         return Reason("moving", f"bone settling ({seconds_since_motion:.2f} s after moving or the start)")
     return None

@@ -225,14 +225,16 @@ def make_recovery(config, backend, camera: PinholeCamera, particle_filter, refin
 
 
 def _policy(config, vertices: np.ndarray, search_bar: float) -> RecoveryPolicy:
+    from app.pipeline.tracker import PLAN_POINTS
+
     centroid = vertices.mean(axis=0)
     surface_point = vertices[np.argmin(np.linalg.norm(vertices - centroid, axis=1))]
     st = config.status
     return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, st.min_fitness,
-                          (st.uncertain_speed, st.uncertain_angular_speed, st.motion_window_s),
+                          (st.uncertain_speed, st.motion_window_s),
                           (config.init_sigma_p, config.init_sigma_r), search_bar,
                           (config.refine.competitor_distance, config.refine.competitor_angle),
-                          levels.chi_level(st.alpha, 3))
+                          levels.chi_level(st.alpha, 3), vertices[::max(1, len(vertices) // PLAN_POINTS)])
 
 
 def _wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedTrack | None, vertices: np.ndarray):

@@ -96,7 +96,8 @@ class DepthTracker:
         self._T_base_bone_last: np.ndarray | None = None
         self._lifecycle = Lifecycle()        # without the recovery; with it, the recovery's (it drives the transitions)
         st = config.status
-        self.motion_gate = MotionGate(st.motion_window_s, st.uncertain_speed, st.uncertain_angular_speed)
+        self.motion_gate = MotionGate(st.motion_window_s, st.uncertain_speed, template_points(mesh))
+        self.filter.motion_gate.points_bone = self.motion_gate.points_bone
 
     @property
     def recovery(self):
@@ -149,6 +150,9 @@ class DepthTracker:
             return
         self.refined_track.plan_points = points_bone - self.refined_track.refiner.center
         self.template_points = "plan"
+        self.motion_gate.points_bone = self.filter.motion_gate.points_bone = points_bone
+        if self.recovery is not None:
+            self.recovery.points_bone = points_bone      # the recovery's still test watches the same points
 
     def start_from_point(self, point_base: np.ndarray) -> None:
         """Start from one point on the bone (base frame, m): the one-point SMC initialiser runs on the
@@ -371,7 +375,7 @@ class DepthTracker:
 
     def _steady(self, result: FilterOutput, stamp: float) -> FilterOutput:
         """The motion test on the tracker's output pose (the refined one; app/filter/motion_gate.py): the
-        bone moving faster than ``status.uncertain_speed`` / ``uncertain_angular_speed``, or less than
+        template's points moving faster than ``status.uncertain_speed``, or less than
         ``status.settle_s`` since it did or since the start, keeps the status below ok. With the
         refinement this replaces the filter's gate on its particle mean, which read the cloud's
         convergence from the coarse start as motion (0.2-0.5 s more not ok on every clean start)."""
@@ -545,8 +549,14 @@ def _filter_config(config: TrackerConfig) -> TrackerConfig:
     (:meth:`DepthTracker._steady`): the filter's gate on its particle mean is switched off."""
     if not config.refine.enabled:
         return config
-    return replace(config, status=replace(config.status, uncertain_speed=math.inf, uncertain_angular_speed=math.inf,
-                                          settle_s=0.0))
+    return replace(config, status=replace(config.status, uncertain_speed=math.inf, settle_s=0.0))
+
+
+def template_points(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(N, 3) m, bone frame: ``PLAN_POINTS`` of the mesh's vertices, the template's points until a plan gives its
+    own (:meth:`DepthTracker.use_plan_points`): the status's error bound and motion test, the recovery's still test."""
+    vertices = np.asarray(mesh.vertices, float)
+    return vertices[::max(1, len(vertices) // PLAN_POINTS)]
 
 
 def _unrefined(result: FilterOutput) -> FilterOutput:
@@ -576,6 +586,5 @@ def _refined_track(config: TrackerConfig, mesh: trimesh.Trimesh, camera: Pinhole
         return None
     vertices, faces = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
     refiner = Refiner(vertices, faces, camera, refine_params(config), seed=config.seed)
-    step = max(1, len(vertices) // PLAN_POINTS)
-    return RefinedTrack(refiner, c, vertices[::step], config.status.covariance_inflation,
+    return RefinedTrack(refiner, c, template_points(mesh), config.status.covariance_inflation,
                         config.status.max_template_std)
