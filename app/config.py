@@ -218,7 +218,6 @@ KEYS: dict[str, _Key] = {
     "recovery.respread_sigma_r": _f("recovery.respread_sigma_r", 0.0, math.pi, lo_open=True),
     "recovery.respreads": _i("recovery.respreads", 0, 100),
     "recovery.smc_evaluations": _i("recovery.smc_evaluations", 600, 10_000_000),
-    "recovery.hold_frames": _i("recovery.hold_frames", 0, 100_000),
     "recovery.cooldown_s": _f("recovery.cooldown_s", 0.0, 3600.0, lo_open=True),
     "recovery.min_visible_share": _f("recovery.min_visible_share", 0.0, 1.0),
     "recovery.confirm_frames": _i("recovery.confirm_frames", 0, 1_000_000),
@@ -398,6 +397,10 @@ RENAMED = {   # keys of earlier configurations: what replaced them
     # issue 32: one motion test, on the template's points
     "status.uncertain_angular_speed": "replaced by status.uncertain_speed, now the largest speed of the template's "
                                       "points (a turn of 20 deg/s moves points 85 mm out at 30 mm/s); remove the key",
+    # issue 32: the hold after a re-initialisation is the motion test's settle (the estimate jumped)
+    "recovery.hold_frames": "replaced by status.settle_s: after a re-initialisation the tracker restarts its motion "
+                            "test, and the status stays below ok for settle_s (0.3 s, 27 frames at 90 Hz; the hold "
+                            "was 15 weighed frames); remove the key",
     # issue 32: one tolerance for "a different answer"
     "recovery.kept_move_m": "replaced by status.max_template_std (the same 1 mm, now the largest displacement of the "
                             "template's points between the kept and the refined pose); remove the key",

@@ -138,10 +138,12 @@ crest buried in tissue, is not re-initialised every few frames). The slow trigge
 frames the rules do not find ok: a found pose awaiting its confirmation (below) is reported
 uncertain, and counting those frames fired a re-spread at the old pose before it was confirmed.
 
-**Honesty.** For ``hold_frames`` weighed frames after a re-initialisation the status is at most
-uncertain, whatever the rules say; then the usual rules (status.py, with the refinement's fit,
-predicted template error and competitor check) decide. That alone was not enough: on crest_right_05
-the wrong pose a re-spread settled on was ok in 81 frames after the hold (BENCHMARKS.md §6b). So
+**Honesty.** Right after a re-initialisation the status is at most uncertain for ``status.settle_s``
+(0.3 s): the tracker restarts its motion test, and the estimate's jump is motion (app/pipeline/tracker.py;
+until issue 32 a separate hold of ``recovery.hold_frames`` = 15 weighed frames did this); then the usual
+rules (status.py, with the refinement's fit, predicted template error and competitor check) decide. That
+alone was not enough: on crest_right_05 the wrong pose a re-spread settled on was ok in 81 frames after
+the hold (BENCHMARKS.md §6b). So
 after a re-initialisation a pose is ok only when it agrees with the last ok pose (within FAR: the
 bone is usually static in the robot's base frame), or, away from it (the bone was
 moved while hidden), after ``confirm_frames`` (90, ~1 s) weighed frames in a row that the rules
@@ -153,9 +155,9 @@ the median of the last PERIOD_FRAMES - 1 stamp differences of the frames the pol
 (:class:`FramePeriod`; NOMINAL_PERIOD_S, the D415's 90 Hz, until two stamps are known). So a live
 session that processes 30 frames/s fires after the same seconds as a 90 Hz replay, where counting
 frames waited 3x as long (1 s became 3 s; ``after_uncertain_frames`` before 2026-11-24), and a
-camera dropout (one long gap) does not count as many frames. ``hold_frames`` and ``confirm_frames``
-stay counts: they ask for evidence (weighed frames the rules judge), which a slower rate gives more
-slowly; the wait grows with it, on the safe side.
+camera dropout (one long gap) does not count as many frames. ``confirm_frames`` stays a count: it asks
+for evidence (weighed frames the rules judge), which a slower rate gives more slowly; the wait grows with
+it, on the safe side.
 
 Each re-initialisation is recorded as (stamp, kind, reason); :meth:`RecoveryPolicy.report` gives
 them for the summaries.
@@ -196,7 +198,7 @@ class RecoveryConfig:
     in a row before a re-initialisation); after_uncertain_s (s of weighed frames not ok in a row
     before one; 0 = off); respread_sigma_p (m) / respread_sigma_r (rad); respreads
     (re-spreads before each SMC attempt); smc_evaluations (the initialiser's likelihood evaluations);
-    hold_frames (weighed frames capped at uncertain after one); cooldown_s (s between two, doubled
+    cooldown_s (s between two, doubled
     per attempt); the seconds are counted in processed frames (module docstring, "Seconds and frames");
     min_visible_share (a due re-initialisation waits until this share of the bone's expected
     silhouette at the last confident pose is not hidden by an occluder); confirm_frames (after one,
@@ -218,7 +220,6 @@ class RecoveryConfig:
     respread_sigma_r: float = math.radians(10.0)
     respreads: int = 0
     smc_evaluations: int = 30_000
-    hold_frames: int = 15
     cooldown_s: float = 0.16
     min_visible_share: float = 0.6
     confirm_frames: int = 90
@@ -392,15 +393,9 @@ class RecoveryPolicy:
         return status
 
     def _capped(self, status: TrackingStatus, weighed: bool, T_base_bone: np.ndarray) -> TrackingStatus:
-        """The lifecycle's caps on ok (module docstring, "Honesty"): the hypothesis' hold, then its
-        confirmation; ``capped`` names the one that applied ('' | 'holding' | 'confirming')."""
+        """The lifecycle's cap on ok (module docstring, "Honesty"): the hypothesis' confirmation; ``capped``
+        names it when it applied ('' | 'confirming')."""
         self.capped = ""
-        hypothesis = self.lifecycle.hypothesis
-        if hypothesis is not None and hypothesis.hold > 0:
-            if status == TrackingStatus.OK:
-                status, self.capped = TrackingStatus.UNCERTAIN, "holding"
-            if weighed:
-                hypothesis.hold -= 1
         confirmed = self._confirmed(status, weighed, T_base_bone)
         if confirmed != status:
             self.capped = "confirming"
@@ -604,7 +599,7 @@ class RecoveryPolicy:
     def done(self, stamp: float, kind: str) -> None:
         """Record the re-initialisation that just ran; hold the status and restart the counts."""
         self.events.append(Reinitialisation(float(stamp), kind, self.pending or "", self.due_code))
-        self.lifecycle.reinitialised(self.config.hold_frames)
+        self.lifecycle.reinitialised()
         self._attempts += 1
         self._since, self._bad, self._not_ok, self._not_ok_moving, self._below_bar = 0, 0, 0, 0, 0
         self._wait = self._cooldown()

@@ -36,7 +36,6 @@ REASONS: dict[str, tuple[str, str, str]] = {
     "nan": ("filter", "NaN log-likelihoods", "-"),
     "initialising": ("lifecycle", "no pose yet: waiting for a frame to start from", "init.method"),
     "point_start": ("lifecycle", "started from a point without the detector's confirmation", "init.method"),
-    "holding": ("lifecycle", "the frames right after a re-initialisation", "recovery.hold_frames"),
     "confirming": ("lifecycle", "a re-initialised pose away from the last ok one awaits its evidence",
                    "recovery.confirm_frames"),
     "searching": ("lifecycle", "a trigger found the track suspect: a re-initialisation is due, or a search found "
