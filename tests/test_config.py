@@ -85,7 +85,7 @@ def test_unknown_section_is_rejected_with_the_valid_ones():
     ({"render": {"resolution": "80x60"}}, "render.resolution", r"\[width, height\]"),
     ({"render": {"near": 1.0, "far": 0.5}}, "render.far", "must exceed near"),
     ({"render": {"backend": "numba"}}, "render.backend", r"'numba' is not one of: auto, gl, cpu"),
-    ({"status": {"uncertain_position_spread": 0.02}}, "status.uncertain_position_spread", "must not exceed"),
+    ({"status": {"uncertain_position_spread": 0.02}}, "status.uncertain_position_spread", "refine.feedback_spread"),
     ({"refine": {"prior_forget_ratio": 0.5}}, "refine.prior_forget_ratio", "above 1"),
     ({"refine": {"prior_forget_ratio": -1.0}}, "refine.prior_forget_ratio", "outside the allowed range"),
     ({"refine": {"outline_ring": "no"}}, "refine.outline_ring", "true or false"),

@@ -63,6 +63,15 @@ def test_a_number_without_its_kind_is_refused(tmp_path):
     ("recovery.never_ok_search_s", "recovery.after_uncertain_s"),
     ("refine.nearby_gap", "status.max_template_std"),
     ("refine.feedback_fitness", "status.min_fitness"),
+    ("status.uncertain_inlier_fraction", "the refinement's consistency test"),
+    ("status.min_ok_fraction", "status.max_template_std"),
+    ("status.min_ess_ratio", "status.max_template_std"),
+    ("recovery.kept_move_m", "status.max_template_std"),
+    ("recovery.kept_move_angle", "status.max_template_std"),
+    ("status.uncertain_position_spread", "status.max_template_std.*refine.feedback_spread"),
+    ("status.uncertain_rotation_spread", "status.max_template_std.*refine.feedback_spread_angle"),
+    ("status.uncertain_angular_speed", "status.uncertain_speed"),
+    ("recovery.hold_frames", "status.settle_s"),
 ])
 def test_a_merged_key_names_the_key_that_replaced_it(old, new):
     section, name = old.split(".")

@@ -1,12 +1,15 @@
-"""The motion gate's speeds are finite differences over its window (closed forms)."""
+"""The motion gate's speed is the template points' largest displacement over its window (closed forms; issue 32:
+one speed instead of a position speed and an angular speed)."""
 import math
 
 import numpy as np
 import pytest
 
-from app.filter.motion_gate import MotionGate
+from app.filter.motion_gate import MotionGate, template_speed
 from app.geometry import quaternion as quat
 from app.geometry import se3
+
+POINTS = np.array([[0.0, 0.0, 0.0], [0.08, 0.0, 0.0], [0.0, 0.05, 0.0]])   # 80 mm and 50 mm from the origin
 
 
 def pose(angle_z, x):
@@ -14,27 +17,41 @@ def pose(angle_z, x):
 
 
 def test_constant_motion_gives_its_speed_and_a_static_pose_gives_zero():
-    gate = MotionGate(window_s=0.2, speed_threshold=0.03, angular_speed_threshold=math.radians(20))
-    for k in range(40):   # 5 cm/s and 10 deg/s at 100 Hz
-        speed, w, since = gate.update(k / 100, pose(math.radians(10) * k / 100, 0.05 * k / 100))
-    assert speed == pytest.approx(0.05, rel=1e-9) and w == pytest.approx(math.radians(10), rel=1e-6)
+    gate = MotionGate(window_s=0.2, speed_threshold=0.03)
+    for k in range(40):   # 5 cm/s at 100 Hz
+        speed, since = gate.update(k / 100, pose(0.0, 0.05 * k / 100))
+    assert speed == pytest.approx(0.05, rel=1e-9)
     assert since == 0.0
     for k in range(40, 100):
-        speed, w, since = gate.update(k / 100, pose(math.radians(10) * 0.39, 0.05 * 0.39))
-    assert speed == 0.0 and w == pytest.approx(0.0, abs=1e-9)
+        speed, since = gate.update(k / 100, pose(0.0, 0.05 * 0.39))
+    assert speed == 0.0
     # the 0.2 s window still spans the motion until its mean speed drops to 30 mm/s: k = 46
     # (0.05 m/s * (59 - k) / 20 frames >= 0.03 m/s, the boundary frame k = 47 within rounding),
     # so at k = 99: 0.52-0.53 s
     assert since == pytest.approx(0.525, abs=0.0051)
 
 
+def test_a_turn_moves_the_farthest_template_point_at_its_chord_speed():
+    """20 deg/s about z over 0.2 s: the point 80 mm out moves the chord 2 r sin(θ/2) = 27.8 mm/s, under 30 mm/s;
+    30 deg/s moves it 41.6 mm/s, over it. With only the origin as its point the turn is not seen at all."""
+    for rate, moving in ((math.radians(20.0), False), (math.radians(30.0), True)):
+        expected = 2 * 0.08 * math.sin(rate * 0.2 / 2) / 0.2
+        assert template_speed(pose(0.0, 0.0), pose(rate * 0.2, 0.0), POINTS, 0.2) == pytest.approx(expected, rel=1e-9)
+        gate = MotionGate(0.2, 0.03, POINTS)
+        for k in range(41):
+            speed, since = gate.update(k / 100, pose(rate * k / 100, 0.0))
+        assert speed == pytest.approx(expected, rel=1e-6) and (since == 0.0) == moving
+    assert template_speed(pose(0.0, 0.0), pose(0.1, 0.0), np.zeros((1, 3)), 0.2) == pytest.approx(0.0, abs=1e-12)
+    assert template_speed(pose(0.0, 0.0), pose(0.1, 0.0), POINTS, 0.0) == 0.0
+
+
 def test_a_static_estimate_counts_from_the_start_and_reset_forgets():
-    gate = MotionGate(0.2, 0.03, 0.3)
-    assert gate.update(0.0, pose(0.0, 0.0))[2] == 0.0          # the start is motion (converging)
+    gate = MotionGate(0.2, 0.03)
+    assert gate.update(0.0, pose(0.0, 0.0))[1] == 0.0          # the start is motion (converging)
     for k in range(1, 10):
-        *_, since = gate.update(k / 90, pose(0.0, 0.0))
+        _, since = gate.update(k / 90, pose(0.0, 0.0))
     assert since == pytest.approx(9 / 90)
     gate.update(0.2, pose(0.0, 0.1))
-    assert gate.update(0.21, pose(0.0, 0.1))[2] < 0.1
+    assert gate.update(0.21, pose(0.0, 0.1))[1] < 0.1
     gate.reset()
-    assert gate.update(0.3, pose(0.0, 0.5))[:2] == (0.0, 0.0)
+    assert gate.update(0.3, pose(0.0, 0.5))[0] == 0.0

@@ -224,7 +224,8 @@ def _occluded(depth, rows, depth_m):
 
 def test_an_occluder_in_front_is_left_out_of_the_inlier_rules_but_misfits_are_not(rng):
     """A hand 10 cm in front of half the bone's pixels: the rest still decides (ok); the same pixels
-    measured 1 cm behind the estimate (the bone is not there) count against it (not ok)."""
+    measured 1 cm behind the estimate (the bone is not there) count against its inlier fraction (which only
+    the lost rule reads since issue 32: ok then needs the refinement's behind test, tests/test_refine_status.py)."""
     pf, backend, outputs = run_filter("joint", lambda i: T_BASE_BONE, 60, rng)
     assert outputs[-1].status == TrackingStatus.OK
     clean = backend.measure(rng)
@@ -232,7 +233,7 @@ def test_an_occluder_in_front_is_left_out_of_the_inlier_rules_but_misfits_are_no
     hand = pf.step(_occluded(clean, slice(2, 6), z_bone - 0.10), 60 / 90, T_BASE_CAMERA)
     assert hand.covered_pixels == 40 and hand.inlier_fraction > 0.9 and hand.status == TrackingStatus.OK
     behind = pf.step(_occluded(clean, slice(2, 6), z_bone + 0.01), 61 / 90, T_BASE_CAMERA)
-    assert behind.covered_pixels == 80 and behind.inlier_fraction < 0.6 and behind.status != TrackingStatus.OK
+    assert behind.covered_pixels == 80 and 0.2 < behind.inlier_fraction < 0.6 and behind.status != TrackingStatus.LOST
     full = pf.step(np.where(clean > 0, np.float32(z_bone - 0.10), clean), 62 / 90, T_BASE_CAMERA)
     assert full.covered_pixels == 0 and full.status == TrackingStatus.UNCERTAIN
 

@@ -21,7 +21,7 @@ def test_every_code_in_the_sources_is_in_the_table():
     used = set()
     for path in (REPO / "app").rglob("*.py"):
         used |= set(re.findall(r'Reason\("([a-z_]+)"', path.read_text()))
-    used |= {"holding", "confirming"}                     # the recovery's caps (app/filter/recovery.py)
+    used |= {"confirming"}                                # the recovery's cap (app/filter/recovery.py)
     assert used and used <= set(reasons.REASONS), used - set(reasons.REASONS)
 
 
@@ -72,8 +72,8 @@ def test_the_lifecycle_walks_a_recovery():
     life.declined()
     assert life.retrying and life.state == "searching"
     life.search_due("still searching")
-    life.reinitialised(hold_frames=15)
-    assert life.due is None and life.hypothesis.hold == 15 and not life.hypothesis.evidence_only
+    life.reinitialised()
+    assert life.due is None and life.hypothesis is not None and not life.hypothesis.evidence_only
     states += [life.frame(e).value for e in ["capped", "not_ok", "unseen"]]
     life.passed()
     states.append(life.frame("ok").value)
@@ -83,7 +83,7 @@ def test_the_lifecycle_walks_a_recovery():
     with pytest.raises(ValueError, match="no transition from tracking on 'waiting'"):
         life.frame("waiting")
     with pytest.raises(ValueError, match="no transition from tracking on 'reinitialised'"):
-        life.reinitialised(15)                                       # an attempt runs only when one is due
+        life.reinitialised()                                         # an attempt runs only when one is due
     with pytest.raises(ValueError, match="unknown lifecycle event"):
         life.step("bogus")
 
@@ -96,8 +96,8 @@ def test_a_kept_track_is_retried_only_if_it_was_ever_ok_and_a_detected_start_sta
     never.kept()
     assert never.state == "confirming" and never.hypothesis.evidence_only        # its one search is spent
     never.search_due("not ok, far")
-    never.reinitialised(15)
-    assert never.hypothesis.evidence_only and never.hypothesis.hold == 15      # still a detected start's hypothesis
+    never.reinitialised()
+    assert never.hypothesis.evidence_only                                      # still a detected start's hypothesis
     was_ok = lifecycle.Lifecycle()
     was_ok.frame("ok")
     was_ok.passed()

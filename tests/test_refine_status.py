@@ -15,6 +15,7 @@ from app.filter.refine_track import RefineConfig, RefinedTrack
 from app.filter.status import (RefinementEvidence, StatusThresholds, TrackingStatus, refinement_reasons,
                                with_refinement)
 from app.geometry import se3
+from app.tracking import levels
 from app.sim.simulator import D415_640x480, DEFAULT_MESH
 
 T_BASE_CAMERA = se3.from_rotvec_trans(np.array([0.2, -0.1, 0.3]), np.array([0.4, 0.1, 0.6]))
@@ -104,11 +105,12 @@ def test_measurements_behind_the_refined_model_are_not_ok():
 
 
 def test_a_held_pose_the_images_own_fit_contradicts_is_not_ok():
-    """status.max_held_chi2 (4): the static prior kept a pose this frame's fit lies Δχ² > 4 from
-    (a bone starting to move, fused behind it); released (0) or without the prior (NaN): no rule."""
+    """The held test at status.alpha (χ²₆(1 - α) / inflation = 3.62; it was status.max_held_chi2 = 4): the
+    static prior kept a pose this frame's fit lies farther from (a bone starting to move, fused behind it);
+    released (0) or without the prior (NaN): no rule."""
     t = StatusThresholds()
-    assert t.max_held_chi2 == 4.0
-    for chi2, expected in ((0.0, "ok"), (1.1, "ok"), (3.99, "ok"), (4.01, "uncertain"), (25.0, "uncertain"),
+    assert levels.held_level(t.alpha, t.covariance_inflation) == pytest.approx(21.739 / 6.0, abs=1e-3)
+    for chi2, expected in ((0.0, "ok"), (1.1, "ok"), (3.6, "ok"), (3.65, "uncertain"), (25.0, "uncertain"),
                            (float("nan"), "ok")):
         evidence = RefinementEvidence(0.9, 0.0003, False, -0.004, chi2)
         assert with_refinement(TrackingStatus.OK, evidence, t) == expected, chi2

@@ -13,6 +13,7 @@ import pytest
 
 from app.filter.static_prior import StaticPrior, StaticPriorConfig, increment, log_increment
 from app.geometry import se3
+from app.tracking import levels
 
 CENTER = np.array([0.01, -0.02, 0.03])
 CLEAR_STD = 0.0006   # m, the predicted template error of a clear view (crest_left_03: 0.56 mm)
@@ -139,7 +140,7 @@ def test_a_slowly_starting_bone_is_followed_and_a_held_lag_is_never_ok():
     """At the default release (25) the anchor is fused behind a bone starting to move slowly
     (crest_left_05 bone_moves: up to 1 mm while ok before the held-pose rule, BENCHMARKS.md §6f);
     every frame lagging more than 0.2 mm has Δχ² > 4 (closed form: δ² · 1e9 / 6 > 4 from δ =
-    0.155 mm), which the status rule status.max_held_chi2 = 4 does not let be ok. A release at 4
+    0.155 mm), which the status's held test (3.62 at status.alpha) does not let be ok. A release at 4
     (tried, not kept: §6f) follows the image's fit once it lies Δχ² > 4 away: the anchor never lags
     by more than a frame's step."""
     assert StaticPriorConfig().release_chi2 == 25.0
@@ -154,7 +155,8 @@ def test_a_slowly_starting_bone_is_followed_and_a_held_lag_is_never_ok():
 
 def test_at_rest_the_held_pose_chi2_stays_under_the_status_threshold():
     """Fits of a static bone scattered with the image's own covariance H⁻¹ (χ²₆ / 6 against the
-    anchor, P(> 4) ~ 5e-4): at most a few frames in 2,000 are over status.max_held_chi2 = 4."""
+    anchor): at most a few frames in 2,000 are over the status's held bound (χ²₆ at status.alpha / 6, 3.62;
+    P ~ 0.135 %)."""
     rng = np.random.default_rng(5)
     std = 1.0 / np.sqrt(np.diag(_info()))
     rest = StaticPrior(StaticPriorConfig(), CENTER, inflation=6.0)
@@ -162,7 +164,8 @@ def test_at_rest_the_held_pose_chi2_stays_under_the_status_threshold():
     for _ in range(2000):
         rest.update(_moved(np.eye(4), rng.normal(0.0, std)), _info(), image_std=CLEAR_STD)
         chi2.append(rest.chi2)
-    assert np.mean(np.array(chi2[100:]) > 4.0) < 0.005
+    bound = levels.held_level(levels.ALPHA, 6.0)
+    assert np.mean(np.array(chi2[100:]) > bound) < 0.005
 
 
 def test_static_fits_scattered_by_the_images_own_noise_never_release():

@@ -65,3 +65,4 @@ def test_refined_track_on_a_ct_crest_is_precise_and_honest(tmp_path, crest_mesh_
     assert not np.any(ok & (on.errors["add_mm"] > 5.0))
     assert ok[45:].mean() > 0.5
     assert on.summary["timings_ms"]["refine"] > 0
+    assert not any(s == "ok" for s in off.statuses)     # without the refinement never ok (issue 32)

@@ -1,4 +1,4 @@
-"""The speed of the tracked bone, from the history of its estimates, for the status's motion rule.
+"""The speed of the template's points, from the history of the bone's estimates, for the status's motion rule.
 
 Import as ``from app.filter.motion_gate import MotionGate``. While the surgeon repositions the
 pelvis the filter's estimate lags the bone by millimetres, and along the crest's own length the
@@ -6,13 +6,18 @@ image barely tells: the rendered crest slides along itself with most of its pixe
 Nobody cuts while the bone is being moved, so the status treats a moving bone as uncertain
 (app/filter/status.py) and the projector shows no template until it has settled.
 
-Speeds are finite differences of the *estimate* in the base frame over a window of
-``window_s`` (0.2 s: long enough that the estimate's frame-to-frame jitter, ~1 mm and ~1°, reads
-as a few mm/s and deg/s, short enough to react within a few frames):
+One speed (issue 32; it was a position speed and an angular speed, 30 mm/s and 20 deg/s): the
+largest speed of the template's points x_k (bone frame) between the estimates a window of
+``window_s`` apart (0.2 s: long enough that the estimate's frame-to-frame jitter reads as a few mm/s,
+short enough to react within a few frames), finite differences in the base frame:
 
-    v = |p_t - p_{t-W}| / W,    ω = angle(R_{t-W}ᵀ R_t) / W
+    v = max_k |T_t x_k - T_{t-W} x_k| / W        (app/metrics.py ``mdd`` over W)
 
-``seconds_since_motion`` is the time since the last frame whose speeds exceeded the thresholds,
+A lagging estimate misplaces the template by about its speed times the lag, so the template's points
+are what the test watches: on the CT crests (vertices up to 80-90 mm from the centroid) 30 mm/s is a
+translation of 30 mm/s or a turn of about 20 deg/s about the centroid.
+
+``seconds_since_motion`` is the time since the last frame whose speed exceeded the threshold,
 or since the start (the filter converging from its coarse initial pose is motion too): the
 status stays uncertain for ``settle_s`` after the bone stops, and after the start.
 """
@@ -23,22 +28,24 @@ from collections import deque
 
 import numpy as np
 
-from app.geometry import se3
+from app import metrics
 
 
 class MotionGate:
-    """Speeds of the estimate over a sliding window and the time since it last moved.
+    """The template points' largest speed over a sliding window and the time since it last moved.
 
     Parameters
     ----------
     window_s : s, the finite-difference window W
-    speed_threshold : m/s; angular_speed_threshold : rad/s, above either the bone is moving
+    speed_threshold : m/s, above it the bone is moving
+    points_bone : (N, 3) float, m, bone frame: the template's points (default: the bone frame's origin;
+        the tracker sets the template's, :attr:`points_bone`)
     """
 
-    def __init__(self, window_s: float, speed_threshold: float, angular_speed_threshold: float):
+    def __init__(self, window_s: float, speed_threshold: float, points_bone: np.ndarray | None = None):
         self.window_s = window_s
         self.speed_threshold = speed_threshold
-        self.angular_speed_threshold = angular_speed_threshold
+        self.points_bone = np.zeros((1, 3)) if points_bone is None else np.asarray(points_bone, float).reshape(-1, 3)
         self._history: deque[tuple[float, np.ndarray]] = deque()
         self._last_motion: float | None = None
 
@@ -46,8 +53,8 @@ class MotionGate:
         self._history.clear()
         self._last_motion = None
 
-    def update(self, stamp: float, T_base_bone: np.ndarray) -> tuple[float, float, float]:
-        """Add an estimate; return (speed m/s, angular speed rad/s, seconds since motion).
+    def update(self, stamp: float, T_base_bone: np.ndarray) -> tuple[float, float]:
+        """Add an estimate; return (speed m/s of the fastest template point, seconds since motion).
 
         The first estimate after a (re)start counts as motion: the cloud is still converging from
         the coarse initial pose, so the status cannot be ok before ``settle_s`` has passed.
@@ -59,12 +66,16 @@ class MotionGate:
             self._history.popleft()
         t0, T0 = self._history[0]
         dt = stamp - t0
-        if dt <= 0:
-            speed = angular_speed = 0.0
-        else:
-            speed = float(np.linalg.norm(T_base_bone[:3, 3] - T0[:3, 3])) / dt
-            angular_speed = float(se3.rotation_angle(T0, T_base_bone)) / dt
-        if speed > self.speed_threshold or angular_speed > self.angular_speed_threshold:
+        speed = template_speed(T0, T_base_bone, self.points_bone, dt)
+        if speed > self.speed_threshold:
             self._last_motion = stamp
         since = math.inf if self._last_motion is None else stamp - self._last_motion
-        return speed, angular_speed, since
+        return speed, since
+
+
+def template_speed(T_base_bone_0: np.ndarray, T_base_bone_1: np.ndarray, points_bone: np.ndarray, dt: float) -> float:
+    """m/s, the largest displacement of ``points_bone`` (N, 3, bone frame) between two poses over ``dt`` s (0
+    when dt <= 0)."""
+    if dt <= 0:
+        return 0.0
+    return metrics.mdd(T_base_bone_1, T_base_bone_0, points_bone) / dt

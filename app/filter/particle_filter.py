@@ -151,7 +151,7 @@ class ParticleFilter:
         self._last_pose_stamp: float | None = None
         self._last_estimate: PoseEstimate | None = None
         t = config.status
-        self.motion_gate = MotionGate(t.motion_window_s, t.uncertain_speed, t.uncertain_angular_speed)
+        self.motion_gate = MotionGate(t.motion_window_s, t.uncertain_speed)   # the tracker sets its points_bone
 
     # -- initialisation ---------------------------------------------------------------------
     def initialise(self, T_base_bone: np.ndarray, sigma_p: float | None = None,
@@ -317,14 +317,13 @@ class ParticleFilter:
                 stamp: float, weighed: bool) -> tuple[TrackingStatus, list]:
         """(status, reasons): the status rules (app/filter/status.py) with the motion gate's speeds."""
         since = self._last_pose_stamp if self._last_pose_stamp is not None else self._first_stamp
-        speed, angular_speed, since_motion = self.motion_gate.update(stamp, pose.T_base_bone)
+        speed, since_motion = self.motion_gate.update(stamp, pose.T_base_bone)
         return verdict(StatusInputs(
             position_spread=pose.position_spread, rotation_spread=pose.rotation_spread,
             ess_ratio=update.ess / self.state.n, inlier_fraction=evidence.inlier_fraction,
             covered_pixels=evidence.covered_pixels,
-            image_pixels=int(np.size(depth_meas)) if depth_meas is not None else 0,
             n_nan=update.n_nan, n_particles=self.state.n, weighed=weighed, seconds_without_pose=stamp - since,
-            speed=speed, angular_speed=angular_speed, seconds_since_motion=since_motion,
+            speed=speed, seconds_since_motion=since_motion,
         ), self.config.status)
 
 

@@ -25,13 +25,14 @@ slower trigger: ``after_uncertain_s`` of weighed frames in a row that are not ok
 estimate is still (0 = off): on the CT crests under a rising hand the filter and the refinement slid
 together along the crest to 47 mm off with a fit of 0.65-0.9, uncertain (the predicted template
 error), never lost (BENCHMARKS.md §6b). The estimate is still when it moved less than
-``status.uncertain_speed`` / ``uncertain_angular_speed`` over ``STILL_WINDOW_S`` = 0.5 s (longer
+``status.uncertain_speed`` (the template's fastest point; issue 32) over ``STILL_WINDOW_S`` = 0.5 s (longer
 than the status's 0.2 s: a wrong track's refined pose jumps a few millimetres between frames, which
 over 0.2 s read as motion and kept the count at 0 on crest_left_02 while 64-100 mm off); a moving
 estimate restarts that count, and it needs an ok frame since the start (a track that was never ok,
 e.g. or_deep_tissue, sits ~5 mm from the coarse start pose it converged from; measured: it fired 2-3
 times there per run for nothing, BENCHMARKS.md §6b) unless the never-ok estimate lies outside the
-start's own prior: farther than ``START_SIGMAS`` = 4.03 (χ²₃'s 99.9 % point, √16.27) times
+start's own prior: farther than ``START_SIGMAS`` = 3.95 (χ²₃'s point at ``status.alpha``, 0.135 %, √15.6;
+4.03, the 99.9 % point, before issue 32 gave every statistical test one level) times
 ``init.sigma_p`` / ``sigma_r`` from the start pose (or_coarse_start crest_left_03 seed 1 sat 45 mm /
 80 deg off, uncertain, refined at a fit of 0.85, never searched; BENCHMARKS.md §6b). Such an
 estimate is searched for after ``after_lost_s`` of weighed frames outside that prior in any case,
@@ -118,9 +119,9 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
   over the tissue restarts the slow trigger's count). A search whose best verified pose is the
   tracker's current estimate (refined in place; wide_search.py, 6) keeps the track
   (:meth:`RecoveryPolicy.kept`): no attempt, retried after the backed-off cooldown; the track moves
-  only onto its own refined pose when its own fit is below the search's bar and that pose lies more
-  than 1 mm / 1 deg away (app/pipeline/recovery_runner.py,
-  KEPT_MOVE_M: the search's wider chain left the local minimum the track's own refinement sat in;
+  only onto its own refined pose when its own fit is below the search's bar and that pose moves the
+  template by more than status.max_template_std (app/pipeline/recovery_runner.py; 1 mm / 1 deg before issue 32:
+  the search's wider chain left the local minimum the track's own refinement sat in;
   or_fast_reposition crest_left_05 seed 1 at the filter's seed 3, BENCHMARKS.md §6n) (a track
   0.8 mm off with a quarter of the crest in view was replaced by a pose 9 mm off that explained
   the image less well: or_fast_reposition crest_right_04 seed 0, BENCHMARKS.md §6g). Re-spreading around the last ok
@@ -137,10 +138,12 @@ crest buried in tissue, is not re-initialised every few frames). The slow trigge
 frames the rules do not find ok: a found pose awaiting its confirmation (below) is reported
 uncertain, and counting those frames fired a re-spread at the old pose before it was confirmed.
 
-**Honesty.** For ``hold_frames`` weighed frames after a re-initialisation the status is at most
-uncertain, whatever the rules say; then the usual rules (status.py, with the refinement's fit,
-predicted template error and competitor check) decide. That alone was not enough: on crest_right_05
-the wrong pose a re-spread settled on was ok in 81 frames after the hold (BENCHMARKS.md §6b). So
+**Honesty.** Right after a re-initialisation the status is at most uncertain for ``status.settle_s``
+(0.3 s): the tracker restarts its motion test, and the estimate's jump is motion (app/pipeline/tracker.py;
+until issue 32 a separate hold of ``recovery.hold_frames`` = 15 weighed frames did this); then the usual
+rules (status.py, with the refinement's fit, predicted template error and competitor check) decide. That
+alone was not enough: on crest_right_05 the wrong pose a re-spread settled on was ok in 81 frames after
+the hold (BENCHMARKS.md §6b). So
 after a re-initialisation a pose is ok only when it agrees with the last ok pose (within FAR: the
 bone is usually static in the robot's base frame), or, away from it (the bone was
 moved while hidden), after ``confirm_frames`` (90, ~1 s) weighed frames in a row that the rules
@@ -152,9 +155,9 @@ the median of the last PERIOD_FRAMES - 1 stamp differences of the frames the pol
 (:class:`FramePeriod`; NOMINAL_PERIOD_S, the D415's 90 Hz, until two stamps are known). So a live
 session that processes 30 frames/s fires after the same seconds as a 90 Hz replay, where counting
 frames waited 3x as long (1 s became 3 s; ``after_uncertain_frames`` before 2026-11-24), and a
-camera dropout (one long gap) does not count as many frames. ``hold_frames`` and ``confirm_frames``
-stay counts: they ask for evidence (weighed frames the rules judge), which a slower rate gives more
-slowly; the wait grows with it, on the safe side.
+camera dropout (one long gap) does not count as many frames. ``confirm_frames`` stays a count: it asks
+for evidence (weighed frames the rules judge), which a slower rate gives more slowly; the wait grows with
+it, on the safe side.
 
 Each re-initialisation is recorded as (stamp, kind, reason); :meth:`RecoveryPolicy.report` gives
 them for the summaries.
@@ -168,12 +171,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from app.filter.motion import ParticleState, draws_about_centroid
+from app.filter.motion_gate import template_speed
 from app.filter.refine_track import RefineConfig, pose_gap
 from app.filter.status import TrackingStatus
 from app.filter.weights import uniform_log_weights
 from app.geometry import quaternion as quat
 from app.tracking.lifecycle import Lifecycle, frame_event
 from app.tracking.triggers import Evidence, first_trigger
+from app.tracking import levels
 
 RESPREAD, SMC, SEARCH = "respread", "smc", "search"
 FOUND_SIGMA_M, FOUND_SIGMA_RAD = 0.003, math.radians(3.0)   # the cloud about a pose the wide search found
@@ -182,9 +187,8 @@ NOMINAL_PERIOD_S = 1.0 / 90.0        # the frame period until two stamps are kno
 PERIOD_FRAMES = 31                   # the period is the median of the last 30 stamp differences
 TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 of the last 90 not-lost estimates
 MAX_BACKOFF_DOUBLINGS = 3
-KEPT_MOVE_M, KEPT_MOVE_RAD = 0.001, math.radians(1.0)   # a kept track below the search's bar moves onto its refined pose beyond this
 SLIDING_FACTOR = 2.0                 # x after_uncertain_s: not ok this long, far, moving or not: a search
-START_SIGMAS = math.sqrt(16.27)   # chi-square, 3 dof, 99.9 %: a never-ok track this many start sigmas off
+START_SIGMAS = levels.chi_level(levels.ALPHA, 3)   # status.alpha's chi, 3 dof: a never-ok track this many start sigmas off
 STILL_WINDOW_S = 0.5
 
 
@@ -194,7 +198,7 @@ class RecoveryConfig:
     in a row before a re-initialisation); after_uncertain_s (s of weighed frames not ok in a row
     before one; 0 = off); respread_sigma_p (m) / respread_sigma_r (rad); respreads
     (re-spreads before each SMC attempt); smc_evaluations (the initialiser's likelihood evaluations);
-    hold_frames (weighed frames capped at uncertain after one); cooldown_s (s between two, doubled
+    cooldown_s (s between two, doubled
     per attempt); the seconds are counted in processed frames (module docstring, "Seconds and frames");
     min_visible_share (a due re-initialisation waits until this share of the bone's expected
     silhouette at the last confident pose is not hidden by an occluder); confirm_frames (after one,
@@ -203,8 +207,8 @@ class RecoveryConfig:
     search_evaluations (its likelihood evaluations per search); search_min_sharp (the consistent sharp
     share a search's verified fit needs to be found, and below which a found pose is searched again:
     wide_search.MIN_SHARP's default); the triggers' numbers (module
-    docstring, "Trigger"; defaults the module constants): search_retry_s, sliding_factor, start_sigmas,
-    still_window_s, max_backoff_doublings; kept_move_m / kept_move_angle (app/pipeline/recovery_runner.py).
+    docstring, "Trigger"; defaults the module constants): search_retry_s, sliding_factor,
+    still_window_s, max_backoff_doublings.
     Since issue 32 the "far" gap is ``refine.competitor_distance`` / ``competitor_angle`` (it was
     recovery.far_m / far_angle, the same 5 mm / 5 deg; :class:`RecoveryPolicy`'s ``far``) and the never-ok
     track's one search waits ``after_uncertain_s`` (it was recovery.never_ok_search_s, the same 1 s)."""
@@ -216,7 +220,6 @@ class RecoveryConfig:
     respread_sigma_r: float = math.radians(10.0)
     respreads: int = 0
     smc_evaluations: int = 30_000
-    hold_frames: int = 15
     cooldown_s: float = 0.16
     min_visible_share: float = 0.6
     confirm_frames: int = 90
@@ -225,11 +228,8 @@ class RecoveryConfig:
     search_min_sharp: float = 0.5
     search_retry_s: float = SEARCH_RETRY_S
     sliding_factor: float = SLIDING_FACTOR
-    start_sigmas: float = START_SIGMAS
     still_window_s: float = STILL_WINDOW_S
     max_backoff_doublings: int = MAX_BACKOFF_DOUBLINGS
-    kept_move_m: float = KEPT_MOVE_M
-    kept_move_angle: float = KEPT_MOVE_RAD
     search_worker: str = "auto"
     confirm_moved: bool = True
 
@@ -279,26 +279,32 @@ class RecoveryPolicy:
     surface_point_bone : (3,) m, a point on the bone surface near the centroid (bone frame)
     refine_enabled : whether an unrefined weighed frame counts as bad
     min_fitness : a refined fit below this counts as bad (status.min_fitness)
-    still : (speed m/s, angular speed rad/s, window s) below which the estimate is still
-        (status.uncertain_speed, uncertain_angular_speed, motion_window_s; the window at least STILL_WINDOW_S)
+    still : (speed m/s, window s) below which the estimate is still: the largest speed of ``points_bone``
+        (status.uncertain_speed, motion_window_s; the window at least STILL_WINDOW_S)
     far : (m, rad) a pose farther than this from the last ok one is "far" (``refine.competitor_distance`` /
         ``competitor_angle``: two poses this far apart are different answers; default RefineConfig's)
+    start_level : the never-ok track's outside_start radius in start sigmas (chi, 3 dof, at status.alpha)
+    points_bone : (N, 3) m, bone frame: the template's points whose speed the still test watches (default: the
+        bone frame's origin)
     """
 
     def __init__(self, config: RecoveryConfig, centroid_bone: np.ndarray, surface_point_bone: np.ndarray,
                  refine_enabled: bool, min_fitness: float = 0.6,
-                 still: tuple[float, float, float] = (0.03, math.radians(20.0), 0.2),
+                 still: tuple[float, float] = (0.03, 0.2),
                  start_sigmas: tuple[float, float] = (math.inf, math.inf), search_bar: float = math.nan,
-                 far: tuple[float, float] | None = None):
+                 far: tuple[float, float] | None = None, start_level: float = START_SIGMAS,
+                 points_bone: np.ndarray | None = None):
         self.config = config
         self.far = (RefineConfig.competitor_distance, RefineConfig.competitor_angle) if far is None else far
         self.search_bar = search_bar           # the wide search's MIN_SHARP: a found pose below it is searched again
         self.start_sigmas = start_sigmas       # init.sigma_p (m), sigma_r (rad): the start pose's prior
+        self.start_level = start_level         # k: chi_3 at status.alpha (app/tracking/levels.py)
         self.centroid_bone = np.asarray(centroid_bone, float).reshape(3)
         self.surface_point_bone = np.asarray(surface_point_bone, float).reshape(3)
         self.refine_enabled = refine_enabled
         self.min_fitness = min_fitness
         self.still = still
+        self.points_bone = np.zeros((1, 3)) if points_bone is None else np.asarray(points_bone, float).reshape(-1, 3)
         self._recent: collections.deque = collections.deque()   # (stamp, T_base_bone) over the window
         self.point_prior: np.ndarray | None = None
         self.T_base_bone_confident: np.ndarray | None = None
@@ -387,15 +393,9 @@ class RecoveryPolicy:
         return status
 
     def _capped(self, status: TrackingStatus, weighed: bool, T_base_bone: np.ndarray) -> TrackingStatus:
-        """The lifecycle's caps on ok (module docstring, "Honesty"): the hypothesis' hold, then its
-        confirmation; ``capped`` names the one that applied ('' | 'holding' | 'confirming')."""
+        """The lifecycle's cap on ok (module docstring, "Honesty"): the hypothesis' confirmation; ``capped``
+        names it when it applied ('' | 'confirming')."""
         self.capped = ""
-        hypothesis = self.lifecycle.hypothesis
-        if hypothesis is not None and hypothesis.hold > 0:
-            if status == TrackingStatus.OK:
-                status, self.capped = TrackingStatus.UNCERTAIN, "holding"
-            if weighed:
-                hypothesis.hold -= 1
         confirmed = self._confirmed(status, weighed, T_base_bone)
         if confirmed != status:
             self.capped = "confirming"
@@ -479,28 +479,23 @@ class RecoveryPolicy:
         return dist > self.far[0] or angle > self.far[1]
 
     def _beyond_start(self, T_base_bone: np.ndarray) -> bool:
-        """Never ok and outside the start's prior: more than START_SIGMAS start sigmas from it."""
+        """Never ok and outside the start's prior: more than ``start_level`` start sigmas from it (k² the
+        χ²₃ point at status.alpha, app/tracking/levels.py)."""
         if self.lifecycle.ever_ok or self.T_base_bone_start is None:
             return False
         dist, angle = pose_gap(self.T_base_bone_start, T_base_bone)
-        k = self.config.start_sigmas
+        k = self.start_level
         return dist > k * self.start_sigmas[0] or angle > k * self.start_sigmas[1]
 
     def _moving(self, stamp: float, T_base_bone: np.ndarray) -> bool:
-        """Whether the estimate moved faster than ``still`` over the window (ending at this frame)."""
-        speed, angular, window = self.still
+        """Whether the template's points moved faster than ``still`` over the window (ending at this frame)."""
+        speed, window = self.still
         window = max(window, self.config.still_window_s)
         self._recent.append((float(stamp), np.array(T_base_bone, float)))
         while len(self._recent) > 2 and stamp - self._recent[1][0] >= window:
             self._recent.popleft()
         t0, T0 = self._recent[0]
-        dt = stamp - t0
-        if dt <= 0:
-            return False
-        dist = float(np.linalg.norm(T_base_bone[:3, 3] - T0[:3, 3]))
-        cos = (np.trace(T0[:3, :3].T @ T_base_bone[:3, :3]) - 1.0) / 2.0
-        angle = float(np.arccos(np.clip(cos, -1.0, 1.0)))
-        return dist / dt > speed or angle / dt > angular
+        return template_speed(T0, T_base_bone, self.points_bone, stamp - t0) > speed
 
     def _due(self, reason: str, code: str = "") -> None:
         """A trigger fired: the lifecycle's ``search_due``, unless the cooldown runs or one is due already."""
@@ -604,7 +599,7 @@ class RecoveryPolicy:
     def done(self, stamp: float, kind: str) -> None:
         """Record the re-initialisation that just ran; hold the status and restart the counts."""
         self.events.append(Reinitialisation(float(stamp), kind, self.pending or "", self.due_code))
-        self.lifecycle.reinitialised(self.config.hold_frames)
+        self.lifecycle.reinitialised()
         self._attempts += 1
         self._since, self._bad, self._not_ok, self._not_ok_moving, self._below_bar = 0, 0, 0, 0, 0
         self._wait = self._cooldown()

@@ -44,7 +44,7 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   BENCHMARKS.md §6c, identical errors), so the slide was the refinement's, not the coupling's;
 - the output pose is the refined one when its fitness >= ``keep_fitness``, else the filter's;
 - feedback (``feedback``): when the filter's cloud has converged (its status not lost, its spread
-  under status.uncertain_position_spread / uncertain_rotation_spread), the kept fit reaches
+  under ``feedback_spread`` / ``feedback_spread_angle``, 3 mm / 2 deg), the kept fit reaches
   ``status.min_fitness`` and no competitor exists,
   the particle cloud is shifted rigidly so that its mean lands on the refined pose
   (:meth:`app.filter.particle_filter.ParticleFilter.shift_to`): the filter stays inside the
@@ -71,6 +71,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app import metrics
 from app.filter.behind_pool import BehindPool
 from app.filter.motion import draws_about_centroid
 from app.filter.nearby_search import NearbySearch
@@ -113,6 +114,8 @@ class RefineConfig:
     competitor_angle: float = math.radians(5.0)
     competitor_margin: float = 0.05
     feedback: bool = True
+    feedback_spread: float = 0.003
+    feedback_spread_angle: float = math.radians(2.0)
     static_prior: bool = True
     prior_release_chi2: float = 25.0
     prior_clear_ratio: float = 1.5
@@ -124,7 +127,6 @@ class RefineConfig:
     outline_ring: bool = False
     tissue_border: bool = True
     behind_frames: int = 30
-    behind_z: float = 3.0
     noise_window_px: int = 15
     nearby_every: int = 10
     nearby_starts: int = 4
@@ -212,6 +214,11 @@ class RefinedTrack:
         self.behind_pool = BehindPool(config.behind_frames, refiner.params.behind_z)
         self.nearby = NearbySearch(config, self.plan_points + refiner.center, self._draws, tolerance)
         self.reset()
+
+    def template_gap(self, T_base_bone_a: np.ndarray, T_base_bone_b: np.ndarray) -> float:
+        """m, the largest displacement of the template's points between two poses (metrics.mdd): more than
+        status.max_template_std is a different answer."""
+        return metrics.mdd(T_base_bone_a, T_base_bone_b, self.plan_points + self.refiner.center)
 
     def reset(self) -> None:
         self.T_base_bone, self.fitness = None, float("nan")

@@ -39,7 +39,7 @@ from the anchor to T_img:
   but after a fast reposition a wrong track then slid with the image's fits, kept a fit >= 0.6 and
   kept moving, so no trigger fired (or_fast_reposition: 2 of 24 runs never found again, median
   0.42 -> 1.36 s; BENCHMARKS.md §6f). What 25 leaves, a held pose the image contradicts, the status
-  reports (status.py, ``max_held_chi2``). A
+  reports (status.py, ``held``: χ²₆ at ``status.alpha`` / inflation, 3.62). A
   weak frame never releases: with the quadratic test alone, crest_left_03 released at 75 % hidden
   (Δχ² 27 for a fit that had slid 12 mm) and was lost;
 - **clear frame, motion test** (a window over the image's own fits, not against the anchor): Δχ²_W =

@@ -2,10 +2,13 @@
 
 Since issue 32 every rule that fires is returned as a :class:`Reason` (its text and a code of
 app/tracking/reasons.py), written per frame to status.csv and rerun, and counted in the summaries.
-With the refinement (the default) the filter's own shares fitted to one simulator are off
-(``uncertain_inlier_fraction``, ``min_ok_fraction``: app/pipeline/tracker.py ``_filter_config``),
-the motion rule reads the tracker's output pose (``DepthTracker._steady``), and the refinement's
-tests below measure the noise in the image they judge (app/tracking/fit_test.py).
+The filter's own shares fitted to one simulator are gone (issue 32: the inlier share
+``uncertain_inlier_fraction`` 0.7, the image share ``min_ok_fraction`` 1.2 % and the off-by-default
+``min_ess_ratio``; app/config.py ``RENAMED``): ok needs the refinement's tests below, which measure the
+noise in the image they judge (app/tracking/fit_test.py), and without the refinement
+(``refine.enabled: false``) no frame is ok (app/pipeline/tracker.py ``_unrefined``: the
+template's error is not predicted). The motion rule reads the tracker's output pose
+(``DepthTracker._steady``).
 
 Import as ``from app.filter import status``. The projector must never show a confident template on
 a lost track (DESIGN.md "Output"), so the rules err towards caution. The status is per frame (it
@@ -28,26 +31,21 @@ LOST if
   a full occlusion, or a lost track).
 UNCERTAIN if
 - the frame had no camera pose or no valid depth (prediction only), or
-- position spread > ``uncertain_position_spread`` = 3 mm, or rotation spread > ``uncertain_rotation_spread`` = 2°, or
-- fewer than ``uncertain_inlier_fraction`` = 70 % inliers, or
-- (without the refinement only) fewer than ``min_ok_fraction`` = 1.2 % of the image's pixels (58 at 80x60, 230 at 160x120) fit or misfit the
-  estimate: too little of the bone is visible to tell a right pose from a wrong one (measured on
-  or_fast_reposition: with the crest half out of view, 48 pixels at 80x60, a pose 17 mm off still
-  had 83 % inliers; a real CT crest, crest_left_02, shows 260-380 pixels at 160x120 = 1.4-2 %:
-  2 % kept it uncertain throughout while 1 mm off), or
 - fewer than ``min_covered_pixels`` = 30 covered valid pixels (the bone left the view or is
   hidden behind invalid pixels: too little evidence, at 80x60 the crest covers a few hundred), or
 - any NaN log-likelihood, or
-- ESS / N < ``min_ess_ratio`` (default 0: disabled; peaked likelihoods make small ESS normal), or
-- the bone is moving: the estimate's speed over ``motion_window_s`` = 0.2 s exceeds
-  ``uncertain_speed`` = 30 mm/s or ``uncertain_angular_speed`` = 20 deg/s, or it did so less than
+- the bone is moving: the largest speed of the template's points over ``motion_window_s`` = 0.2 s exceeds
+  ``uncertain_speed`` = 30 mm/s (one speed since issue 32; it was 30 mm/s of the bone frame's origin or
+  ``uncertain_angular_speed`` = 20 deg/s), or it did so less than
   ``settle_s`` = 0.3 s ago (:mod:`app.filter.motion_gate`: the estimate lags a moving bone, and
   along the crest's length the image hardly shows it; measured on or_fast_reposition).
 OK otherwise.
 
-The thresholds of 3 mm / 2° follow the clinical accuracy the navigation needs (a template
-misplaced by more than a few millimetres is not useful); 10 mm matches the replay's definition of
-a lost frame (ADD > 10 mm, app/pipeline/replay.py). The inlier fractions come from a synthetic
+The particles' spread only makes a frame lost (10 mm matches the replay's definition of a lost
+frame, ADD > 10 mm, app/pipeline/replay.py); a spread of a few millimetres no longer lowers an otherwise
+ok frame (issue 32: the template's predicted error from the refined fit says how precise the output is;
+``status.uncertain_position_spread`` / ``uncertain_rotation_spread`` are now ``refine.feedback_spread`` /
+``feedback_spread_angle``, the cloud's convergence the feedback waits for). The lost inlier fraction comes from a synthetic
 run (default crest mesh at 0.42 m, 80x60, 0.5 mm noise): 0.46-0.50 with the estimate 16 mm / 9°
 off, 0.84-1.0 once converged.
 
@@ -61,8 +59,7 @@ tissue, the table or the bone itself a few millimetres off the rendered surface)
 
 With the refinement (``refine.enabled``, the default; app/filter/refine.py, refine_track.py,
 combined by :func:`with_refinement` in app/pipeline/tracker.py): the filter's status above is
-computed without ``min_ok_fraction`` (a share of the image, tuned on the synthetic crest) and is
-then lowered to UNCERTAIN, never raised, when
+lowered to UNCERTAIN, never raised, when
 
 - the refined fit confirms less than ``min_fitness`` = 0.6 of the bone's expected visible surface
   (the silhouette's pixels, occluders left out, whose measurement lies within 3 σ(z) of the refined
@@ -118,7 +115,7 @@ then lowered to UNCERTAIN, never raised, when
   camera whose noise is correlated over its matching window, and the rule then blocked right poses
   on 99.8 % of the frames), each measurement lies behind with probability
   e_i = Φ(−σ_i / (σ_n |n_i·r̂_i|)), and the bound is the Poisson-binomial mean plus
-  ``refine.behind_z`` = 3 standard deviations over the M measurements, the variance multiplied by
+  z = 3 standard deviations (one-sided ``status.alpha`` = 0.135 %, app/tracking/levels.py) over the M measurements, the variance multiplied by
   the residuals' spatial correlation factor f = n / n_eff (fit_test.py; behind_noise.py
   ``behind_bound``; app/filter/refine_track.py ``behind_excess``; the fixed 2 % when fewer than 30
   pixels estimate the noise). The 0.2 % margin covers what the noise model leaves out (the mesh's
@@ -140,8 +137,9 @@ then lowered to UNCERTAIN, never raised, when
   thirty can. Measured (BENCHMARKS.md §6i, 8 crests x 3 seeds).
 - the static-bone prior (app/filter/static_prior.py) kept a pose that this frame's own fit contradicts:
   its Δχ² = δᵀ (H / ``covariance_inflation``) δ from the kept pose to the image's fit exceeds
-  ``max_held_chi2`` = 4 and the prior did not release onto the fit. Under the image's own inflated
-  covariance Δχ² is χ²₆ / 6: 4 is its 0.05 % tail; the prior itself releases only at 25
+  χ²₆(1 − ``status.alpha``) / ``covariance_inflation`` = 3.62 (it was ``max_held_chi2`` = 4, P ~ 5e-4, until
+  issue 32 gave every statistical test one level) and the prior did not release onto the fit. Under the image's own inflated
+  covariance Δχ² is χ²₆ / 6 (app/tracking/levels.py ``held_level``); the prior itself releases only at 25
   (``refine.prior_release_chi2``; 4 there was tried and not kept, static_prior.py). Why: a bone
   that starts to move slowly (bone_moves: 0.7 mm/s rising to 10 mm/s over 0.2 s) is fused, not
   released, for ~10 frames, and the held pose lagged it by up to 1.0-1.3 mm while every other rule
@@ -162,24 +160,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app.tracking import levels
+
 LOST_NO_POSE_S = 0.5
 LOST_POSITION_SPREAD_M = 0.010
 LOST_ROTATION_SPREAD_RAD = math.radians(10.0)
 LOST_INLIER_FRACTION = 0.2
-UNCERTAIN_POSITION_SPREAD_M = 0.003
-UNCERTAIN_ROTATION_SPREAD_RAD = math.radians(2.0)
-UNCERTAIN_INLIER_FRACTION = 0.7
 MIN_COVERED_PIXELS = 30
-MIN_ESS_RATIO = 0.0
-MIN_OK_FRACTION = 0.012
 UNCERTAIN_SPEED_M_S = 0.03
-UNCERTAIN_ANGULAR_SPEED_RAD_S = math.radians(20.0)
 MOTION_WINDOW_S = 0.2
 SETTLE_S = 0.3
 MIN_FITNESS = 0.6
 MAX_BEHIND_EXCESS = 0.002
 MAX_TEMPLATE_STD_M = 0.001
-MAX_HELD_CHI2 = 4.0
 COVARIANCE_INFLATION = 6.0
 
 
@@ -224,20 +217,14 @@ class StatusThresholds:
     lost_position_spread: float = LOST_POSITION_SPREAD_M
     lost_rotation_spread: float = LOST_ROTATION_SPREAD_RAD
     lost_inlier_fraction: float = LOST_INLIER_FRACTION
-    uncertain_position_spread: float = UNCERTAIN_POSITION_SPREAD_M
-    uncertain_rotation_spread: float = UNCERTAIN_ROTATION_SPREAD_RAD
-    uncertain_inlier_fraction: float = UNCERTAIN_INLIER_FRACTION
     min_covered_pixels: int = MIN_COVERED_PIXELS
-    min_ok_fraction: float = MIN_OK_FRACTION
-    min_ess_ratio: float = MIN_ESS_RATIO
     uncertain_speed: float = UNCERTAIN_SPEED_M_S
-    uncertain_angular_speed: float = UNCERTAIN_ANGULAR_SPEED_RAD_S
     motion_window_s: float = MOTION_WINDOW_S
     settle_s: float = SETTLE_S
     min_fitness: float = MIN_FITNESS
     max_behind_excess: float = MAX_BEHIND_EXCESS
     max_template_std: float = MAX_TEMPLATE_STD_M
-    max_held_chi2: float = MAX_HELD_CHI2
+    alpha: float = levels.ALPHA
     covariance_inflation: float = COVARIANCE_INFLATION
 
 
@@ -248,11 +235,10 @@ class StatusInputs:
     position_spread : m; rotation_spread : rad; ess_ratio : ESS / N in (0, 1]
     inlier_fraction : inliers / covered valid pixels of the estimate (NaN when none)
     covered_pixels : the estimate's covered pixels with a valid measurement (occluders left out)
-    image_pixels : pixels of the filter's image (w h), for ``min_ok_fraction``; 0 = rule off
     n_nan : NaN log-likelihoods this frame; n_particles : N
     weighed : the frame had a camera pose and depth and was weighed
     seconds_without_pose : since the last frame that had a camera pose (0 when this one has)
-    speed (m/s), angular_speed (rad/s), seconds_since_motion (s): the estimate's motion
+    speed (m/s, the template's fastest point), seconds_since_motion (s): the estimate's motion
     (:mod:`app.filter.motion_gate`)
     """
 
@@ -266,9 +252,7 @@ class StatusInputs:
     weighed: bool
     seconds_without_pose: float
     speed: float = 0.0
-    angular_speed: float = 0.0
     seconds_since_motion: float = math.inf
-    image_pixels: int = 0
 
 
 def lost_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
@@ -292,33 +276,21 @@ def uncertain_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
     reasons = []
     if not s.weighed:
         reasons.append(Reason("not_weighed", "not weighed (no camera pose, no valid depth, or the bone hidden by an occluder)"))
-    if s.position_spread > t.uncertain_position_spread:
-        reasons.append(Reason("spread", f"position spread {1e3 * s.position_spread:.1f} mm"))
-    if s.rotation_spread > t.uncertain_rotation_spread:
-        reasons.append(Reason("spread", f"rotation spread {math.degrees(s.rotation_spread):.1f} deg"))
-    if s.weighed and not s.inlier_fraction >= t.uncertain_inlier_fraction:
-        reasons.append(Reason("inliers", f"inlier fraction {s.inlier_fraction:.2f}"))
     if s.weighed and s.covered_pixels < t.min_covered_pixels:
         reasons.append(Reason("unseen", f"{s.covered_pixels} covered valid pixels"))
-    elif s.weighed and s.covered_pixels < t.min_ok_fraction * s.image_pixels:
-        reasons.append(Reason("unseen", f"only {s.covered_pixels} visible pixels of the bone (too little evidence)"))
     if s.n_nan > 0:
         reasons.append(Reason("nan", f"{s.n_nan} NaN log-likelihoods"))
-    if s.ess_ratio < t.min_ess_ratio:
-        reasons.append(Reason("ess", f"ESS ratio {s.ess_ratio:.3f}"))
-    motion = motion_reason(s.speed, s.angular_speed, s.seconds_since_motion, t)
+    motion = motion_reason(s.speed, s.seconds_since_motion, t)
     if motion is not None:
         reasons.append(motion)
     return reasons
 
 
-def motion_reason(speed: float, angular_speed: float, seconds_since_motion: float,
-                  t: StatusThresholds) -> Reason | None:
-    """The steady test (app/filter/motion_gate.py's speeds): the bone moving faster than
-    ``uncertain_speed`` (m/s) or ``uncertain_angular_speed`` (rad/s), or less than ``settle_s`` since it
-    did or since the start; None when it is still."""
-    if speed > t.uncertain_speed or angular_speed > t.uncertain_angular_speed:
-        return Reason("moving", f"bone moving ({1e3 * speed:.0f} mm/s, {math.degrees(angular_speed):.0f} deg/s)")
+def motion_reason(speed: float, seconds_since_motion: float, t: StatusThresholds) -> Reason | None:
+    """The steady test (app/filter/motion_gate.py's speed): the template's points moving faster than
+    ``uncertain_speed`` (m/s), or less than ``settle_s`` since they did or since the start; None when still."""
+    if speed > t.uncertain_speed:
+        return Reason("moving", f"bone moving (the template at {1e3 * speed:.0f} mm/s)")
     if seconds_since_motion < t.settle_s:
         return Reason("moving", f"bone settling ({seconds_since_motion:.2f} s after moving or the start)")
     return None
@@ -363,9 +335,10 @@ def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
     if r.behind > t.max_behind_excess:
         reasons.append(Reason("behind", f"{100 * r.behind:.1f} % more of the seen bone lies inside the refined model "
                               "than the noise explains (slid onto tissue?)"))
-    if r.held_chi2 > t.max_held_chi2:
+    held = levels.held_level(t.alpha, t.covariance_inflation)
+    if r.held_chi2 > held:
         reasons.append(Reason("held", f"the image's own fit contradicts the held pose (Δχ² {r.held_chi2:.1f} > "
-                              f"{t.max_held_chi2:g}; the bone starting to move?)"))
+                              f"{held:.2f}; the bone starting to move?)"))
     return reasons
 
 

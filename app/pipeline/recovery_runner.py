@@ -11,8 +11,8 @@ module does the policy's attempts on the tracker's parts (app/pipeline/tracker.p
 - **the attempt** (:meth:`RecoveryRunner.run`): the wide search (a found pose seeds the particles,
   FOUND_SIGMA_M / FOUND_SIGMA_RAD about it, and the refinement's track; nothing found changes
   nothing; the current estimate kept as the best explanation is moved onto its refined pose when
-  its own fit is below the search's bar and that pose lies more than recovery.kept_move_m / kept_move_angle
-  away, and is otherwise left alone), a re-spread around the last confident pose, or the one-point SMC initialiser at the
+  its own fit is below the search's bar and that pose moves the template by more than
+  status.max_template_std, and is otherwise left alone), a re-spread around the last confident pose, or the one-point SMC initialiser at the
   policy's point (a re-spread instead while that point is behind a hand,
   :func:`app.filter.visibility.point_visible`);
 - **the work** the searches cost (searches, found, kept, likelihood evaluations, refinements, CPU and
@@ -28,10 +28,11 @@ from collections.abc import Callable
 import numpy as np
 
 from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD, RESPREAD, SEARCH, SMC, RecoveryPolicy
-from app.filter.refine_track import RefinedTrack, pose_gap
+from app.filter.refine_track import RefinedTrack
 from app.filter.visibility import point_visible, visible_share
 from app.geometry.camera import PinholeCamera
 from app.tracking.search_worker import SearchJob
+from app.tracking import levels
 
 log = logging.getLogger(__name__)
 
@@ -171,7 +172,9 @@ class RecoveryRunner:
 
     def _refined_in_place(self, T_base_bone_kept: np.ndarray | None, T_base_bone_now: np.ndarray | None) -> None:
         """A kept track whose own last fit is below the search's bar (:meth:`RecoveryPolicy.fit_below_bar`) moved onto its refined pose when that lies more than
-        ``recovery.kept_move_m`` / ``kept_move_angle`` (1 mm / 1 deg) from the current estimate: the cloud shifted onto it, the refined track seeded
+        ``status.max_template_std`` (1 mm, the largest displacement of the template's points: a different answer;
+        recovery.kept_move_m / kept_move_angle, 1 mm / 1 deg, before issue 32) from the current estimate: the cloud
+        shifted onto it, the refined track seeded
         there (which resets its static prior, as a found pose does). The search verified the incumbent
         with a wider chain than the track's own refinement (width 0 from its last pose), and that
         chain can leave a local minimum: or_fast_reposition crest_left_05 seed 1 at the filter's
@@ -183,9 +186,7 @@ class RecoveryRunner:
             return
         if not self.policy.fit_below_bar():                          # the track's own fit passes the bar: left alone
             return
-        dist, angle = pose_gap(T_base_bone_now, T_base_bone_kept)
-        c = self.policy.config
-        if dist <= c.kept_move_m and angle <= c.kept_move_angle:
+        if self.refined_track.template_gap(T_base_bone_now, T_base_bone_kept) <= self.config.status.max_template_std:
             return
         self.filter.shift_to(T_base_bone_kept, T_base_bone_now)
         self.refined_track.seed(T_base_bone_kept, verified=True)
@@ -224,13 +225,16 @@ def make_recovery(config, backend, camera: PinholeCamera, particle_filter, refin
 
 
 def _policy(config, vertices: np.ndarray, search_bar: float) -> RecoveryPolicy:
+    from app.pipeline.tracker import PLAN_POINTS
+
     centroid = vertices.mean(axis=0)
     surface_point = vertices[np.argmin(np.linalg.norm(vertices - centroid, axis=1))]
     st = config.status
     return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, st.min_fitness,
-                          (st.uncertain_speed, st.uncertain_angular_speed, st.motion_window_s),
+                          (st.uncertain_speed, st.motion_window_s),
                           (config.init_sigma_p, config.init_sigma_r), search_bar,
-                          (config.refine.competitor_distance, config.refine.competitor_angle))
+                          (config.refine.competitor_distance, config.refine.competitor_angle),
+                          levels.chi_level(st.alpha, 3), vertices[::max(1, len(vertices) // PLAN_POINTS)])
 
 
 def _wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedTrack | None, vertices: np.ndarray):

@@ -30,6 +30,7 @@ from app.filter.refine_track import RefinedTrack
 from app.filter.status import (Reason, RefinementEvidence, TrackingStatus, motion_reason, refinement_reasons,
                                with_refinement)
 from app.metrics import STATUS_CODE
+from app.tracking import levels
 from app.tracking.lifecycle import Lifecycle, State, frame_event
 from app.geometry.camera import PinholeCamera
 from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD
@@ -95,7 +96,8 @@ class DepthTracker:
         self._T_base_bone_last: np.ndarray | None = None
         self._lifecycle = Lifecycle()        # without the recovery; with it, the recovery's (it drives the transitions)
         st = config.status
-        self.motion_gate = MotionGate(st.motion_window_s, st.uncertain_speed, st.uncertain_angular_speed)
+        self.motion_gate = MotionGate(st.motion_window_s, st.uncertain_speed, template_points(mesh))
+        self.filter.motion_gate.points_bone = self.motion_gate.points_bone
 
     @property
     def recovery(self):
@@ -148,6 +150,9 @@ class DepthTracker:
             return
         self.refined_track.plan_points = points_bone - self.refined_track.refiner.center
         self.template_points = "plan"
+        self.motion_gate.points_bone = self.filter.motion_gate.points_bone = points_bone
+        if self.recovery is not None:
+            self.recovery.points_bone = points_bone      # the recovery's still test watches the same points
 
     def start_from_point(self, point_base: np.ndarray) -> None:
         """Start from one point on the bone (base frame, m): the one-point SMC initialiser runs on the
@@ -264,6 +269,8 @@ class DepthTracker:
             if reinitialised:
                 self.motion_gate.reset()
             result = self._steady(self._refine(result, depth_m, T_base_camera, track_fit), stamp)
+        else:
+            result = _unrefined(result)
         result = self._caps(result, stamp, reinitialised)
         state = self._state(result)
         result = replace(result, state=state.value,
@@ -351,8 +358,8 @@ class DepthTracker:
         out = self.refined_track.update(depth_m, T_base_camera, result.T_base_bone, track_fit)
         c = self.config.refine
         st = self.config.status
-        converged = (result.status != TrackingStatus.LOST and result.position_spread <= st.uncertain_position_spread
-                     and result.rotation_spread <= st.uncertain_rotation_spread)
+        converged = (result.status != TrackingStatus.LOST and result.position_spread <= c.feedback_spread
+                     and result.rotation_spread <= c.feedback_spread_angle)
         if (c.feedback and converged and out.T_base_bone is not None
                 and out.fitness >= st.min_fitness and not out.competitor):
             self.filter.shift_to(out.T_base_bone, result.T_base_bone)
@@ -368,7 +375,7 @@ class DepthTracker:
 
     def _steady(self, result: FilterOutput, stamp: float) -> FilterOutput:
         """The motion test on the tracker's output pose (the refined one; app/filter/motion_gate.py): the
-        bone moving faster than ``status.uncertain_speed`` / ``uncertain_angular_speed``, or less than
+        template's points moving faster than ``status.uncertain_speed``, or less than
         ``status.settle_s`` since it did or since the start, keeps the status below ok. With the
         refinement this replaces the filter's gate on its particle mean, which read the cloud's
         convergence from the coarse start as motion (0.2-0.5 s more not ok on every clean start)."""
@@ -538,18 +545,28 @@ def use_projector_plan(tracker, sinks, mesh=None) -> None:
 
 
 def _filter_config(config: TrackerConfig) -> TrackerConfig:
-    """With the refinement on, its tests replace the filter's shares fitted to one simulator
-    (app/filter/status.py): its fitness and predicted template error replace the share of the image
-    (status.min_ok_fraction, tuned on the synthetic crest), and its consistency test on the signed
-    residuals (app/tracking/fit_test.py) replaces the filter's inlier fraction for ok
-    (status.uncertain_inlier_fraction, 0.7 on our simulator: on a held-out stereo sensor 53-70 % of a
-    right pose's pixels were inliers, tissue and silhouette counting against it; issue 32). The lost
-    rule on the inlier fraction stays. The motion test moves to the tracker's output pose
-    (:meth:`DepthTracker._steady`)."""
+    """With the refinement on, the motion test moves to the tracker's output pose
+    (:meth:`DepthTracker._steady`): the filter's gate on its particle mean is switched off."""
     if not config.refine.enabled:
         return config
-    return replace(config, status=replace(config.status, min_ok_fraction=0.0, uncertain_inlier_fraction=0.0,
-                                          uncertain_speed=math.inf, uncertain_angular_speed=math.inf, settle_s=0.0))
+    return replace(config, status=replace(config.status, uncertain_speed=math.inf, settle_s=0.0))
+
+
+def template_points(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(N, 3) m, bone frame: ``PLAN_POINTS`` of the mesh's vertices, the template's points until a plan gives its
+    own (:meth:`DepthTracker.use_plan_points`): the status's error bound and motion test, the recovery's still test."""
+    vertices = np.asarray(mesh.vertices, float)
+    return vertices[::max(1, len(vertices) // PLAN_POINTS)]
+
+
+def _unrefined(result: FilterOutput) -> FilterOutput:
+    """Without the refinement (``refine.enabled: false``) no frame is ok: the "seen" test, the template's
+    predicted error from the fit's information (DESIGN.md), cannot be made, and the filter's own inlier and
+    image shares that stood in for it were fitted to one simulator (issue 32: removed)."""
+    if result.status != TrackingStatus.OK:
+        return result
+    return replace(result, status=TrackingStatus.UNCERTAIN, reasons=result.reasons + (
+        Reason("not_refined", "the refinement is off (refine.enabled: false): the template's error is not predicted"),))
 
 
 def refine_params(config: TrackerConfig) -> RefineParams:
@@ -558,7 +575,8 @@ def refine_params(config: TrackerConfig) -> RefineParams:
     c, lk = config.refine, config.likelihood
     return RefineParams(stride=c.stride, iterations=c.iterations, samples=c.samples, k=lk.k,
                         sigma_base=lk.sigma_base, occluder_margin=lk.occluder_margin, outline_ring=c.outline_ring,
-                        tissue_border=c.tissue_border, behind_z=c.behind_z, noise_window_px=c.noise_window_px)
+                        tissue_border=c.tissue_border, behind_z=levels.normal_level(config.status.alpha),
+                        noise_window_px=c.noise_window_px)
 
 
 def _refined_track(config: TrackerConfig, mesh: trimesh.Trimesh, camera: PinholeCamera) -> RefinedTrack | None:
@@ -568,6 +586,5 @@ def _refined_track(config: TrackerConfig, mesh: trimesh.Trimesh, camera: Pinhole
         return None
     vertices, faces = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
     refiner = Refiner(vertices, faces, camera, refine_params(config), seed=config.seed)
-    step = max(1, len(vertices) // PLAN_POINTS)
-    return RefinedTrack(refiner, c, vertices[::step], config.status.covariance_inflation,
+    return RefinedTrack(refiner, c, template_points(mesh), config.status.covariance_inflation,
                         config.status.max_template_std)

@@ -5,7 +5,7 @@ pass through bone, so of the refined fit's signed point-to-plane residuals r_i (
 normals outward, app/filter/refine.py step 7) the ones *in front* of the model may be tissue, blood
 or an instrument, while the ones *behind* it can only be noise. The test counts the measurements more
 than ``behind_sigmas`` σ_i behind the model and asks whether the noise explains that count at level
-α (``refine.behind_z`` standard deviations, 3 ≈ α 0.13 %, one-sided).
+α (``status.alpha``, one-sided: 0.135 % = 3 standard deviations; app/tracking/levels.py).
 
 Two quantities make it transfer between sensors (issue 32: the second difference along the rows of a
 stereo camera's image, whose noise is correlated over the matching window, underestimated its noise

@@ -18,7 +18,8 @@ States:
   (:attr:`Lifecycle.due`: it waits for a usable frame with the bone not hidden), or a search found
   nothing / kept the track and is retried while the track stays far and not ok;
 - ``confirming``: a pose a detection found (a re-initialisation, a kept track, a detected start)
-  awaits its evidence (:class:`Hypothesis`: ``recovery.hold_frames``, then ``recovery.confirm_frames``).
+  awaits its evidence (:class:`Hypothesis`: ``recovery.confirm_frames``; right after a re-initialisation the motion
+  test's settle, ``status.settle_s``, keeps it below ok too: the estimate jumped).
 
 Events: per frame, one of ``waiting`` (before the start), ``search_due`` (a search is due), ``capped``
 (the rules found the frame ok but the hypothesis is not confirmed yet), ``ok``, ``unseen`` (not
@@ -74,11 +75,9 @@ from every state."""
 
 @dataclass
 class Hypothesis:
-    """A pose that awaits its evidence (app/filter/recovery.py, "Honesty"): ``hold`` weighed frames
-    still capped at uncertain after a re-initialisation; ``evidence_only``: a detected start, for which
-    agreeing with the start pose is no evidence (the start is the hypothesis itself)."""
+    """A pose that awaits its evidence (app/filter/recovery.py, "Honesty"); ``evidence_only``: a detected
+    start, for which agreeing with the start pose is no evidence (the start is the hypothesis itself)."""
 
-    hold: int = 0
     evidence_only: bool = False
 
 
@@ -127,12 +126,12 @@ class Lifecycle:
         self.step("search_due")
         self.due = reason
 
-    def reinitialised(self, hold_frames: int) -> None:
-        """The due attempt re-initialised the track (a found pose, a re-spread, the SMC): a new hypothesis,
-        held for ``hold_frames`` weighed frames (a detected start's evidence-only rule carries over)."""
+    def reinitialised(self) -> None:
+        """The due attempt re-initialised the track (a found pose, a re-spread, the SMC): a new hypothesis
+        (a detected start's evidence-only rule carries over)."""
         self.step("reinitialised")
         evidence_only = self.hypothesis is not None and self.hypothesis.evidence_only
-        self.due, self.hypothesis = None, Hypothesis(hold_frames, evidence_only)
+        self.due, self.hypothesis = None, Hypothesis(evidence_only=evidence_only)
 
     def kept(self) -> None:
         """The due search kept the track: the kept pose is a hypothesis too (a confirmation under way goes
