@@ -292,12 +292,13 @@ class WideSearch:
         return draws_about_centroid(centre, p0, q0, n, sigma_p, sigma_r, rng, keep_first)
 
     # -- local search and verification ------------------------------------------------------------
-    def _cem(self, level, p0, q0, ll0, per_round: int, rng):
-        """CEM_ROUNDS rounds of draws around the best so far (σ halved each round); the best kept."""
+    def _cem(self, level, p0, q0, ll0, per_round: int, rng, rounds: int = CEM_ROUNDS, keep_first: bool = False):
+        """``rounds`` rounds of draws around the best so far (σ halved each round; with ``keep_first`` each
+        round's first draw is that pose itself); the best kept: (p, q, ll, draws spent)."""
         best_p, best_q, best_ll, spent = p0, q0, ll0, 0
         sigma_p, sigma_r = CEM_SIGMA_M, CEM_SIGMA_RAD
-        for _ in range(CEM_ROUNDS):
-            p, q = self._around(best_p, best_q, per_round, sigma_p, sigma_r, rng)
+        for _ in range(rounds):
+            p, q = self._around(best_p, best_q, per_round, sigma_p, sigma_r, rng, keep_first)
             ll = _finite(level.score(p, q))
             spent += len(p)
             k = int(np.argmax(ll))

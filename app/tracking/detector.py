@@ -47,8 +47,8 @@ from typing import Protocol
 import numpy as np
 
 from app.filter.smc_init.geometry import rotation_between
-from app.filter.wide_search import (ANCHOR_SHARE, CEM_ROUNDS, CEM_SIGMA_M, CEM_SIGMA_RAD, RIDGE_POINTS, TRACK_CLUSTERS,
-                                    UP_BASE, VERIFY_CHAINS, WideSearch, _distinct_best, _finite, image_anchors)
+from app.filter.wide_search import (ANCHOR_SHARE, CEM_ROUNDS, RIDGE_POINTS, TRACK_CLUSTERS, UP_BASE, VERIFY_CHAINS,
+                                    WideSearch, _distinct_best, image_anchors)
 from app.geometry import quaternion as quat
 from app.geometry import se3
 
@@ -120,8 +120,8 @@ class PriorSearch(WideSearch):
 
     def _search_locally(self, level, p, q, ll, source, evaluations: int, rng) -> tuple[dict, int]:
         """The local search with a screening round (successive halving, Jamieson and Talwalkar 2016):
-        the ``screened`` best distinct hypotheses each get one round of draws at the local search's
-        first spread (CEM_SIGMA_M / CEM_SIGMA_RAD, the hypothesis itself kept); the best distinct of the
+        the ``screened`` best distinct hypotheses each get one round of the local search's draws
+        (:meth:`WideSearch._cem` at its first spread, the hypothesis itself kept); the best distinct of the
         screened are then the clusters of the wide search's local search (:meth:`WideSearch._cem`).
         Every round of either stage draws as many poses. Why: the start's grid is coarse (24 turns,
         7 orientations, 5 ridge points: its pose nearest the truth can be 6 mm off), and at the filter's
@@ -134,22 +134,16 @@ class PriorSearch(WideSearch):
             return super()._search_locally(level, p, q, ll, source, evaluations, rng)
         seeds = _distinct_best(p, q, ll, self.screened)
         per_round = max((self.config.evaluations - evaluations) // max(len(seeds) + n * CEM_ROUNDS, 1), 1)
-        rounds = [self._screen(level, p[k], q[k], per_round, rng) for k in seeds]
-        evaluations += sum(r[3] for r in rounds)
-        sp, sq, sll = (np.array([r[i] for r in rounds], float).reshape(len(rounds), -1) for i in range(3))
+        screened = [self._cem(level, p[k], q[k], ll[k], per_round, rng, rounds=1, keep_first=True) for k in seeds]
+        evaluations += sum(spent for *_, spent in screened)
+        sp, sq = np.array([s[0] for s in screened]).reshape(-1, 3), np.array([s[1] for s in screened]).reshape(-1, 4)
+        sll = np.array([s[2] for s in screened], float)
         found = {"image": [], "track": []}
-        for k in _distinct_best(sp, sq, sll.ravel(), n):
-            pk, qk, llk, spent = self._cem(level, sp[k], sq[k], sll[k, 0], per_round, rng)
+        for k in _distinct_best(sp, sq, sll, n):
+            pk, qk, llk, spent = self._cem(level, sp[k], sq[k], sll[k], per_round, rng)
             evaluations += spent
             found["image"].append((llk, pk, qk, "image"))
         return found, evaluations
-
-    def _screen(self, level, p0, q0, n: int, rng):
-        """One round of ``n`` draws about (p0, q0) (itself kept); (p, q, ll) of the best, draws spent."""
-        p, q = self._around(p0, q0, n, CEM_SIGMA_M, CEM_SIGMA_RAD, rng, keep_first=True)
-        ll = _finite(level.score(p, q))
-        j = int(np.argmax(ll))
-        return p[j], q[j], ll[j:j + 1], len(p)
 
     def _candidates(self, depth_small, T_base_camera, T_base_bone_ok, track, rng):
         anchors = self._prior_anchors(depth_small, T_base_camera)
