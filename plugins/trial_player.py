@@ -229,10 +229,15 @@ def _check_sensor(sensor: str, kind: str) -> None:
 def _check_pointer(pointer, streams: str, kind: str) -> None:
     """A ConfigError naming ``<kind>.params.pointer`` unless it is a bool, and with the infrared stream."""
     from app.errors import ConfigError
+    from app.sim.images import parse_streams
 
     if not isinstance(pointer, bool):
         raise ConfigError(f"{kind}.params.pointer", f"expected true or false, got {pointer!r}")
-    if pointer and "ir" not in [s.strip() for s in str(streams).split(",")]:
+    try:
+        names = parse_streams(str(streams))
+    except ValueError as exc:
+        raise ConfigError(f"{kind}.params.streams", str(exc)) from None
+    if pointer and "ir" not in names:
         raise ConfigError(f"{kind}.params.pointer", f"the pointer's marker is drawn into the infrared images: set "
                           f"{kind}.params.streams to include ir (e.g. \"depth,ir\"), got {streams!r}")
 

@@ -97,5 +97,7 @@ def test_a_simulated_pointer_without_the_infrared_stream_is_refused_by_name():
         SimulatedCamera(pointer=True, streams="depth")
     with pytest.raises(ConfigError, match=r"robot\.params\.pointer.*true or false"):
         SimulatedRobot(pointer="yes", streams="depth,ir")
+    with pytest.raises(ConfigError, match=r"camera\.params\.streams.*unknown: thermal"):
+        SimulatedCamera(streams="depth,thermal")
     with pytest.raises(ValueError, match="streams must include ir"):
         simulate("/nonexistent/never-written", scenario_name="static_clear", seconds=0.1, pointer=SimulatedPointer())
