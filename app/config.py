@@ -222,7 +222,6 @@ KEYS: dict[str, _Key] = {
     "recovery.respreads": _i("recovery.respreads", 0, 100),
     "recovery.smc_evaluations": _i("recovery.smc_evaluations", 600, 10_000_000),
     "recovery.cooldown_s": _f("recovery.cooldown_s", 0.0, 3600.0, lo_open=True),
-    "recovery.min_visible_share": _f("recovery.min_visible_share", 0.0, 1.0),
     "recovery.confirm_frames": _i("recovery.confirm_frames", 0, 1_000_000),
     "recovery.search": _Key(("recovery", "search"), "bool"),
     "recovery.search_evaluations": _i("recovery.search_evaluations", 100, 10_000_000),
@@ -407,6 +406,10 @@ RENAMED = {   # keys of earlier configurations: what replaced them
     # issue 32: one tolerance for "a different answer"
     "recovery.kept_move_m": "replaced by status.max_template_std (the same 1 mm, now the largest displacement of the "
                             "template's points between the kept and the refined pose); remove the key",
+    # issue 32: toward 15 decision numbers (BENCHMARKS.md "Decision numbers")
+    "recovery.min_visible_share": "replaced by status.min_fitness (the same 0.6): a due re-initialisation waits until "
+                                  "that share of the bone's expected silhouette is not hidden, since a pose found on "
+                                  "less could never be ok; remove the key",
     "recovery.kept_move_angle": "replaced by status.max_template_std (the template's largest displacement covers the "
                                 "rotation: 1 deg moves points 50 mm out 0.9 mm); remove the key",
 }

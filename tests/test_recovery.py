@@ -434,7 +434,8 @@ def test_after_a_reinitialisation_a_pose_away_from_the_last_ok_one_needs_evidenc
 
 def test_a_due_reinitialisation_waits_while_the_bone_is_mostly_hidden():
     """visible_share on a rendered synthetic view: 1 clear, about the hand's share hidden under a
-    slab 10 cm in front of the left part of the bone; may_run only above min_visible_share."""
+    slab 10 cm in front of the left part of the bone; may_run only above status.min_fitness (a pose found on
+    less of the silhouette could never be ok; it was recovery.min_visible_share)."""
     import trimesh
 
     from app.filter.visibility import point_visible, visible_share
@@ -460,6 +461,11 @@ def test_a_due_reinitialisation_waits_while_the_bone_is_mostly_hidden():
     policy = _policy()
     policy.pending = "lost for 10 frames"
     assert not policy.may_run(share) and policy.may_run(1.0)
+    lenient = RecoveryPolicy(RecoveryConfig(), np.zeros(3), np.array([0.0, 0.0, 0.01]), refine_enabled=True,
+                             min_fitness=0.9 * share)
+    lenient.set_start(np.eye(4))
+    lenient.pending = "lost for 10 frames"
+    assert lenient.may_run(share)                              # the bar is the status's min_fitness
 
 
 def test_respread_is_about_the_bone_centroid_with_the_configured_spread(rng):

@@ -84,9 +84,11 @@ filter seeds: 143 of 144 within 2 s (141 without it; BENCHMARKS.md §6n). It use
 backoff like the others.
 
 **When.** A due attempt waits while the bone is mostly hidden: it runs only on a frame where at
-least ``min_visible_share`` (0.6) of the model's expected silhouette at the last confident pose is
+least ``status.min_fitness`` (0.6) of the model's expected silhouette at the last confident pose is
 not hidden by an occluder (:func:`app.filter.visibility.visible_share`: valid depth, not more than
-the likelihood's ``occluder_margin`` in front of the model). Re-spreading while 80 % of the crest is
+the likelihood's ``occluder_margin`` in front of the model). A pose found on less could never be ok:
+ok needs the refined fit to confirm that share of the expected surface (it was
+``recovery.min_visible_share``, the same 0.6, until issue 32). Re-spreading while 80 % of the crest is
 under the hand is what lost crest_right_04 and _05 in BENCHMARKS.md §6b: the filter and the
 refinement settled on a wrong fit of the visible 20 %. An SMC attempt while the pointed point is
 hidden (:func:`app.filter.visibility.point_visible`) is replaced by a re-spread (§6b: with the point
@@ -200,8 +202,7 @@ class RecoveryConfig:
     (re-spreads before each SMC attempt); smc_evaluations (the initialiser's likelihood evaluations);
     cooldown_s (s between two, doubled
     per attempt); the seconds are counted in processed frames (module docstring, "Seconds and frames");
-    min_visible_share (a due re-initialisation waits until this share of the bone's expected
-    silhouette at the last confident pose is not hidden by an occluder); confirm_frames (after one,
+    confirm_frames (after one,
     weighed frames in a row that the rules find ok before a pose away from the last ok one may be ok);
     search (the wide search, app/filter/wide_search.py, replaces the one-point SMC attempts);
     search_evaluations (its likelihood evaluations per search); search_min_sharp (the consistent sharp
@@ -221,7 +222,6 @@ class RecoveryConfig:
     respreads: int = 0
     smc_evaluations: int = 30_000
     cooldown_s: float = 0.16
-    min_visible_share: float = 0.6
     confirm_frames: int = 90
     search: bool = True
     search_evaluations: int = 4000
@@ -609,7 +609,8 @@ class RecoveryPolicy:
     # -- when a due attempt may run ------------------------------------------------------------
     def may_run(self, visible_share: float) -> bool:
         """Whether the due attempt may run on this frame: ``visible_share`` of the bone's expected
-        silhouette at the last confident pose is not hidden (:func:`visible_share`); under the hand
+        silhouette at the last confident pose is not hidden (:func:`visible_share`), at least
+        ``min_fitness`` (status.min_fitness: less could never be confirmed); under the hand
         it waits (module docstring, "When"). A wide search also runs where the last confident pose is
         out of the image (``visible_share`` NaN): the camera has moved away from where the bone was,
         and the search looks everywhere (crest_left_02 seed 1, or_fast_reposition: it waited 2.4 s)."""
@@ -617,7 +618,7 @@ class RecoveryPolicy:
             return False
         if math.isnan(visible_share):
             return self.next_kind() == SEARCH
-        return visible_share >= self.config.min_visible_share
+        return visible_share >= self.min_fitness
 
     # -- the re-spread -----------------------------------------------------------------------
     def respread_state(self, n: int, rng: np.random.Generator) -> ParticleState:
