@@ -81,7 +81,6 @@ from app.filter.static_prior import StaticPrior, StaticPriorConfig
 from app.filter.status import StatusThresholds
 from app.geometry import se3
 
-FALLBACK_BEHIND_SHARE = 0.02   # the former fixed share, when too few pixels estimate the noise
 SEED_WIDTHS = (1.0, 2.0, 4.0)  # the seeded first frame's Tukey widths (x RefineParams.start_width; BENCHMARKS.md §6d)
 SEED_CHAIN = 6                 # at most this many refinements chained at each seeded width (BENCHMARKS.md §6d)
 SEED_SINGLE = (1.0, 2.0)       # widths whose first link is a candidate whatever its consistency (the single refinements of §6d)
@@ -170,16 +169,20 @@ class RefineOutcome:
 
 def behind_excess(result: RefineResult) -> float:
     """The kept fit's share of measurements behind the model beyond what the image's noise explains
-    (``RefineResult.behind − behind_allowed``; against ``FALLBACK_BEHIND_SHARE`` when the noise is unknown)."""
-    allowed = result.behind_allowed if np.isfinite(result.behind_allowed) else FALLBACK_BEHIND_SHARE
-    return float(result.behind - allowed)
+    (``RefineResult.behind − behind_allowed``); NaN when the noise could not be measured (too few
+    residuals behind the model, app/tracking/fit_test.py ``MIN_BEHIND``): the consistency test cannot run,
+    so the status is not ok and a search does not confirm the fit (issue 32: it was tested against a
+    fixed 2 %, ``FALLBACK_BEHIND_SHARE``, a share of one simulator's noise)."""
+    return float(result.behind - result.behind_allowed)
 
 
 def consistent_sharp(result: RefineResult) -> float:
     """The fit's share within 1 σ less its share behind the model beyond the noise's bound
     (:func:`behind_excess`, when positive): light does not pass through bone, so a measurement
-    inside the model contradicts the pose; two fits are compared on this."""
-    return float(result.sharp - max(behind_excess(result), 0.0))
+    inside the model contradicts the pose; two fits are compared on this. An excess that could not be
+    measured (NaN) takes nothing off: no evidence either way."""
+    excess = behind_excess(result)
+    return float(result.sharp - (excess if excess > 0.0 else 0.0))
 
 
 def pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:

@@ -117,8 +117,8 @@ lowered to UNCERTAIN, never raised, when
   e_i = Φ(−σ_i / (σ_n |n_i·r̂_i|)), and the bound is the Poisson-binomial mean plus
   z = 3 standard deviations (one-sided ``status.alpha`` = 0.135 %, app/tracking/levels.py) over the M measurements, the variance multiplied by
   the residuals' spatial correlation factor f = n / n_eff (fit_test.py; behind_noise.py
-  ``behind_bound``; app/filter/refine_track.py ``behind_excess``; the fixed 2 % when fewer than 30
-  pixels estimate the noise). The 0.2 % margin covers what the noise model leaves out (the mesh's
+  ``behind_bound``; app/filter/refine_track.py ``behind_excess``; when fewer than 30 residuals behind the
+  model estimate the noise, the test cannot run and the frame is not ok: issue 32 removed the fixed 2 % it fell back to). The 0.2 % margin covers what the noise model leaves out (the mesh's
   discretisation, the association): a right pose's share exceeds the bound by up to ~0.3 points.
   Measured (BENCHMARKS.md §6d, scripts/refine_evidence.py --analyse; the frames otherwise ok-able
   after 0.5 s; the margin was chosen on these same frames: a hint, not a held-out figure): with
@@ -335,6 +335,9 @@ def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
     if r.behind > t.max_behind_excess:
         reasons.append(Reason("behind", f"{100 * r.behind:.1f} % more of the seen bone lies inside the refined model "
                               "than the noise explains (slid onto tissue?)"))
+    elif np.isfinite(r.fitness) and not np.isfinite(r.behind):
+        reasons.append(Reason("behind", "the consistency test could not run: too few of the fit's measurements "
+                              "lie behind the model to measure the image's noise"))
     held = levels.held_level(t.alpha, t.covariance_inflation)
     if r.held_chi2 > held:
         reasons.append(Reason("held", f"the image's own fit contradicts the held pose (Δχ² {r.held_chi2:.1f} > "
