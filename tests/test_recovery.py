@@ -264,9 +264,20 @@ def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
     assert gaps[1] > gaps[0]                                # the cooldown doubles
 
 
-def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retries_without_backoff():
-    from app.filter.recovery import SEARCH_RETRY_S
+def test_the_backoff_doubles_the_cooldown_up_to_after_uncertain_s():
+    """One retry period (issue 32): after attempt k the next waits min(cooldown_s 2^k, after_uncertain_s), in
+    frames at the stamps' rate (here the nominal 90 Hz: 0.1 s is 9 frames, 1 s 90); with the slow triggers off
+    (after_uncertain_s 0) it does not back off."""
+    for after_uncertain_s, expected in ((1.0, [9, 18, 36, 72, 90, 90]), (0.0, [9] * 6)):
+        policy = _policy(cooldown_s=0.1, after_uncertain_s=after_uncertain_s)
+        waits = []
+        for k in range(6):
+            _due(policy).done(float(k), "search")
+            waits.append(policy._wait)
+        assert waits == expected, after_uncertain_s
 
+
+def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retries_without_backoff():
     policy = _policy(after_lost_s=0.01, respreads=1, cooldown_s=0.04)   # 1 and 4 frames at the stamps' 100 Hz
     T = np.eye(4)
     frames, due = 0, []
@@ -285,8 +296,8 @@ def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retrie
     assert run_until_due() == "search"
     _due(policy).declined()                                        # found nothing: no attempt, no hold
     assert policy.report()["declined_searches"] == 1 and len(policy.events) == 1
-    # retried, not backed off: SEARCH_RETRY_S (0.33 s, 30 frames at 90 Hz) is 33 frames at 100 Hz
-    assert run_until_due() == "search" and due[-1] == math.ceil(SEARCH_RETRY_S / 0.01 - 0.01) == 33
+    # retried after the cooldown, not backed off: 0.04 s is 4 frames at 100 Hz
+    assert run_until_due() == "search" and due[-1] == math.ceil(0.04 / 0.01 - 0.01) == 4
     _due(policy).done(1.0, "search")
     assert run_until_due() == "respread"
 
@@ -567,14 +578,12 @@ def test_a_track_weighed_again_after_being_out_of_view_far_from_the_last_ok_pose
 
 def test_a_declined_search_is_retried_while_not_ok_even_when_the_estimate_moves():
     """A wide search that found nothing leaves the track suspect: it is retried every
-    SEARCH_RETRY_S while no frame is ok and the estimate is away from the last ok pose, whether or
+    cooldown_s while no frame is ok and the estimate is away from the last ok pose, whether or
     not the estimate is still or its fit good (or_fast_reposition crest_left_03 seed 1: after a declined
     search the wrong track slid across the tissue, the slow trigger's count restarted with every move,
     and the bone in view was not searched for again for 2.4 s; BENCHMARKS.md §6e). An ok frame or a
     found pose ends it."""
-    from app.filter.recovery import SEARCH_RETRY_S
-
-    retry_frames = math.ceil(SEARCH_RETRY_S * 90 - 0.01)      # 30 at the stamps' 90 Hz
+    retry_frames = math.ceil(_s(1) * 90 - 0.01)               # the cooldown: 1 frame at the stamps' 90 Hz
     unc = TrackingStatus.UNCERTAIN
 
     def drift(policy, frames, start=0):
@@ -934,7 +943,7 @@ def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
             frames, waited = frames + 1, waited + 1
         assert "still searching" in policy.pending and waited == policy._cooldown()
         _due(policy).kept()
-    assert policy._cooldown() == 8 * math.ceil(0.1 * 90 - 0.01)   # the backoff's cap, x8
+    assert policy._cooldown() == 8 * math.ceil(0.1 * 90 - 0.01)   # 2^3 x the cooldown, below after_uncertain_s
     confirm = policy.config.confirm_frames
     statuses = [policy.update(TrackingStatus.OK, True, True, 0.9, T_far, (frames + k) / 90) for k in range(confirm)]
     assert statuses[:-1] == [unc] * (confirm - 1) and statuses[-1] == TrackingStatus.OK

@@ -116,7 +116,7 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
   which slid a pose found 0.4 mm off to 16-26 deg off on or_fast_reposition crest_right_02 seed 3,
   BENCHMARKS.md §6o). A search that confirms nothing
   (the bone out of view) changes nothing and is no attempt (:meth:`RecoveryPolicy.declined`): it
-  is retried every SEARCH_RETRY_S on weighed frames away from the last ok pose until a frame
+  is retried every ``cooldown_s`` on weighed frames away from the last ok pose until a frame
   is ok or a search finds a pose, whether or not the trigger still holds (a wrong track sliding
   over the tissue restarts the slow trigger's count). A search whose best verified pose is the
   tracker's current estimate (refined in place; wide_search.py, 6) keeps the track
@@ -135,8 +135,10 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
   evaluations (work, never seconds).
 
 Without any ok frame yet, the last confident pose is the start pose. After attempt k the next one
-waits at least ``cooldown_s`` · 2^min(k, 3) (a scene that can never be tracked, e.g. a
-crest buried in tissue, is not re-initialised every few frames). The slow trigger counts only
+waits at least min(``cooldown_s`` · 2^k, ``after_uncertain_s``) (a scene that can never be tracked, e.g. a
+crest buried in tissue, is not re-initialised every few frames; no retry waits longer than the slow
+trigger's own wait for a track not ok. Since issue 32 one retry period: it was capped at 2^3 by
+``recovery.max_backoff_doublings``, and a declined search waited ``recovery.search_retry_s``, 0.33 s). The slow trigger counts only
 frames the rules do not find ok: a found pose awaiting its confirmation (below) is reported
 uncertain, and counting those frames fired a re-spread at the old pose before it was confirmed.
 
@@ -184,11 +186,9 @@ from app.tracking import levels
 
 RESPREAD, SMC, SEARCH = "respread", "smc", "search"
 FOUND_SIGMA_M, FOUND_SIGMA_RAD = 0.003, math.radians(3.0)   # the cloud about a pose the wide search found
-SEARCH_RETRY_S = 0.33                # s between two wide searches that found nothing (30 frames at 90 Hz)
 NOMINAL_PERIOD_S = 1.0 / 90.0        # the frame period until two stamps are known (the D415's 90 Hz, the trials')
 PERIOD_FRAMES = 31                   # the period is the median of the last 30 stamp differences
 TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 of the last 90 not-lost estimates
-MAX_BACKOFF_DOUBLINGS = 3
 SLIDING_FACTOR = 2.0                 # x after_uncertain_s: not ok this long, far, moving or not: a search
 START_SIGMAS = levels.chi_level(levels.ALPHA, 3)   # status.alpha's chi, 3 dof: a never-ok track this many start sigmas off
 STILL_WINDOW_S = 0.5
@@ -208,8 +208,10 @@ class RecoveryConfig:
     search_evaluations (its likelihood evaluations per search); search_min_sharp (the consistent sharp
     share a search's verified fit needs to be found, and below which a found pose is searched again:
     wide_search.MIN_SHARP's default); the triggers' numbers (module
-    docstring, "Trigger"; defaults the module constants): search_retry_s, sliding_factor,
-    still_window_s, max_backoff_doublings.
+    docstring, "Trigger"; defaults the module constants): sliding_factor, still_window_s.
+    ``cooldown_s`` is the one retry period (issue 32): after attempt k the next waits
+    min(cooldown_s 2^k, after_uncertain_s), a declined search is retried after cooldown_s, and a start
+    whose detector found nothing asks again after it.
     Since issue 32 the "far" gap is ``refine.competitor_distance`` / ``competitor_angle`` (it was
     recovery.far_m / far_angle, the same 5 mm / 5 deg; :class:`RecoveryPolicy`'s ``far``) and the never-ok
     track's one search waits ``after_uncertain_s`` (it was recovery.never_ok_search_s, the same 1 s)."""
@@ -226,10 +228,8 @@ class RecoveryConfig:
     search: bool = True
     search_evaluations: int = 4000
     search_min_sharp: float = 0.5
-    search_retry_s: float = SEARCH_RETRY_S
     sliding_factor: float = SLIDING_FACTOR
     still_window_s: float = STILL_WINDOW_S
-    max_backoff_doublings: int = MAX_BACKOFF_DOUBLINGS
     search_worker: str = "auto"
     confirm_moved: bool = True
 
@@ -533,9 +533,12 @@ class RecoveryPolicy:
         return None
 
     def _cooldown(self) -> int:
-        """After attempt k (attempts counts it already): cooldown_s (in frames) * 2^min(k, 3)."""
+        """After attempt k (attempts counts it already): cooldown_s * 2^k in frames, at most the slow trigger's
+        after_uncertain_s (no retry waits longer than a track not ok waits for its search)."""
         k = max(self._attempts - 1, 0)
-        return self.period.frames(self.config.cooldown_s) * 2 ** min(k, self.config.max_backoff_doublings)
+        frames = self.period.frames
+        backed_off = frames(self.config.cooldown_s) * 2 ** min(k, 30)
+        return max(min(backed_off, frames(self.config.after_uncertain_s)), frames(self.config.cooldown_s))
 
     def next_kind(self) -> str:
         """The kind of the due attempt (module docstring)."""
@@ -554,7 +557,7 @@ class RecoveryPolicy:
     def declined(self) -> None:
         """The due wide search found nothing confirmed (the bone out of view): nothing was changed, so
         it is no attempt (no hold, no backoff step, the bad-frame counts kept); the next search runs
-        SEARCH_RETRY_S later, and keeps being retried so, on weighed frames away from the last ok
+        ``cooldown_s`` later, and keeps being retried so, on weighed frames away from the last ok
         pose, until a frame is ok or a search finds a pose: the trigger found the track suspect, and a
         wrong track that moves (sliding over the tissue) or fits the tissue well is no less so
         (or_fast_reposition crest_left_03 seed 1: with the retry tied to the trigger, the bone was not
@@ -562,7 +565,7 @@ class RecoveryPolicy:
         self.lifecycle.declined()
         self.declined_searches += 1
         self._not_ok_moving = 0
-        self._since, self._wait = 0, self.period.frames(self.config.search_retry_s)
+        self._since, self._wait = 0, self.period.frames(self.config.cooldown_s)
 
     def kept(self) -> None:
         """The due wide search kept the track: the current estimate, refined in place, explained the
@@ -578,7 +581,7 @@ class RecoveryPolicy:
         crest_left_02 seed 0 at 3.7 s: 77 mm off at a sharp share of 0.60, the bone out of view; kept
         and not searched again, it was found 1.4 s after the bone came into view), so the search is
         retried as after a declined one, on weighed frames away from the last ok pose, but only
-        after the cooldown, backed off as after an attempt (0.16 s doubling to 1.3 s): a right track
+        after the cooldown, backed off as after an attempt (0.16 s doubling up to after_uncertain_s, 1 s): a right track
         the image cannot make ok (a quarter of the crest in view) is checked about once a second,
         not every frame. A track never ok is not retried so (its "last ok pose" is the start: the
         residual-tissue tracks 2 mm from the truth lie 5 mm from their start, and were searched
