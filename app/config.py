@@ -170,8 +170,7 @@ KEYS: dict[str, _Key] = {
     "likelihood.pixel_weight": _f("likelihood.pixel_weight", 0.0, 1.0, lo_open=True),
     "likelihood.occluder_margin": _f("likelihood.occluder_margin", 0.0, 1.0, lo_open=True),
     "status.lost_no_pose_s": _f("status.lost_no_pose_s", 0.0, 60.0),
-    "status.lost_position_spread": _f("status.lost_position_spread", 0.0, 1.0, lo_open=True),
-    "status.lost_rotation_spread": _f("status.lost_rotation_spread", 0.0, math.pi, lo_open=True),
+    "status.lost_spread": _f("status.lost_spread", 0.0, 1.0, lo_open=True),
     "status.lost_inlier_fraction": _f("status.lost_inlier_fraction", 0.0, 1.0),
     "status.min_covered_pixels": _i("status.min_covered_pixels", 0, 10_000_000),
     "status.uncertain_speed": _f("status.uncertain_speed", 0.0, 100.0, lo_open=True),
@@ -413,6 +412,10 @@ RENAMED = {   # keys of earlier configurations: what replaced them
     "recovery.max_backoff_doublings": "replaced by recovery.after_uncertain_s as the backoff's cap: after attempt k the "
                                       "next waits min(cooldown_s 2^k, after_uncertain_s) (0.16 s up to 1 s; it was up "
                                       "to 8x, 1.28 s); remove the key",
+    "status.lost_position_spread": "replaced by status.lost_spread, the template's points' spread over the particles "
+                                    "(the same 10 mm, now of the template, not the bone frame's origin); move its value there",
+    "status.lost_rotation_spread": "replaced by status.lost_spread (the template's points' spread covers the rotation: "
+                                   "10 deg moves points 60 mm out 10 mm); remove the key",
     "recovery.kept_move_angle": "replaced by status.max_template_std (the template's largest displacement covers the "
                                 "rotation: 1 deg moves points 50 mm out 0.9 mm); remove the key",
 }
