@@ -188,7 +188,6 @@ KEYS: dict[str, _Key] = {
     "refine.keep_fitness": _f("refine.keep_fitness", 0.0, 1.0),
     "refine.reseed_fitness": _f("refine.reseed_fitness", 0.0, 1.0),
     "refine.competitor_distance": _f("refine.competitor_distance", 0.0, 1.0),
-    "refine.competitor_angle": _f("refine.competitor_angle", 0.0, math.pi),
     "refine.competitor_margin": _f("refine.competitor_margin", 0.0, 1.0),
     "refine.feedback": _Key(("refine", "feedback"), "bool"),
     "refine.feedback_spread": _f("refine.feedback_spread", 0.0, 1.0, lo_open=True),
@@ -360,7 +359,7 @@ RENAMED = {   # keys of earlier configurations: what replaced them
     "recovery.far_m": "replaced by refine.competitor_distance (the same 5 mm: two poses this far apart are different "
                       "answers, for the competitor rule and for the recovery's \"far from the last ok pose\"); "
                       "move its value there",
-    "recovery.far_angle": "replaced by refine.competitor_angle (the same 5 deg, for the competitor rule and the "
+    "recovery.far_angle": "replaced by refine.competitor_distance (the template's largest displacement; it was 5 deg, for the competitor rule and the "
                           "recovery's \"far\"); move its value there",
     "recovery.never_ok_search_s": "replaced by recovery.after_uncertain_s (the same 1 s of still, not-ok frames: a "
                                   "never-ok track's one search waits as long as the slow trigger); remove the key",
@@ -416,6 +415,8 @@ RENAMED = {   # keys of earlier configurations: what replaced them
                                     "(the same 10 mm, now of the template, not the bone frame's origin); move its value there",
     "status.lost_rotation_spread": "replaced by status.lost_spread (the template's points' spread covers the rotation: "
                                    "10 deg moves points 60 mm out 10 mm); remove the key",
+    "refine.competitor_angle": "replaced by refine.competitor_distance, now the template's largest displacement "
+                               "between two poses (5 mm; 5 deg moves points 60 mm out 5 mm); remove the key",
     "recovery.kept_move_angle": "replaced by status.max_template_std (the template's largest displacement covers the "
                                 "rotation: 1 deg moves points 50 mm out 0.9 mm); remove the key",
 }

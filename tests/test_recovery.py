@@ -657,7 +657,8 @@ def test_a_never_ok_track_outside_the_start_prior_is_searched_for():
     def run(offset_m=0.0, angle_rad=0.0):
         # 10 Hz stamps: the slow trigger after 5 frames; after_lost_s 1 s (10 frames, as the 10 the count had)
         policy = RecoveryPolicy(RecoveryConfig(after_lost_s=1.0, after_uncertain_s=0.5, cooldown_s=0.1), np.zeros(3),
-                                np.array([0.0, 0.0, 0.01]), refine_enabled=True, start_sigmas=(0.01, 0.1))
+                                np.array([0.0, 0.0, 0.01]), refine_enabled=True, start_sigmas=(0.01, 0.1),
+                                points_bone=np.array([[0.06, 0.0, 0.0]]))   # "far" is the template's move
         policy.set_start(np.eye(4))
         T = se3.from_rotvec_trans(np.array([0.0, 0.0, angle_rad]), np.array([offset_m, 0.0, 0.0]))
         for k in range(9):   # 0.9 s

@@ -42,8 +42,9 @@ first re-initialisation: a pose the search found may rightly lie outside the sta
 moved before it was ever ok), and its settling frames must not search again. A bone being
 repositioned is uncertain for seconds (status.py's motion rule), and a re-spread around its pose
 before the move would lose it. The low-fit and the slow trigger also need the estimate more than
-FAR = 5 mm / 5 deg (``refine.competitor_distance`` / ``competitor_angle``, the competitor gap) from the last confident
-pose: under an 80 % hand a correct track is uncertain for seconds (the predicted template error),
+FAR = 5 mm (``refine.competitor_distance``, the competitor gap: the template's largest displacement
+between the two poses, :attr:`RecoveryPolicy.points_bone`; 5 mm / 5 deg of the bone frame's origin
+before issue 32) from the last confident pose: under an 80 % hand a correct track is uncertain for seconds (the predicted template error),
 and re-initialising it there raised crest_left_05's lost share from 1.6 to 16 %. It did not save
 crest_right_04 / _05, whose tracks had been > 5 mm off for a moment (and came back by themselves
 without recovery; BENCHMARKS.md §6b). A third: a weighed frame after at least ``after_lost_s`` of
@@ -174,6 +175,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app import metrics
 from app.filter.motion import ParticleState, draws_about_centroid
 from app.filter.motion_gate import template_speed
 from app.filter.refine_track import RefineConfig, pose_gap
@@ -212,8 +214,8 @@ class RecoveryConfig:
     ``cooldown_s`` is the one retry period (issue 32): after attempt k the next waits
     min(cooldown_s 2^k, after_uncertain_s), a declined search is retried after cooldown_s, and a start
     whose detector found nothing asks again after it.
-    Since issue 32 the "far" gap is ``refine.competitor_distance`` / ``competitor_angle`` (it was
-    recovery.far_m / far_angle, the same 5 mm / 5 deg; :class:`RecoveryPolicy`'s ``far``) and the never-ok
+    Since issue 32 the "far" gap is ``refine.competitor_distance`` of the template's points (it was
+    recovery.far_m / far_angle, 5 mm / 5 deg of the bone frame's origin; :class:`RecoveryPolicy`'s ``far``) and the never-ok
     track's one search waits ``after_uncertain_s`` (it was recovery.never_ok_search_s, the same 1 s)."""
 
     enabled: bool = True
@@ -281,8 +283,9 @@ class RecoveryPolicy:
     min_fitness : a refined fit below this counts as bad (status.min_fitness)
     still : (speed m/s, window s) below which the estimate is still: the largest speed of ``points_bone``
         (status.uncertain_speed, motion_window_s; the window at least STILL_WINDOW_S)
-    far : (m, rad) a pose farther than this from the last ok one is "far" (``refine.competitor_distance`` /
-        ``competitor_angle``: two poses this far apart are different answers; default RefineConfig's)
+    far : m, a pose that moves the template's points (``points_bone``) by more than this from the last ok one
+        is "far" (``refine.competitor_distance``: two poses this far apart are different answers; default
+        RefineConfig's)
     start_level : the never-ok track's outside_start radius in start sigmas (chi, 3 dof, at status.alpha)
     points_bone : (N, 3) m, bone frame: the template's points whose speed the still test watches (default: the
         bone frame's origin)
@@ -292,10 +295,10 @@ class RecoveryPolicy:
                  refine_enabled: bool, min_fitness: float = 0.6,
                  still: tuple[float, float] = (0.03, 0.2),
                  start_sigmas: tuple[float, float] = (math.inf, math.inf), search_bar: float = math.nan,
-                 far: tuple[float, float] | None = None, start_level: float = START_SIGMAS,
+                 far: float | None = None, start_level: float = START_SIGMAS,
                  points_bone: np.ndarray | None = None):
         self.config = config
-        self.far = (RefineConfig.competitor_distance, RefineConfig.competitor_angle) if far is None else far
+        self.far = RefineConfig.competitor_distance if far is None else float(far)
         self.search_bar = search_bar           # the wide search's MIN_SHARP: a found pose below it is searched again
         self.start_sigmas = start_sigmas       # init.sigma_p (m), sigma_r (rad): the start pose's prior
         self.start_level = start_level         # k: chi_3 at status.alpha (app/tracking/levels.py)
@@ -409,7 +412,7 @@ class RecoveryPolicy:
         return Evidence(
             bad_reason=bad_reason, bad=self._bad, outside=self._outside, back=back, not_ok=self._not_ok,
             not_ok_moving=self._not_ok_moving, below_bar=self._below_bar,
-            far=self.T_base_bone_confident is None or self._far_gap(gap_m, gap_rad), beyond=beyond,
+            far=self._far(T_base_bone), beyond=beyond,
             ever_ok=self.lifecycle.ever_ok, retrying=self.lifecycle.retrying,
             untried=not self.events and not self.declined_searches and not self.kept_searches,
             weighed=weighed, rules_ok=rules_ok, after_lost=frames(c.after_lost_s),
@@ -468,15 +471,11 @@ class RecoveryPolicy:
         return pose_gap(self.T_base_bone_confident, T_base_bone)
 
     def _far(self, T_base_bone: np.ndarray) -> bool:
-        """Whether the estimate lies more than FAR from the last confident pose."""
+        """Whether the estimate moves the template's points by more than FAR (``far``,
+        refine.competitor_distance) from the last confident pose (far when there is none)."""
         if self.T_base_bone_confident is None:
             return True
-        return self._far_gap(*self._gap(T_base_bone))
-
-    def _far_gap(self, dist: float, angle: float) -> bool:
-        """Whether a gap (m, rad) to the last confident pose is far (``far``: refine.competitor_distance /
-        competitor_angle)."""
-        return dist > self.far[0] or angle > self.far[1]
+        return metrics.mdd(self.T_base_bone_confident, T_base_bone, self.points_bone) > self.far
 
     def _beyond_start(self, T_base_bone: np.ndarray) -> bool:
         """Never ok and outside the start's prior: more than ``start_level`` start sigmas from it (k² the
