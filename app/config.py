@@ -223,6 +223,7 @@ KEYS: dict[str, _Key] = {
     "recovery.search": _Key(("recovery", "search"), "bool"),
     "recovery.search_evaluations": _i("recovery.search_evaluations", 100, 10_000_000),
     "recovery.search_min_sharp": _f("recovery.search_min_sharp", 0.0, 1.0),
+    "recovery.search_retry_s": _f("recovery.search_retry_s", 0.0, 3600.0),
     "recovery.sliding_factor": _f("recovery.sliding_factor", 1.0, 1000.0),
     "recovery.still_window_s": _f("recovery.still_window_s", 0.0, 60.0),
     "recovery.confirm_moved": _Key(("recovery", "confirm_moved"), "bool"),
@@ -405,8 +406,6 @@ RENAMED = {   # keys of earlier configurations: what replaced them
     "recovery.min_visible_share": "replaced by status.min_fitness (the same 0.6): a due re-initialisation waits until "
                                   "that share of the bone's expected silhouette is not hidden, since a pose found on "
                                   "less could never be ok; remove the key",
-    "recovery.search_retry_s": "replaced by recovery.cooldown_s, the one retry period: a declined search (and a start "
-                               "whose detector found nothing) is retried after it (0.16 s; it was 0.33 s); remove the key",
     "recovery.max_backoff_doublings": "replaced by recovery.after_uncertain_s as the backoff's cap: after attempt k the "
                                       "next waits min(cooldown_s 2^k, after_uncertain_s) (0.16 s up to 1 s; it was up "
                                       "to 8x, 1.28 s); remove the key",

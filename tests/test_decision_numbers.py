@@ -62,7 +62,6 @@ def test_a_number_without_its_kind_is_refused(tmp_path):
     ("recovery.far_angle", "refine.competitor_distance"),
     ("refine.competitor_angle", "refine.competitor_distance"),
     ("recovery.min_visible_share", "status.min_fitness"),
-    ("recovery.search_retry_s", "recovery.cooldown_s"),
     ("recovery.max_backoff_doublings", "recovery.after_uncertain_s"),
     ("status.lost_position_spread", "status.lost_spread"),
     ("status.lost_rotation_spread", "status.lost_spread"),

@@ -278,6 +278,8 @@ def test_the_backoff_doubles_the_cooldown_up_to_after_uncertain_s():
 
 
 def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retries_without_backoff():
+    from app.filter.recovery import SEARCH_RETRY_S
+
     policy = _policy(after_lost_s=0.01, respreads=1, cooldown_s=0.04)   # 1 and 4 frames at the stamps' 100 Hz
     T = np.eye(4)
     frames, due = 0, []
@@ -296,8 +298,8 @@ def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retrie
     assert run_until_due() == "search"
     _due(policy).declined()                                        # found nothing: no attempt, no hold
     assert policy.report()["declined_searches"] == 1 and len(policy.events) == 1
-    # retried after the cooldown, not backed off: 0.04 s is 4 frames at 100 Hz
-    assert run_until_due() == "search" and due[-1] == math.ceil(0.04 / 0.01 - 0.01) == 4
+    # retried, not backed off: SEARCH_RETRY_S (0.33 s, 30 frames at 90 Hz) is 33 frames at 100 Hz
+    assert run_until_due() == "search" and due[-1] == math.ceil(SEARCH_RETRY_S / 0.01 - 0.01) == 33
     _due(policy).done(1.0, "search")
     assert run_until_due() == "respread"
 
@@ -578,12 +580,14 @@ def test_a_track_weighed_again_after_being_out_of_view_far_from_the_last_ok_pose
 
 def test_a_declined_search_is_retried_while_not_ok_even_when_the_estimate_moves():
     """A wide search that found nothing leaves the track suspect: it is retried every
-    cooldown_s while no frame is ok and the estimate is away from the last ok pose, whether or
+    SEARCH_RETRY_S while no frame is ok and the estimate is away from the last ok pose, whether or
     not the estimate is still or its fit good (or_fast_reposition crest_left_03 seed 1: after a declined
     search the wrong track slid across the tissue, the slow trigger's count restarted with every move,
     and the bone in view was not searched for again for 2.4 s; BENCHMARKS.md §6e). An ok frame or a
     found pose ends it."""
-    retry_frames = math.ceil(_s(1) * 90 - 0.01)               # the cooldown: 1 frame at the stamps' 90 Hz
+    from app.filter.recovery import SEARCH_RETRY_S
+
+    retry_frames = math.ceil(SEARCH_RETRY_S * 90 - 0.01)      # 30 at the stamps' 90 Hz
     unc = TrackingStatus.UNCERTAIN
 
     def drift(policy, frames, start=0):

@@ -283,7 +283,7 @@ class _Declining:
         return Detection(np.eye(4), 0.8, 0.9, 10, 2, "fake")
 
 
-def test_a_start_that_finds_nothing_is_retried_after_the_cooldown_and_counts_every_attempt():
+def test_a_start_that_finds_nothing_is_retried_after_search_retry_s_and_counts_every_attempt():
     from app.tracking.start import StartByDetection
 
     period = 1.0 / 90.0
@@ -294,7 +294,7 @@ def test_a_start_that_finds_nothing_is_retried_after_the_cooldown_and_counts_eve
             found_at = k * period
             break
     assert start.detector.calls == 3 and not start.pending
-    assert found_at == pytest.approx(2 * 30 * period, abs=period)       # recovery.cooldown_s, as given
+    assert found_at == pytest.approx(2 * 30 * period, abs=period)       # recovery.search_retry_s, as given
     report = start.report()
     assert report["attempts"] == 3 and report["evaluations"] == 30 and report["refinements"] == 6
     assert report["found"] and report["found_stamp"] == pytest.approx(found_at) and report["method"] == "detect_point"
@@ -338,7 +338,7 @@ def test_a_live_start_detects_on_the_worker_while_the_frames_go_on(crest_trial):
     tracker.start_by_detection(np.asarray(reader.meta.point_prior))
     worker = tracker._start_detection.worker
     assert worker is tracker.recovery_runner.worker and worker is not None
-    assert tracker._start_detection.retry_s == config.recovery.cooldown_s     # the one retry period, from the config
+    assert tracker._start_detection.retry_s == config.recovery.search_retry_s     # the retry from the config
     T_base_camera, valid = reader.camera_poses()
     frames = list(reader.iter_frames())
     first = tracker.process(frames[0].depth_m, frames[0].stamp, T_base_camera[0])     # hands the detection over

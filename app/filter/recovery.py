@@ -117,7 +117,7 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
   which slid a pose found 0.4 mm off to 16-26 deg off on or_fast_reposition crest_right_02 seed 3,
   BENCHMARKS.md §6o). A search that confirms nothing
   (the bone out of view) changes nothing and is no attempt (:meth:`RecoveryPolicy.declined`): it
-  is retried every ``cooldown_s`` on weighed frames away from the last ok pose until a frame
+  is retried every SEARCH_RETRY_S on weighed frames away from the last ok pose until a frame
   is ok or a search finds a pose, whether or not the trigger still holds (a wrong track sliding
   over the tissue restarts the slow trigger's count). A search whose best verified pose is the
   tracker's current estimate (refined in place; wide_search.py, 6) keeps the track
@@ -138,8 +138,11 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
 Without any ok frame yet, the last confident pose is the start pose. After attempt k the next one
 waits at least min(``cooldown_s`` · 2^k, ``after_uncertain_s``) (a scene that can never be tracked, e.g. a
 crest buried in tissue, is not re-initialised every few frames; no retry waits longer than the slow
-trigger's own wait for a track not ok. Since issue 32 one retry period: it was capped at 2^3 by
-``recovery.max_backoff_doublings``, and a declined search waited ``recovery.search_retry_s``, 0.33 s). The slow trigger counts only
+trigger's own wait for a track not ok; it was capped at 2^3 by ``recovery.max_backoff_doublings``
+until issue 32). A declined search is retried after ``search_retry_s`` (0.33 s): retrying it after
+``cooldown_s`` (0.16 s, one retry period for both) or both at 0.33 s found a moved bone later on 2 and 3
+of the 8 fast repositions of BENCHMARKS.md "Decision numbers" (an earlier search on a partial view
+found a wrong pose), so the two periods stay. The slow trigger counts only
 frames the rules do not find ok: a found pose awaiting its confirmation (below) is reported
 uncertain, and counting those frames fired a re-spread at the old pose before it was confirmed.
 
@@ -189,6 +192,7 @@ from app.tracking import levels
 RESPREAD, SMC, SEARCH = "respread", "smc", "search"
 FOUND_SIGMA_M, FOUND_SIGMA_RAD = 0.003, math.radians(3.0)   # the cloud about a pose the wide search found
 NOMINAL_PERIOD_S = 1.0 / 90.0        # the frame period until two stamps are known (the D415's 90 Hz, the trials')
+SEARCH_RETRY_S = 0.33                # s between two wide searches that found nothing (30 frames at 90 Hz)
 PERIOD_FRAMES = 31                   # the period is the median of the last 30 stamp differences
 TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 of the last 90 not-lost estimates
 SLIDING_FACTOR = 2.0                 # x after_uncertain_s: not ok this long, far, moving or not: a search
@@ -210,10 +214,9 @@ class RecoveryConfig:
     search_evaluations (its likelihood evaluations per search); search_min_sharp (the consistent sharp
     share a search's verified fit needs to be found, and below which a found pose is searched again:
     wide_search.MIN_SHARP's default); the triggers' numbers (module
-    docstring, "Trigger"; defaults the module constants): sliding_factor, still_window_s.
-    ``cooldown_s`` is the one retry period (issue 32): after attempt k the next waits
-    min(cooldown_s 2^k, after_uncertain_s), a declined search is retried after cooldown_s, and a start
-    whose detector found nothing asks again after it.
+    docstring, "Trigger"; defaults the module constants): search_retry_s, sliding_factor,
+    still_window_s. After attempt k the next waits min(cooldown_s 2^k, after_uncertain_s) (issue 32: the
+    cap was recovery.max_backoff_doublings, 3).
     Since issue 32 the "far" gap is ``refine.competitor_distance`` of the template's points (it was
     recovery.far_m / far_angle, 5 mm / 5 deg of the bone frame's origin; :class:`RecoveryPolicy`'s ``far``) and the never-ok
     track's one search waits ``after_uncertain_s`` (it was recovery.never_ok_search_s, the same 1 s)."""
@@ -230,6 +233,7 @@ class RecoveryConfig:
     search: bool = True
     search_evaluations: int = 4000
     search_min_sharp: float = 0.5
+    search_retry_s: float = SEARCH_RETRY_S
     sliding_factor: float = SLIDING_FACTOR
     still_window_s: float = STILL_WINDOW_S
     search_worker: str = "auto"
@@ -556,7 +560,7 @@ class RecoveryPolicy:
     def declined(self) -> None:
         """The due wide search found nothing confirmed (the bone out of view): nothing was changed, so
         it is no attempt (no hold, no backoff step, the bad-frame counts kept); the next search runs
-        ``cooldown_s`` later, and keeps being retried so, on weighed frames away from the last ok
+        SEARCH_RETRY_S later, and keeps being retried so, on weighed frames away from the last ok
         pose, until a frame is ok or a search finds a pose: the trigger found the track suspect, and a
         wrong track that moves (sliding over the tissue) or fits the tissue well is no less so
         (or_fast_reposition crest_left_03 seed 1: with the retry tied to the trigger, the bone was not
@@ -564,7 +568,7 @@ class RecoveryPolicy:
         self.lifecycle.declined()
         self.declined_searches += 1
         self._not_ok_moving = 0
-        self._since, self._wait = 0, self.period.frames(self.config.cooldown_s)
+        self._since, self._wait = 0, self.period.frames(self.config.search_retry_s)
 
     def kept(self) -> None:
         """The due wide search kept the track: the current estimate, refined in place, explained the

@@ -179,7 +179,7 @@ class DepthTracker:
         ``point_base`` (base frame, m) when given, or from the first point ``point_source`` locates
         (app/tracking/start.py's PointSource, e.g. the session's pointed pixel: the frames before it has
         one are lost, 'initialising', with its reason), else over the whole image (experimental); retried
-        every ``recovery.cooldown_s`` while it finds nothing (those frames are lost, 'initialising'). A found
+        every ``recovery.search_retry_s`` while it finds nothing (those frames are lost, 'initialising'). A found
         pose seeds the particles (the recovery's FOUND_SIGMA_M / _RAD about it) and the refined track as
         a verified fit, and is ok only once confirmed (RecoveryPolicy.set_found_start). Needs the
         refinement; without it (or without the recovery, which confirms) a point starts the one-point
@@ -202,7 +202,7 @@ class DepthTracker:
                                                        self.refined_track.refiner, self.mesh_vertices)     # recovery.search off: built alike
         self._new_lifecycle()
         self._start_detection = StartByDetection(SearchDetector(search, self.filter.rng, self.config.detector), point, point_source,
-                                                 retry_s=self.config.recovery.cooldown_s)
+                                                 retry_s=self.config.recovery.search_retry_s)
         if self.recovery_runner is not None and self.recovery_runner.worker is not None:
             self._start_detection.worker = self.recovery_runner.worker      # a live session: off the frame loop
         if point is not None and self.recovery.point_prior is None:

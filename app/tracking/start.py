@@ -3,7 +3,7 @@
 Import as ``from app.tracking.start import StartByDetection, PointedPixel``. Used by
 :meth:`app.pipeline.tracker.DepthTracker.start_by_detection` (``init.method: auto`` with no coarse
 pose; issue 33). On each usable frame while the start is pending, at most every ``retry_s``
-(``recovery.cooldown_s``, the lifecycle's one retry period: a detector that found nothing on one frame is asked again a sixth of
+(``recovery.search_retry_s``: a detector that found nothing on one frame is asked again a third of
 a second later, not on every frame), the detector (app/tracking/detector.py) looks for the bone
 from the point prior, or over the whole image without one. The work (attempts, likelihood
 evaluations, refinements, CPU and wall seconds, the stamp it was found at) is counted for the
@@ -94,11 +94,11 @@ class StartByDetection:
     """
 
     def __init__(self, detector, point: np.ndarray | None, source: PointSource | None = None,
-                 retry_s: float = RecoveryConfig.cooldown_s):
+                 retry_s: float = RecoveryConfig.search_retry_s):
         if point is not None and source is not None:
             raise ValueError("a start takes a point or a point source, not both")
         self.detector, self.point, self.source = detector, point, source
-        self.retry_s = float(retry_s)   # s between two attempts that found nothing (recovery.cooldown_s)
+        self.retry_s = float(retry_s)   # s between two attempts that found nothing (recovery.search_retry_s)
         self.waiting = ""           # why the source located no point on the last frame ('' once it has)
         self.located_stamp: float | None = None
         self.pending = True
