@@ -209,6 +209,7 @@ KEYS: dict[str, _Key] = {
     "refine.nearby_sigma_p": _f("refine.nearby_sigma_p", 0.0, 0.05, lo_open=True),
     "refine.nearby_sigma_r": _f("refine.nearby_sigma_r", 0.0, math.pi, lo_open=True),
     "refine.nearby_margin": _f("refine.nearby_margin", 0.0, 1.0),
+    "refine.nearby_hold": _i("refine.nearby_hold", 1, 100_000),
     "refine.nearby_followups": _i("refine.nearby_followups", 0, 100),
     "refine.nearby_validate": _Key(("refine", "nearby_validate"), "bool"),
     "recovery.enabled": _Key(("recovery", "enabled"), "bool"),
@@ -415,9 +416,6 @@ RENAMED = {   # keys of earlier configurations: what replaced them
                                    "10 deg moves points 60 mm out 10 mm); remove the key",
     "refine.competitor_angle": "replaced by refine.competitor_distance, now the template's largest displacement "
                                "between two poses (5 mm; 5 deg moves points 60 mm out 5 mm); remove the key",
-    "refine.nearby_hold": "replaced by refine.nearby_validate: a competitor near the track is the answer until a "
-                          "search (from its pose first) finds none, a validated one while it still explains the image "
-                          "better (it was held for 2 searches); remove the key",
     "recovery.kept_move_angle": "replaced by status.max_template_std (the template's largest displacement covers the "
                                 "rotation: 1 deg moves points 50 mm out 0.9 mm); remove the key",
 }

@@ -93,7 +93,7 @@ def test_unknown_section_is_rejected_with_the_valid_ones():
     ({"refine": {"nearby_followups": -1}}, "refine.nearby_followups", r"outside the allowed range \[0, 100\]"),
     ({"refine": {"nearby_followups": 1.5}}, "refine.nearby_followups", "expected an integer"),
     ({"refine": {"nearby_margin": 2.0}}, "refine.nearby_margin", "outside the allowed range"),
-    ({"refine": {"nearby_followups": -1}}, "refine.nearby_followups", "outside the allowed range"),
+    ({"refine": {"nearby_hold": 0}}, "refine.nearby_hold", "outside the allowed range"),
     ({"refine": {"nearby_sigma_p": 0.0}}, "refine.nearby_sigma_p", "outside the allowed range"),
     ({"filter": [1, 2]}, "filter", "expected a mapping"),
 ])

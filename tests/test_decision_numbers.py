@@ -65,7 +65,6 @@ def test_a_number_without_its_kind_is_refused(tmp_path):
     ("recovery.max_backoff_doublings", "recovery.after_uncertain_s"),
     ("status.lost_position_spread", "status.lost_spread"),
     ("status.lost_rotation_spread", "status.lost_spread"),
-    ("refine.nearby_hold", "refine.nearby_validate"),
     ("recovery.never_ok_search_s", "recovery.after_uncertain_s"),
     ("refine.nearby_gap", "status.max_template_std"),
     ("refine.feedback_fitness", "status.min_fitness"),

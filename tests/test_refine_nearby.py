@@ -120,18 +120,16 @@ def test_the_search_runs_every_nearby_every_frames_and_stops_at_the_first_compet
     assert 2 <= len(refiner.starts) < 1 + 8   # found before the last draw (seeded generator)
 
 
-def test_a_competitor_is_retried_first_and_is_the_answer_until_a_search_finds_none():
-    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10, nearby_validate=False)
+def test_a_competitor_is_retried_first_and_held_for_nearby_hold_searches():
+    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10, nearby_hold=2)
     first = _run(track, 10)
     assert all(out.nearby == pytest.approx(0.0015) for out in first)
-    n_before = len(refiner.starts)
-    second = _run(track, 10)                      # still there: the second search finds it first
-    assert np.allclose(refiner.starts[n_before + 1], _pose(0.0015))
-    assert all(out.nearby == pytest.approx(0.0015) for out in second)
     refiner.minima = [(_pose(), 0.70)]            # the competitor goes (a clearer view)
     n_before = len(refiner.starts)
-    third = _run(track, 10)                       # the third search, from its pose first, finds none
+    second = _run(track, 10)                      # the second search: from the competitor's pose first
     assert np.allclose(refiner.starts[n_before + 1], _pose(0.0015))
+    assert all(out.nearby == pytest.approx(0.0015) for out in second)   # none found, held once
+    third = _run(track, 10)
     assert all(np.isnan(out.nearby) for out in third)
 
 
@@ -214,8 +212,8 @@ def test_a_competitor_that_chased_one_frames_noise_is_withdrawn_on_the_next_fram
 def test_a_validated_competitor_stays_while_it_still_explains_each_search_frame_better():
     """Once validated out of sample, a competitor is checked again on each search's frame, both poses as
     they are (two scores, no refinement): while it still explains the image better it stays the answer
-    from search to search; the first frame it does not, it is dropped and the search runs as usual."""
-    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10)
+    beyond nearby_hold; the first frame it does not, it is dropped and the search runs as usual."""
+    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10, nearby_hold=2)
     refiner.unrefined = [0.70, 0.72]                   # out of sample the competitor stays better
     outs = _run(track, 40)
     assert all(out.nearby == pytest.approx(0.0015) for out in outs)

@@ -15,12 +15,10 @@ and whose consistency (:func:`app.filter.refine_track.consistent_sharp`) exceeds
 stops at the first; its gap (m) is the answer until the next search (NaN: none). The status is
 not ok while there is one (status.py). The next
 search refines from the competitor's pose first (the track's pose moved with it in the base
-frame), and a competitor found is the answer until a search finds none (a validated one, below,
-until it no longer explains the image better). Until issue 32 an unvalidated answer was also held for
-a second search (``refine.nearby_hold`` = 2): on a plateau one search's draws had missed a competitor
-still there (crest_left_02 or_model_mismatch: 3 of 32 searches found none, each leaving 10 frames ok
-while 1.0-1.3 mm off; BENCHMARKS.md §6j), before the search retried the competitor's pose first and
-the validation below checked a competitor on later frames.
+frame), and a competitor found is the answer for ``nearby_hold`` searches unless a newer one
+replaces it: on a plateau one search's draws can miss a competitor that is still there
+(crest_left_02 or_model_mismatch: 3 of 32 searches found none, each leaving 10 frames ok
+while 1.0-1.3 mm off; BENCHMARKS.md §6j).
 
 Out of sample (``nearby_validate``, issue 32): a competitor is a fit refined on one frame and can chase
 that frame's noise (a stereo camera's is correlated over its matching window). On the next frame the
@@ -99,7 +97,7 @@ class NearbySearch:
         """A new track: its first frame searches, from a fresh generator."""
         self._rng = np.random.default_rng(NEARBY_RNG)
         self._since = self.config.nearby_every
-        self._gap, self._T_kept_competitor = math.nan, None
+        self._gap, self._T_kept_competitor, self._age = math.nan, None, 0
         self._T_kept_follow, self._followups = None, 0
         self.validations: list[tuple[float, float]] = []   # (competitor, kept) shares of each validation
         self._margin = self.config.nearby_margin           # nearby_margin sqrt(f) of the last step's fit
@@ -125,13 +123,16 @@ class NearbySearch:
         following, self._since = self._T_kept_follow is not None, 0
         if self._validated is not None and score is not None and not following:
             if self._still_better(score, T_base_bone_kept):
+                self._age = 0
                 return self._gap
         if not following:
-            self._gap = math.nan               # the answer until this search
+            self._age += 1
+            if self._age >= c.nearby_hold:
+                self._gap = math.nan
         found, better = self._search(fit, T_base_bone_kept, own)
         if found is not None:
             self._gap, self._T_kept_competitor = found
-            self._followups = 0
+            self._age, self._followups = 0, 0
             if c.nearby_validate:
                 self._unchecked = (T_base_bone_kept @ self._T_kept_competitor, np.array(T_base_bone_kept, float))
             return self._gap
