@@ -170,8 +170,7 @@ KEYS: dict[str, _Key] = {
     "likelihood.pixel_weight": _f("likelihood.pixel_weight", 0.0, 1.0, lo_open=True),
     "likelihood.occluder_margin": _f("likelihood.occluder_margin", 0.0, 1.0, lo_open=True),
     "status.lost_no_pose_s": _f("status.lost_no_pose_s", 0.0, 60.0),
-    "status.lost_position_spread": _f("status.lost_position_spread", 0.0, 1.0, lo_open=True),
-    "status.lost_rotation_spread": _f("status.lost_rotation_spread", 0.0, math.pi, lo_open=True),
+    "status.lost_spread": _f("status.lost_spread", 0.0, 1.0, lo_open=True),
     "status.lost_inlier_fraction": _f("status.lost_inlier_fraction", 0.0, 1.0),
     "status.min_covered_pixels": _i("status.min_covered_pixels", 0, 10_000_000),
     "status.uncertain_speed": _f("status.uncertain_speed", 0.0, 100.0, lo_open=True),
@@ -189,7 +188,6 @@ KEYS: dict[str, _Key] = {
     "refine.keep_fitness": _f("refine.keep_fitness", 0.0, 1.0),
     "refine.reseed_fitness": _f("refine.reseed_fitness", 0.0, 1.0),
     "refine.competitor_distance": _f("refine.competitor_distance", 0.0, 1.0),
-    "refine.competitor_angle": _f("refine.competitor_angle", 0.0, math.pi),
     "refine.competitor_margin": _f("refine.competitor_margin", 0.0, 1.0),
     "refine.feedback": _Key(("refine", "feedback"), "bool"),
     "refine.feedback_spread": _f("refine.feedback_spread", 0.0, 1.0, lo_open=True),
@@ -222,7 +220,6 @@ KEYS: dict[str, _Key] = {
     "recovery.respreads": _i("recovery.respreads", 0, 100),
     "recovery.smc_evaluations": _i("recovery.smc_evaluations", 600, 10_000_000),
     "recovery.cooldown_s": _f("recovery.cooldown_s", 0.0, 3600.0, lo_open=True),
-    "recovery.min_visible_share": _f("recovery.min_visible_share", 0.0, 1.0),
     "recovery.confirm_frames": _i("recovery.confirm_frames", 0, 1_000_000),
     "recovery.search": _Key(("recovery", "search"), "bool"),
     "recovery.search_evaluations": _i("recovery.search_evaluations", 100, 10_000_000),
@@ -230,7 +227,6 @@ KEYS: dict[str, _Key] = {
     "recovery.search_retry_s": _f("recovery.search_retry_s", 0.0, 3600.0),
     "recovery.sliding_factor": _f("recovery.sliding_factor", 1.0, 1000.0),
     "recovery.still_window_s": _f("recovery.still_window_s", 0.0, 60.0),
-    "recovery.max_backoff_doublings": _i("recovery.max_backoff_doublings", 0, 20),
     "recovery.confirm_moved": _Key(("recovery", "confirm_moved"), "bool"),
     "recovery.search_worker": _Key(("recovery", "search_worker"), "choice", choices=("auto", "inline", "thread")),
     "render.resolution": _Key(("resolution",), "resolution", 8, 4096),
@@ -364,7 +360,7 @@ RENAMED = {   # keys of earlier configurations: what replaced them
     "recovery.far_m": "replaced by refine.competitor_distance (the same 5 mm: two poses this far apart are different "
                       "answers, for the competitor rule and for the recovery's \"far from the last ok pose\"); "
                       "move its value there",
-    "recovery.far_angle": "replaced by refine.competitor_angle (the same 5 deg, for the competitor rule and the "
+    "recovery.far_angle": "replaced by refine.competitor_distance (the template's largest displacement; it was 5 deg, for the competitor rule and the "
                           "recovery's \"far\"); move its value there",
     "recovery.never_ok_search_s": "replaced by recovery.after_uncertain_s (the same 1 s of still, not-ok frames: a "
                                   "never-ok track's one search waits as long as the slow trigger); remove the key",
@@ -407,6 +403,19 @@ RENAMED = {   # keys of earlier configurations: what replaced them
     # issue 32: one tolerance for "a different answer"
     "recovery.kept_move_m": "replaced by status.max_template_std (the same 1 mm, now the largest displacement of the "
                             "template's points between the kept and the refined pose); remove the key",
+    # issue 32: toward 15 decision numbers (BENCHMARKS.md "Decision numbers")
+    "recovery.min_visible_share": "replaced by status.min_fitness (the same 0.6): a due re-initialisation waits until "
+                                  "that share of the bone's expected silhouette is not hidden, since a pose found on "
+                                  "less could never be ok; remove the key",
+    "recovery.max_backoff_doublings": "replaced by recovery.after_uncertain_s as the backoff's cap: after attempt k the "
+                                      "next waits min(cooldown_s 2^k, after_uncertain_s) (0.16 s up to 1 s; it was up "
+                                      "to 8x, 1.28 s); remove the key",
+    "status.lost_position_spread": "replaced by status.lost_spread, the template's points' spread over the particles "
+                                    "(the same 10 mm, now of the template, not the bone frame's origin); move its value there",
+    "status.lost_rotation_spread": "replaced by status.lost_spread (the template's points' spread covers the rotation: "
+                                   "10 deg moves points 60 mm out 10 mm); remove the key",
+    "refine.competitor_angle": "replaced by refine.competitor_distance, now the template's largest displacement "
+                               "between two poses (5 mm; 5 deg moves points 60 mm out 5 mm); remove the key",
     "recovery.kept_move_angle": "replaced by status.max_template_std (the template's largest displacement covers the "
                                 "rotation: 1 deg moves points 50 mm out 0.9 mm); remove the key",
 }

@@ -38,8 +38,6 @@ _LINE = re.compile(r"^  (?P<key>[a-z_0-9]+): (?P<value>[^#]+?)\s*(?:#\s?(?P<comm
 
 # (file, constant, kind, unit, what it decides): decision numbers not (yet) in configs/default.yaml
 IN_CODE: tuple[tuple[str, str, str, str, str], ...] = (
-    ("app/filter/refine_track.py", "FALLBACK_BEHIND_SHARE", "status", "share",
-     "the behind test's level when too few pixels measure the noise (used by the wide search too)"),
 )
 # (file, constant or field, unit, what it defines): the measures' own levels, compiled into the kernels
 MEASURES_IN_CODE: tuple[tuple[str, str, str, str], ...] = (

@@ -28,7 +28,7 @@ def config_for(variant: str):
         return c
     if variant == "trackonly":
         return replace(c, refine=replace(c.refine, feedback=False, reseed_fitness=0.0,
-                                         competitor_distance=1e9, competitor_angle=1e9))
+                                         competitor_distance=1e9))
     if variant == "nofeedback":
         return replace(c, refine=replace(c.refine, feedback=False))
     if variant == "filteronly":
@@ -37,7 +37,7 @@ def config_for(variant: str):
         return replace(c, refine=replace(c.refine, static_prior=False))
     if variant == "trackonly_noprior":
         return replace(c, refine=replace(c.refine, static_prior=False, feedback=False, reseed_fitness=0.0,
-                                         competitor_distance=1e9, competitor_angle=1e9))
+                                         competitor_distance=1e9))
     raise SystemExit(f"unknown variant {variant!r}")
 
 

@@ -59,7 +59,12 @@ def test_a_number_without_its_kind_is_refused(tmp_path):
 
 @pytest.mark.parametrize("old, new", [
     ("recovery.far_m", "refine.competitor_distance"),
-    ("recovery.far_angle", "refine.competitor_angle"),
+    ("recovery.far_angle", "refine.competitor_distance"),
+    ("refine.competitor_angle", "refine.competitor_distance"),
+    ("recovery.min_visible_share", "status.min_fitness"),
+    ("recovery.max_backoff_doublings", "recovery.after_uncertain_s"),
+    ("status.lost_position_spread", "status.lost_spread"),
+    ("status.lost_rotation_spread", "status.lost_spread"),
     ("recovery.never_ok_search_s", "recovery.after_uncertain_s"),
     ("refine.nearby_gap", "status.max_template_std"),
     ("refine.feedback_fitness", "status.min_fitness"),
@@ -83,11 +88,12 @@ def test_the_merged_numbers_are_the_ones_they_replaced():
     """The values each removed key had (5 mm / 5 deg, 1 s, 1 mm, 0.6) are its replacement's defaults, and
     the code reads the replacement (so the defaults' behaviour is unchanged: BENCHMARKS.md's replays)."""
     c = TrackerConfig()
-    assert (c.refine.competitor_distance, c.refine.competitor_angle) == (0.005, pytest.approx(0.0872664626))
+    assert c.refine.competitor_distance == 0.005
     assert c.recovery.after_uncertain_s == 1.0
     assert c.status.max_template_std == 0.001 and c.status.min_fitness == 0.6
     policy = RecoveryPolicy(c.recovery, [0, 0, 0], [0, 0, 0], True)
-    assert policy.far == (RefineConfig.competitor_distance, RefineConfig.competitor_angle)
+    assert policy.far == RefineConfig.competitor_distance
+    assert c.status.lost_spread == 0.01
     assert StatusThresholds().max_template_std == 0.001
 
 

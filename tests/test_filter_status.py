@@ -10,7 +10,7 @@ from app.filter.status import StatusInputs, StatusThresholds, TrackingStatus, cl
 
 GOOD = StatusInputs(position_spread=0.001, rotation_spread=math.radians(0.5), ess_ratio=0.3,
                     inlier_fraction=0.9, covered_pixels=400, n_nan=0, n_particles=200, weighed=True,
-                    seconds_without_pose=0.0)
+                    seconds_without_pose=0.0, template_spread=0.002)
 
 
 def test_a_tight_well_supported_track_is_ok():
@@ -27,8 +27,8 @@ def test_weak_evidence_is_uncertain(change):
 
 
 @pytest.mark.parametrize("change", [
-    {"position_spread": 0.011}, {"rotation_spread": math.radians(11)}, {"inlier_fraction": 0.1},
-    {"weighed": False, "seconds_without_pose": 0.6}, {"n_nan": 200}, {"position_spread": float("nan")},
+    {"template_spread": 0.011}, {"inlier_fraction": 0.1},
+    {"weighed": False, "seconds_without_pose": 0.6}, {"n_nan": 200}, {"template_spread": float("nan")},
 ])
 def test_no_evidence_or_a_wide_cloud_is_lost(change):
     assert classify(replace(GOOD, **change)) == TrackingStatus.LOST
@@ -41,14 +41,16 @@ def test_low_inliers_without_enough_covered_pixels_is_not_lost():
 
 def test_a_spread_below_the_lost_one_does_not_lower_the_status():
     """Issue 32: the template's predicted error (the refinement's) says how precise the output is; the cloud's
-    spread of a few mm / deg only gates the feedback (refine.feedback_spread), and 10 mm / 10 deg is lost."""
-    assert classify(replace(GOOD, position_spread=0.004, rotation_spread=math.radians(3))) == TrackingStatus.OK
-    assert classify(replace(GOOD, position_spread=0.011)) == TrackingStatus.LOST
+    spread of a few mm / deg only gates the feedback (refine.feedback_spread); the template's points spread
+    10 mm over the particles is lost (status.lost_spread)."""
+    assert classify(replace(GOOD, position_spread=0.004, rotation_spread=math.radians(3),
+                            template_spread=0.009)) == TrackingStatus.OK
+    assert classify(replace(GOOD, template_spread=0.011)) == TrackingStatus.LOST
 
 
 def test_thresholds_are_configurable():
-    loose = StatusThresholds(lost_position_spread=0.02)
-    assert classify(replace(GOOD, position_spread=0.011), loose) == TrackingStatus.OK
+    loose = StatusThresholds(lost_spread=0.02)
+    assert classify(replace(GOOD, template_spread=0.011), loose) == TrackingStatus.OK
     strict = StatusThresholds(min_covered_pixels=500)
     assert classify(GOOD, strict) == TrackingStatus.UNCERTAIN
 
@@ -78,3 +80,28 @@ def test_without_the_refinement_an_ok_frame_is_uncertain_and_says_why():
     out = _unrefined(output(TrackingStatus.OK))
     assert out.status == TrackingStatus.UNCERTAIN and [r.code for r in out.reasons] == ["not_refined"]
     assert _unrefined(output(TrackingStatus.LOST)).status == TrackingStatus.LOST
+
+
+def test_the_template_spread_is_exact_where_it_decides_and_its_bound_elsewhere():
+    """app/filter/estimate.py template_spread: two equally weighted particles turned by -θ and +θ about z, a point
+    at r on x: its images lie 2 r sin θ apart, so its RMS distance to their mean is r sin θ; with the position
+    spread added the bound σ_p + σ_r r holds; within the limit the bound itself is returned."""
+    import numpy as np
+
+    from app.filter.estimate import estimate, template_spread
+    from app.geometry import quaternion as quat
+
+    theta, r = math.radians(10.0), 0.08
+    q = quat.exp_map(np.array([[0.0, 0.0, -theta], [0.0, 0.0, theta]]))
+    p = np.zeros((2, 3))
+    lw = np.zeros(2)
+    points = np.array([[r, 0.0, 0.0], [0.0, 0.0, r]])        # the second lies on the axis: it does not move
+    pose = estimate(p, q, lw)
+    exact = template_spread(p, q, lw, points, pose, limit=0.001)
+    assert exact == pytest.approx(r * math.sin(theta), rel=1e-9)
+    assert exact <= pose.position_spread + pose.rotation_spread * r
+    assert template_spread(p, q, lw, points, pose, limit=1.0) == pytest.approx(pose.rotation_spread * r)   # the bound
+    shifted = p + np.array([[0.0, 0.0, -0.003], [0.0, 0.0, 0.003]])   # plus 3 mm along z each way
+    pose = estimate(shifted, q, lw)
+    assert template_spread(shifted, q, lw, points, pose, limit=0.001) == pytest.approx(
+        math.hypot(r * math.sin(theta), 0.003), rel=1e-9)

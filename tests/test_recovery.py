@@ -264,6 +264,19 @@ def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
     assert gaps[1] > gaps[0]                                # the cooldown doubles
 
 
+def test_the_backoff_doubles_the_cooldown_up_to_after_uncertain_s():
+    """One retry period (issue 32): after attempt k the next waits min(cooldown_s 2^k, after_uncertain_s), in
+    frames at the stamps' rate (here the nominal 90 Hz: 0.1 s is 9 frames, 1 s 90); with the slow triggers off
+    (after_uncertain_s 0) it does not back off."""
+    for after_uncertain_s, expected in ((1.0, [9, 18, 36, 72, 90, 90]), (0.0, [9] * 6)):
+        policy = _policy(cooldown_s=0.1, after_uncertain_s=after_uncertain_s)
+        waits = []
+        for k in range(6):
+            _due(policy).done(float(k), "search")
+            waits.append(policy._wait)
+        assert waits == expected, after_uncertain_s
+
+
 def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retries_without_backoff():
     from app.filter.recovery import SEARCH_RETRY_S
 
@@ -434,7 +447,8 @@ def test_after_a_reinitialisation_a_pose_away_from_the_last_ok_one_needs_evidenc
 
 def test_a_due_reinitialisation_waits_while_the_bone_is_mostly_hidden():
     """visible_share on a rendered synthetic view: 1 clear, about the hand's share hidden under a
-    slab 10 cm in front of the left part of the bone; may_run only above min_visible_share."""
+    slab 10 cm in front of the left part of the bone; may_run only above status.min_fitness (a pose found on
+    less of the silhouette could never be ok; it was recovery.min_visible_share)."""
     import trimesh
 
     from app.filter.visibility import point_visible, visible_share
@@ -460,6 +474,11 @@ def test_a_due_reinitialisation_waits_while_the_bone_is_mostly_hidden():
     policy = _policy()
     policy.pending = "lost for 10 frames"
     assert not policy.may_run(share) and policy.may_run(1.0)
+    lenient = RecoveryPolicy(RecoveryConfig(), np.zeros(3), np.array([0.0, 0.0, 0.01]), refine_enabled=True,
+                             min_fitness=0.9 * share)
+    lenient.set_start(np.eye(4))
+    lenient.pending = "lost for 10 frames"
+    assert lenient.may_run(share)                              # the bar is the status's min_fitness
 
 
 def test_respread_is_about_the_bone_centroid_with_the_configured_spread(rng):
@@ -642,7 +661,8 @@ def test_a_never_ok_track_outside_the_start_prior_is_searched_for():
     def run(offset_m=0.0, angle_rad=0.0):
         # 10 Hz stamps: the slow trigger after 5 frames; after_lost_s 1 s (10 frames, as the 10 the count had)
         policy = RecoveryPolicy(RecoveryConfig(after_lost_s=1.0, after_uncertain_s=0.5, cooldown_s=0.1), np.zeros(3),
-                                np.array([0.0, 0.0, 0.01]), refine_enabled=True, start_sigmas=(0.01, 0.1))
+                                np.array([0.0, 0.0, 0.01]), refine_enabled=True, start_sigmas=(0.01, 0.1),
+                                points_bone=np.array([[0.06, 0.0, 0.0]]))   # "far" is the template's move
         policy.set_start(np.eye(4))
         T = se3.from_rotvec_trans(np.array([0.0, 0.0, angle_rad]), np.array([offset_m, 0.0, 0.0]))
         for k in range(9):   # 0.9 s
@@ -928,7 +948,7 @@ def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
             frames, waited = frames + 1, waited + 1
         assert "still searching" in policy.pending and waited == policy._cooldown()
         _due(policy).kept()
-    assert policy._cooldown() == 8 * math.ceil(0.1 * 90 - 0.01)   # the backoff's cap, x8
+    assert policy._cooldown() == 8 * math.ceil(0.1 * 90 - 0.01)   # 2^3 x the cooldown, below after_uncertain_s
     confirm = policy.config.confirm_frames
     statuses = [policy.update(TrackingStatus.OK, True, True, 0.9, T_far, (frames + k) / 90) for k in range(confirm)]
     assert statuses[:-1] == [unc] * (confirm - 1) and statuses[-1] == TrackingStatus.OK

@@ -8,7 +8,13 @@ jittery than the maximum-likelihood particle. W = exp(lw - LSE(lw)).
 Spread, the tracker's own uncertainty (used by :mod:`app.filter.status`):
 - position: sqrt(trace(Σ_j W_j (p_j - p̄)(p_j - p̄)ᵀ)), metres (the RMS distance to the mean);
   per-axis standard deviations too;
-- orientation: sqrt(Σ_j W_j θ_j²), radians, θ_j the angle between q_j and the mean (RMS angle).
+- orientation: sqrt(Σ_j W_j θ_j²), radians, θ_j the angle between q_j and the mean (RMS angle);
+- the template's points (issue 32, the status's one lost spread): for a point x (bone frame) the RMS
+  distance of its particles' images R_j x + p_j to their weighted mean, the largest over the points
+  (:func:`template_spread`). Its bound, by Minkowski's inequality on
+  R_j x + p_j - (R̄ x + p̄) = (p_j - p̄) + (R_j R̄ᵀ - I) R̄ x with |(R_j R̄ᵀ - I) y| <= θ_j |y|:
+  spread(x) <= position spread + rotation spread |x| (the RMS about the points' own mean is at most
+  the RMS about any fixed point).
 """
 from __future__ import annotations
 
@@ -62,6 +68,27 @@ def estimate(p: np.ndarray, q: np.ndarray, lw: np.ndarray) -> PoseEstimate:
         position_std=np.sqrt(np.maximum(np.diag(cov), 0.0)),
         rotation_spread=float(np.sqrt(W @ theta**2)),
     )
+
+
+MAX_TEMPLATE_POINTS = 64    # the exact spread is taken over at most this many of the points, evenly chosen
+
+
+def template_spread(p: np.ndarray, q: np.ndarray, lw: np.ndarray, points_bone: np.ndarray,
+                    pose: PoseEstimate, limit: float) -> float:
+    """m, the template's points' spread over the particles (module docstring): the largest over the points
+    of sqrt(Σ_j W_j |R_j x + p_j - Σ_k W_k (R_k x + p_k)|²). Computed only where it could exceed ``limit``:
+    when the bound position_spread + rotation_spread max|x| is within ``limit`` the bound is returned
+    (a frame at rest costs nothing; the status compares it with ``limit`` only)."""
+    points_bone = np.asarray(points_bone, float).reshape(-1, 3)
+    bound = pose.position_spread + pose.rotation_spread * float(np.max(np.linalg.norm(points_bone, axis=1)))
+    if bound <= limit or not np.isfinite(bound):
+        return float(bound)
+    if len(points_bone) > MAX_TEMPLATE_POINTS:
+        points_bone = points_bone[np.linspace(0, len(points_bone) - 1, MAX_TEMPLATE_POINTS).astype(int)]
+    W = normalised_weights(lw)
+    x = np.einsum("nij,mj->nmi", quat.to_matrix(q), points_bone) + p[:, None, :]     # (N, M, 3)
+    d = x - np.einsum("n,nmi->mi", W, x)[None]
+    return float(np.sqrt(np.max(np.einsum("n,nmi,nmi->m", W, d, d))))
 
 
 def _weighted_mean_quaternion(q: np.ndarray, W: np.ndarray) -> np.ndarray:

@@ -46,7 +46,7 @@ import numpy as np
 from app.filter import motion
 from app.filter import resampling as rs
 from app.filter import weights as lw_ops
-from app.filter.estimate import PoseEstimate, estimate
+from app.filter.estimate import PoseEstimate, estimate, template_spread
 from app.filter.motion_gate import MotionGate
 from app.filter.observation import Evidence, ObservationModel, finite_log_likelihood
 from app.filter.likelihood_ref import LikelihoodParams
@@ -324,6 +324,8 @@ class ParticleFilter:
             covered_pixels=evidence.covered_pixels,
             n_nan=update.n_nan, n_particles=self.state.n, weighed=weighed, seconds_without_pose=stamp - since,
             speed=speed, seconds_since_motion=since_motion,
+            template_spread=template_spread(self.state.p, self.state.q, self.state.lw, self.motion_gate.points_bone,
+                                            pose, self.config.status.lost_spread),
         ), self.config.status)
 
 

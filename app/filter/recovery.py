@@ -42,8 +42,9 @@ first re-initialisation: a pose the search found may rightly lie outside the sta
 moved before it was ever ok), and its settling frames must not search again. A bone being
 repositioned is uncertain for seconds (status.py's motion rule), and a re-spread around its pose
 before the move would lose it. The low-fit and the slow trigger also need the estimate more than
-FAR = 5 mm / 5 deg (``refine.competitor_distance`` / ``competitor_angle``, the competitor gap) from the last confident
-pose: under an 80 % hand a correct track is uncertain for seconds (the predicted template error),
+FAR = 5 mm (``refine.competitor_distance``, the competitor gap: the template's largest displacement
+between the two poses, :attr:`RecoveryPolicy.points_bone`; 5 mm / 5 deg of the bone frame's origin
+before issue 32) from the last confident pose: under an 80 % hand a correct track is uncertain for seconds (the predicted template error),
 and re-initialising it there raised crest_left_05's lost share from 1.6 to 16 %. It did not save
 crest_right_04 / _05, whose tracks had been > 5 mm off for a moment (and came back by themselves
 without recovery; BENCHMARKS.md §6b). A third: a weighed frame after at least ``after_lost_s`` of
@@ -84,9 +85,11 @@ filter seeds: 143 of 144 within 2 s (141 without it; BENCHMARKS.md §6n). It use
 backoff like the others.
 
 **When.** A due attempt waits while the bone is mostly hidden: it runs only on a frame where at
-least ``min_visible_share`` (0.6) of the model's expected silhouette at the last confident pose is
+least ``status.min_fitness`` (0.6) of the model's expected silhouette at the last confident pose is
 not hidden by an occluder (:func:`app.filter.visibility.visible_share`: valid depth, not more than
-the likelihood's ``occluder_margin`` in front of the model). Re-spreading while 80 % of the crest is
+the likelihood's ``occluder_margin`` in front of the model). A pose found on less could never be ok:
+ok needs the refined fit to confirm that share of the expected surface (it was
+``recovery.min_visible_share``, the same 0.6, until issue 32). Re-spreading while 80 % of the crest is
 under the hand is what lost crest_right_04 and _05 in BENCHMARKS.md §6b: the filter and the
 refinement settled on a wrong fit of the visible 20 %. An SMC attempt while the pointed point is
 hidden (:func:`app.filter.visibility.point_visible`) is replaced by a re-spread (§6b: with the point
@@ -133,8 +136,13 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
   evaluations (work, never seconds).
 
 Without any ok frame yet, the last confident pose is the start pose. After attempt k the next one
-waits at least ``cooldown_s`` · 2^min(k, 3) (a scene that can never be tracked, e.g. a
-crest buried in tissue, is not re-initialised every few frames). The slow trigger counts only
+waits at least min(``cooldown_s`` · 2^k, ``after_uncertain_s``) (a scene that can never be tracked, e.g. a
+crest buried in tissue, is not re-initialised every few frames; no retry waits longer than the slow
+trigger's own wait for a track not ok; it was capped at 2^3 by ``recovery.max_backoff_doublings``
+until issue 32). A declined search is retried after ``search_retry_s`` (0.33 s): retrying it after
+``cooldown_s`` (0.16 s, one retry period for both) or both at 0.33 s found a moved bone later on 2 and 3
+of the 8 fast repositions of BENCHMARKS.md "Decision numbers" (an earlier search on a partial view
+found a wrong pose), so the two periods stay. The slow trigger counts only
 frames the rules do not find ok: a found pose awaiting its confirmation (below) is reported
 uncertain, and counting those frames fired a re-spread at the old pose before it was confirmed.
 
@@ -170,6 +178,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from app import metrics
 from app.filter.motion import ParticleState, draws_about_centroid
 from app.filter.motion_gate import template_speed
 from app.filter.refine_track import RefineConfig, pose_gap
@@ -182,11 +191,10 @@ from app.tracking import levels
 
 RESPREAD, SMC, SEARCH = "respread", "smc", "search"
 FOUND_SIGMA_M, FOUND_SIGMA_RAD = 0.003, math.radians(3.0)   # the cloud about a pose the wide search found
-SEARCH_RETRY_S = 0.33                # s between two wide searches that found nothing (30 frames at 90 Hz)
 NOMINAL_PERIOD_S = 1.0 / 90.0        # the frame period until two stamps are known (the D415's 90 Hz, the trials')
+SEARCH_RETRY_S = 0.33                # s between two wide searches that found nothing (30 frames at 90 Hz)
 PERIOD_FRAMES = 31                   # the period is the median of the last 30 stamp differences
 TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 of the last 90 not-lost estimates
-MAX_BACKOFF_DOUBLINGS = 3
 SLIDING_FACTOR = 2.0                 # x after_uncertain_s: not ok this long, far, moving or not: a search
 START_SIGMAS = levels.chi_level(levels.ALPHA, 3)   # status.alpha's chi, 3 dof: a never-ok track this many start sigmas off
 STILL_WINDOW_S = 0.5
@@ -200,17 +208,17 @@ class RecoveryConfig:
     (re-spreads before each SMC attempt); smc_evaluations (the initialiser's likelihood evaluations);
     cooldown_s (s between two, doubled
     per attempt); the seconds are counted in processed frames (module docstring, "Seconds and frames");
-    min_visible_share (a due re-initialisation waits until this share of the bone's expected
-    silhouette at the last confident pose is not hidden by an occluder); confirm_frames (after one,
+    confirm_frames (after one,
     weighed frames in a row that the rules find ok before a pose away from the last ok one may be ok);
     search (the wide search, app/filter/wide_search.py, replaces the one-point SMC attempts);
     search_evaluations (its likelihood evaluations per search); search_min_sharp (the consistent sharp
     share a search's verified fit needs to be found, and below which a found pose is searched again:
     wide_search.MIN_SHARP's default); the triggers' numbers (module
     docstring, "Trigger"; defaults the module constants): search_retry_s, sliding_factor,
-    still_window_s, max_backoff_doublings.
-    Since issue 32 the "far" gap is ``refine.competitor_distance`` / ``competitor_angle`` (it was
-    recovery.far_m / far_angle, the same 5 mm / 5 deg; :class:`RecoveryPolicy`'s ``far``) and the never-ok
+    still_window_s. After attempt k the next waits min(cooldown_s 2^k, after_uncertain_s) (issue 32: the
+    cap was recovery.max_backoff_doublings, 3).
+    Since issue 32 the "far" gap is ``refine.competitor_distance`` of the template's points (it was
+    recovery.far_m / far_angle, 5 mm / 5 deg of the bone frame's origin; :class:`RecoveryPolicy`'s ``far``) and the never-ok
     track's one search waits ``after_uncertain_s`` (it was recovery.never_ok_search_s, the same 1 s)."""
 
     enabled: bool = True
@@ -221,7 +229,6 @@ class RecoveryConfig:
     respreads: int = 0
     smc_evaluations: int = 30_000
     cooldown_s: float = 0.16
-    min_visible_share: float = 0.6
     confirm_frames: int = 90
     search: bool = True
     search_evaluations: int = 4000
@@ -229,7 +236,6 @@ class RecoveryConfig:
     search_retry_s: float = SEARCH_RETRY_S
     sliding_factor: float = SLIDING_FACTOR
     still_window_s: float = STILL_WINDOW_S
-    max_backoff_doublings: int = MAX_BACKOFF_DOUBLINGS
     search_worker: str = "auto"
     confirm_moved: bool = True
 
@@ -281,8 +287,9 @@ class RecoveryPolicy:
     min_fitness : a refined fit below this counts as bad (status.min_fitness)
     still : (speed m/s, window s) below which the estimate is still: the largest speed of ``points_bone``
         (status.uncertain_speed, motion_window_s; the window at least STILL_WINDOW_S)
-    far : (m, rad) a pose farther than this from the last ok one is "far" (``refine.competitor_distance`` /
-        ``competitor_angle``: two poses this far apart are different answers; default RefineConfig's)
+    far : m, a pose that moves the template's points (``points_bone``) by more than this from the last ok one
+        is "far" (``refine.competitor_distance``: two poses this far apart are different answers; default
+        RefineConfig's)
     start_level : the never-ok track's outside_start radius in start sigmas (chi, 3 dof, at status.alpha)
     points_bone : (N, 3) m, bone frame: the template's points whose speed the still test watches (default: the
         bone frame's origin)
@@ -292,10 +299,10 @@ class RecoveryPolicy:
                  refine_enabled: bool, min_fitness: float = 0.6,
                  still: tuple[float, float] = (0.03, 0.2),
                  start_sigmas: tuple[float, float] = (math.inf, math.inf), search_bar: float = math.nan,
-                 far: tuple[float, float] | None = None, start_level: float = START_SIGMAS,
+                 far: float | None = None, start_level: float = START_SIGMAS,
                  points_bone: np.ndarray | None = None):
         self.config = config
-        self.far = (RefineConfig.competitor_distance, RefineConfig.competitor_angle) if far is None else far
+        self.far = RefineConfig.competitor_distance if far is None else float(far)
         self.search_bar = search_bar           # the wide search's MIN_SHARP: a found pose below it is searched again
         self.start_sigmas = start_sigmas       # init.sigma_p (m), sigma_r (rad): the start pose's prior
         self.start_level = start_level         # k: chi_3 at status.alpha (app/tracking/levels.py)
@@ -409,7 +416,7 @@ class RecoveryPolicy:
         return Evidence(
             bad_reason=bad_reason, bad=self._bad, outside=self._outside, back=back, not_ok=self._not_ok,
             not_ok_moving=self._not_ok_moving, below_bar=self._below_bar,
-            far=self.T_base_bone_confident is None or self._far_gap(gap_m, gap_rad), beyond=beyond,
+            far=self._far(T_base_bone), beyond=beyond,
             ever_ok=self.lifecycle.ever_ok, retrying=self.lifecycle.retrying,
             untried=not self.events and not self.declined_searches and not self.kept_searches,
             weighed=weighed, rules_ok=rules_ok, after_lost=frames(c.after_lost_s),
@@ -468,15 +475,11 @@ class RecoveryPolicy:
         return pose_gap(self.T_base_bone_confident, T_base_bone)
 
     def _far(self, T_base_bone: np.ndarray) -> bool:
-        """Whether the estimate lies more than FAR from the last confident pose."""
+        """Whether the estimate moves the template's points by more than FAR (``far``,
+        refine.competitor_distance) from the last confident pose (far when there is none)."""
         if self.T_base_bone_confident is None:
             return True
-        return self._far_gap(*self._gap(T_base_bone))
-
-    def _far_gap(self, dist: float, angle: float) -> bool:
-        """Whether a gap (m, rad) to the last confident pose is far (``far``: refine.competitor_distance /
-        competitor_angle)."""
-        return dist > self.far[0] or angle > self.far[1]
+        return metrics.mdd(self.T_base_bone_confident, T_base_bone, self.points_bone) > self.far
 
     def _beyond_start(self, T_base_bone: np.ndarray) -> bool:
         """Never ok and outside the start's prior: more than ``start_level`` start sigmas from it (k² the
@@ -533,9 +536,12 @@ class RecoveryPolicy:
         return None
 
     def _cooldown(self) -> int:
-        """After attempt k (attempts counts it already): cooldown_s (in frames) * 2^min(k, 3)."""
+        """After attempt k (attempts counts it already): cooldown_s * 2^k in frames, at most the slow trigger's
+        after_uncertain_s (no retry waits longer than a track not ok waits for its search)."""
         k = max(self._attempts - 1, 0)
-        return self.period.frames(self.config.cooldown_s) * 2 ** min(k, self.config.max_backoff_doublings)
+        frames = self.period.frames
+        backed_off = frames(self.config.cooldown_s) * 2 ** min(k, 30)
+        return max(min(backed_off, frames(self.config.after_uncertain_s)), frames(self.config.cooldown_s))
 
     def next_kind(self) -> str:
         """The kind of the due attempt (module docstring)."""
@@ -578,7 +584,7 @@ class RecoveryPolicy:
         crest_left_02 seed 0 at 3.7 s: 77 mm off at a sharp share of 0.60, the bone out of view; kept
         and not searched again, it was found 1.4 s after the bone came into view), so the search is
         retried as after a declined one, on weighed frames away from the last ok pose, but only
-        after the cooldown, backed off as after an attempt (0.16 s doubling to 1.3 s): a right track
+        after the cooldown, backed off as after an attempt (0.16 s doubling up to after_uncertain_s, 1 s): a right track
         the image cannot make ok (a quarter of the crest in view) is checked about once a second,
         not every frame. A track never ok is not retried so (its "last ok pose" is the start: the
         residual-tissue tracks 2 mm from the truth lie 5 mm from their start, and were searched
@@ -609,7 +615,8 @@ class RecoveryPolicy:
     # -- when a due attempt may run ------------------------------------------------------------
     def may_run(self, visible_share: float) -> bool:
         """Whether the due attempt may run on this frame: ``visible_share`` of the bone's expected
-        silhouette at the last confident pose is not hidden (:func:`visible_share`); under the hand
+        silhouette at the last confident pose is not hidden (:func:`visible_share`), at least
+        ``min_fitness`` (status.min_fitness: less could never be confirmed); under the hand
         it waits (module docstring, "When"). A wide search also runs where the last confident pose is
         out of the image (``visible_share`` NaN): the camera has moved away from where the bone was,
         and the search looks everywhere (crest_left_02 seed 1, or_fast_reposition: it waited 2.4 s)."""
@@ -617,7 +624,7 @@ class RecoveryPolicy:
             return False
         if math.isnan(visible_share):
             return self.next_kind() == SEARCH
-        return visible_share >= self.config.min_visible_share
+        return visible_share >= self.min_fitness
 
     # -- the re-spread -----------------------------------------------------------------------
     def respread_state(self, n: int, rng: np.random.Generator) -> ParticleState:

@@ -7,15 +7,15 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
 - the refinement keeps its own track: each weighed frame it refines (app/filter/refine.py) from
   its last refined pose while that pose's fitness holds (>= ``keep_fitness``, 0.3);
 - it also refines from the filter's estimate when it has no track, when the track's fitness is
-  below ``reseed_fitness`` (0.6), or when the filter's estimate lies more than
-  ``competitor_distance`` / ``competitor_angle`` (5 mm / 5 deg) from the track (a candidate that
+  below ``reseed_fitness`` (0.6), or when the filter's estimate moves the template's points by more than
+  ``competitor_distance`` (5 mm; 5 mm / 5 deg of the bone frame's origin before issue 32) from the track (a candidate that
   could compete; nearer, the filter's 160x120 estimate is only less precise: refining it too, as
   at 3 mm / 1.7 deg first, doubled the refinement's cost on the CT crests), and keeps the better fit (the
   higher share within 1 σ, ``RefineResult.sharp``: the 3 σ fitness barely separates two fits a few
   millimetres apart on a crest; less the share behind the model beyond the noise's bound,
   :func:`consistent_sharp`: at 0.65 m a fit 17 deg off was 0.002 sharper than one 3 deg off but left
   16 % of the measurements behind the model against 4 %, BENCHMARKS.md §6d);
-- when both refinements ran, converged more than ``competitor_distance`` (5 mm / 5 deg) apart and
+- when both refinements ran, converged more than ``competitor_distance`` (5 mm of the template) apart and
   the loser's sharp share is within ``competitor_margin`` (0.05) of the winner's, a competing pose
   explains the image about as well: the frame is ambiguous (the status cannot be ok, status.py);
 - the track starts at the coarse initial pose (:meth:`RefinedTrack.seed`): the filter's first
@@ -81,7 +81,6 @@ from app.filter.static_prior import StaticPrior, StaticPriorConfig
 from app.filter.status import StatusThresholds
 from app.geometry import se3
 
-FALLBACK_BEHIND_SHARE = 0.02   # the former fixed share, when too few pixels estimate the noise
 SEED_WIDTHS = (1.0, 2.0, 4.0)  # the seeded first frame's Tukey widths (x RefineParams.start_width; BENCHMARKS.md §6d)
 SEED_CHAIN = 6                 # at most this many refinements chained at each seeded width (BENCHMARKS.md §6d)
 SEED_SINGLE = (1.0, 2.0)       # widths whose first link is a candidate whatever its consistency (the single refinements of §6d)
@@ -92,7 +91,7 @@ SEED_STARTS_RNG = 20261124     # the multi-start's own generator seed (:meth:`Re
 class RefineConfig:
     """``refine.*`` of the configuration (module docstring). enabled; stride (1 full / 2 half sensor
     resolution); iterations; samples (model points); keep_fitness; reseed_fitness;
-    competitor_distance (m) / competitor_angle (rad), also the recovery's "far"; competitor_margin; feedback (from
+    competitor_distance (m, the template's largest displacement), also the recovery's "far"; competitor_margin; feedback (from
     fits confirming status.min_fitness, which was refine.feedback_fitness before issue 32);
     static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames, prior_motion_frames,
     prior_forget_ratio (app/filter/static_prior.py); seed_starts, seed_spread (the seeded first frame's multi-start,
@@ -111,7 +110,6 @@ class RefineConfig:
     keep_fitness: float = 0.3
     reseed_fitness: float = 0.6
     competitor_distance: float = 0.005
-    competitor_angle: float = math.radians(5.0)
     competitor_margin: float = 0.05
     feedback: bool = True
     feedback_spread: float = 0.003
@@ -170,16 +168,20 @@ class RefineOutcome:
 
 def behind_excess(result: RefineResult) -> float:
     """The kept fit's share of measurements behind the model beyond what the image's noise explains
-    (``RefineResult.behind − behind_allowed``; against ``FALLBACK_BEHIND_SHARE`` when the noise is unknown)."""
-    allowed = result.behind_allowed if np.isfinite(result.behind_allowed) else FALLBACK_BEHIND_SHARE
-    return float(result.behind - allowed)
+    (``RefineResult.behind − behind_allowed``); NaN when the noise could not be measured (too few
+    residuals behind the model, app/tracking/fit_test.py ``MIN_BEHIND``): the consistency test cannot run,
+    so the status is not ok and a search does not confirm the fit (issue 32: it was tested against a
+    fixed 2 %, ``FALLBACK_BEHIND_SHARE``, a share of one simulator's noise)."""
+    return float(result.behind - result.behind_allowed)
 
 
 def consistent_sharp(result: RefineResult) -> float:
     """The fit's share within 1 σ less its share behind the model beyond the noise's bound
     (:func:`behind_excess`, when positive): light does not pass through bone, so a measurement
-    inside the model contradicts the pose; two fits are compared on this."""
-    return float(result.sharp - max(behind_excess(result), 0.0))
+    inside the model contradicts the pose; two fits are compared on this. An excess that could not be
+    measured (NaN) takes nothing off: no evidence either way."""
+    excess = behind_excess(result)
+    return float(result.sharp - (excess if excess > 0.0 else 0.0))
 
 
 def pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
@@ -356,8 +358,7 @@ class RefinedTrack:
         c = self.config
         if self.T_base_bone is None or not self.fitness >= c.reseed_fitness:
             return True
-        dist, angle = pose_gap(self.T_base_bone, T_filter)
-        return dist > c.competitor_distance or angle > c.competitor_angle
+        return self.template_gap(self.T_base_bone, T_filter) > c.competitor_distance
 
     def _held(self, fits, source, T_best, best, std):
         """The static prior (app/filter/static_prior.py) on the kept fit: a fit from the filter's
@@ -415,8 +416,7 @@ class RefinedTrack:
         competitor, competitor_fitness = False, float("nan")
         if len(fits) > 1:
             competitor_fitness = fits[1][2].fitness
-            dist, angle = pose_gap(T_best, fits[1][1])
-            apart = dist > c.competitor_distance or angle > c.competitor_angle
+            apart = self.template_gap(T_best, fits[1][1]) > c.competitor_distance
             competitor = apart and fits[1][2].sharp >= best.sharp - c.competitor_margin
         std = template_std(best.H, self.plan_points, self.inflation)
         if self.prior is not None and best.fitness >= c.keep_fitness:

@@ -24,7 +24,9 @@ Rules, first match wins (defaults in :class:`StatusThresholds`):
 
 LOST if
 - no camera pose for more than ``lost_no_pose_s`` = 0.5 s (the robot's data stopped), or
-- position spread > ``lost_position_spread`` = 10 mm, or rotation spread > ``lost_rotation_spread`` = 10°, or
+- the template's points spread over the particles by more than ``lost_spread`` = 10 mm (RMS, the largest over
+  the points; :func:`app.filter.estimate.template_spread`: the replay's lost frame is ADD > 10 mm; one spread
+  since issue 32, it was 10 mm of the bone frame's origin or 10 deg), or
 - every likelihood was NaN (n_nan >= n_particles), or
 - the frame was weighed, the estimate covers at least ``min_covered_pixels`` valid pixels and
   fewer than ``lost_inlier_fraction`` = 20 % of them are inliers (the bone is not where we think:
@@ -41,7 +43,7 @@ UNCERTAIN if
   along the crest's length the image hardly shows it; measured on or_fast_reposition).
 OK otherwise.
 
-The particles' spread only makes a frame lost (10 mm matches the replay's definition of a lost
+The particles' spread only makes a frame lost (10 mm of the template's points matches the replay's definition of a lost
 frame, ADD > 10 mm, app/pipeline/replay.py); a spread of a few millimetres no longer lowers an otherwise
 ok frame (issue 32: the template's predicted error from the refined fit says how precise the output is;
 ``status.uncertain_position_spread`` / ``uncertain_rotation_spread`` are now ``refine.feedback_spread`` /
@@ -117,8 +119,8 @@ lowered to UNCERTAIN, never raised, when
   e_i = Φ(−σ_i / (σ_n |n_i·r̂_i|)), and the bound is the Poisson-binomial mean plus
   z = 3 standard deviations (one-sided ``status.alpha`` = 0.135 %, app/tracking/levels.py) over the M measurements, the variance multiplied by
   the residuals' spatial correlation factor f = n / n_eff (fit_test.py; behind_noise.py
-  ``behind_bound``; app/filter/refine_track.py ``behind_excess``; the fixed 2 % when fewer than 30
-  pixels estimate the noise). The 0.2 % margin covers what the noise model leaves out (the mesh's
+  ``behind_bound``; app/filter/refine_track.py ``behind_excess``; when fewer than 30 residuals behind the
+  model estimate the noise, the test cannot run and the frame is not ok: issue 32 removed the fixed 2 % it fell back to). The 0.2 % margin covers what the noise model leaves out (the mesh's
   discretisation, the association): a right pose's share exceeds the bound by up to ~0.3 points.
   Measured (BENCHMARKS.md §6d, scripts/refine_evidence.py --analyse; the frames otherwise ok-able
   after 0.5 s; the margin was chosen on these same frames: a hint, not a held-out figure): with
@@ -163,8 +165,7 @@ import numpy as np
 from app.tracking import levels
 
 LOST_NO_POSE_S = 0.5
-LOST_POSITION_SPREAD_M = 0.010
-LOST_ROTATION_SPREAD_RAD = math.radians(10.0)
+LOST_SPREAD_M = 0.010
 LOST_INLIER_FRACTION = 0.2
 MIN_COVERED_PIXELS = 30
 UNCERTAIN_SPEED_M_S = 0.03
@@ -214,8 +215,7 @@ class StatusThresholds:
     """Thresholds of the rules in the module docstring (metres, radians, seconds, fractions)."""
 
     lost_no_pose_s: float = LOST_NO_POSE_S
-    lost_position_spread: float = LOST_POSITION_SPREAD_M
-    lost_rotation_spread: float = LOST_ROTATION_SPREAD_RAD
+    lost_spread: float = LOST_SPREAD_M
     lost_inlier_fraction: float = LOST_INLIER_FRACTION
     min_covered_pixels: int = MIN_COVERED_PIXELS
     uncertain_speed: float = UNCERTAIN_SPEED_M_S
@@ -240,6 +240,8 @@ class StatusInputs:
     seconds_without_pose : since the last frame that had a camera pose (0 when this one has)
     speed (m/s, the template's fastest point), seconds_since_motion (s): the estimate's motion
     (:mod:`app.filter.motion_gate`)
+    template_spread : m, the template's points' spread over the particles (:func:`app.filter.estimate.template_spread`;
+    NaN, unknown, is lost)
     """
 
     position_spread: float
@@ -253,6 +255,7 @@ class StatusInputs:
     seconds_without_pose: float
     speed: float = 0.0
     seconds_since_motion: float = math.inf
+    template_spread: float = math.nan
 
 
 def lost_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
@@ -260,10 +263,8 @@ def lost_reasons(s: StatusInputs, t: StatusThresholds) -> list[str]:
     reasons = []
     if s.seconds_without_pose > t.lost_no_pose_s:
         reasons.append(Reason("no_pose", f"no camera pose for {s.seconds_without_pose:.2f} s"))
-    if not s.position_spread <= t.lost_position_spread:
-        reasons.append(Reason("spread", f"position spread {1e3 * s.position_spread:.1f} mm"))
-    if not s.rotation_spread <= t.lost_rotation_spread:
-        reasons.append(Reason("spread", f"rotation spread {math.degrees(s.rotation_spread):.1f} deg"))
+    if not s.template_spread <= t.lost_spread:
+        reasons.append(Reason("spread", f"the template's points spread {1e3 * s.template_spread:.1f} mm over the particles"))
     if s.n_particles > 0 and s.n_nan >= s.n_particles:
         reasons.append(Reason("nan", "every log-likelihood was NaN"))
     if s.weighed and s.covered_pixels >= t.min_covered_pixels and s.inlier_fraction < t.lost_inlier_fraction:
@@ -335,6 +336,9 @@ def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
     if r.behind > t.max_behind_excess:
         reasons.append(Reason("behind", f"{100 * r.behind:.1f} % more of the seen bone lies inside the refined model "
                               "than the noise explains (slid onto tissue?)"))
+    elif np.isfinite(r.fitness) and not np.isfinite(r.behind):
+        reasons.append(Reason("behind", "the consistency test could not run: too few of the fit's measurements "
+                              "lie behind the model to measure the image's noise"))
     held = levels.held_level(t.alpha, t.covariance_inflation)
     if r.held_chi2 > held:
         reasons.append(Reason("held", f"the image's own fit contradicts the held pose (Δχ² {r.held_chi2:.1f} > "

@@ -340,7 +340,7 @@ class WideSearch:
         excess ``behind`` the model is no more than the status allows (``max_behind_excess``; module
         docstring, 5)."""
         c = self.config
-        return fitness >= c.min_fitness and sharp >= c.min_sharp and not behind > c.max_behind_excess
+        return fitness >= c.min_fitness and sharp >= c.min_sharp and behind <= c.max_behind_excess
 
     def _winner(self, confirmed: list[_Verified]) -> _Verified:
         """The confirmed fit that stands (module docstring, 6): without a confirmed incumbent the highest

@@ -233,7 +233,7 @@ def _policy(config, vertices: np.ndarray, search_bar: float) -> RecoveryPolicy:
     return RecoveryPolicy(config.recovery, centroid, surface_point, config.refine.enabled, st.min_fitness,
                           (st.uncertain_speed, st.motion_window_s),
                           (config.init_sigma_p, config.init_sigma_r), search_bar,
-                          (config.refine.competitor_distance, config.refine.competitor_angle),
+                          config.refine.competitor_distance,
                           levels.chi_level(st.alpha, 3), vertices[::max(1, len(vertices) // PLAN_POINTS)])
 
 

@@ -32,7 +32,7 @@ REASONS: dict[str, tuple[str, str, str]] = {
     "moving": ("steady", "the bone is moving or settling", "status.uncertain_speed, status.settle_s"),
     "held": ("steady", "the image's own fit contradicts the pose held by the static prior", "status.alpha"),
     "spread": ("filter", "the particles are spread too wide (lost)",
-               "status.lost_position_spread, status.lost_rotation_spread"),
+               "status.lost_spread"),
     "nan": ("filter", "NaN log-likelihoods", "-"),
     "initialising": ("lifecycle", "no pose yet: waiting for a frame to start from", "init.method"),
     "point_start": ("lifecycle", "started from a point without the detector's confirmation", "init.method"),

@@ -23,7 +23,7 @@ class Evidence:
     says which); ``outside``: never ok and beyond the start's prior; ``back``: the unseen frames this
     weighed one ended (0 unless at least ``after_lost``); ``not_ok``: not ok while still; ``not_ok_moving``:
     not ok, moving or not; ``below_bar``: a hypothesis' fit below the search's bar; ``far``: more than
-    ``refine.competitor_distance`` / ``competitor_angle`` from the last ok pose; ``beyond``: never ok and outside the start's
+    ``refine.competitor_distance`` (the template's largest displacement) from the last ok pose; ``beyond``: never ok and outside the start's
     prior; ``ever_ok``, ``retrying`` (the lifecycle's), ``untried`` (no attempt, declined or kept search
     yet); the thresholds in frames (``after_lost``, ``uncertain``: after_uncertain_s or 0 when off, also
     the never-ok track's one search, ``sliding``); ``gap_m`` / ``gap_rad``: the pose's distance and angle to the last ok pose
