@@ -52,7 +52,9 @@ def test_seeded_track_keeps_the_consistent_fit_over_a_sharper_one_behind_the_ima
     T_wrong = se3.from_rotvec_trans(np.array([0.0, 0.1, 0.0]), np.array([0.007, 0.0, 0.65]))
     T_filter = se3.from_rotvec_trans(np.array([0.0, 0.3, 0.0]), np.array([0.01, 0.0, 0.65]))
     refiner = _StubRefiner(T_right, T_wrong, T_filter)
-    track = RefinedTrack(refiner, RefineConfig(nearby_every=0), np.zeros((4, 3)), inflation=6.0)
+    # the template's points 30-60 mm out: the filter's estimate (0.3 rad off) moves them > 5 mm, a different answer
+    points = np.array([[0.06, 0.0, 0.0], [-0.06, 0.0, 0.0], [0.0, 0.03, 0.0], [0.0, -0.03, 0.0]])
+    track = RefinedTrack(refiner, RefineConfig(nearby_every=0), points, inflation=6.0)
     track.seed(T_seed)
     out = track.update(np.zeros((2, 2)), np.eye(4), T_filter)
     # the seed at each width, each chain ending when a refinement no longer moves the pose; the filter's estimate
