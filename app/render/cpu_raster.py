@@ -28,8 +28,12 @@ background ratio with the occluder margin, α tempering or the pixel-count regul
 4.37), packed into a float64 vector by :func:`pack_params`; without classification the logs are
 summed as the log of a running product of the pixels' densities (:func:`_score_and_clear`).
 
-Parallelism: ``prange`` over chunks of hypotheses (hypothesis j goes to chunk j mod C); each chunk
-owns one z-buffer, read and cleared only inside the pixel box of the pose's projected vertices.
+Parallelism: ``prange`` over chunks, each owning one z-buffer, read and cleared only inside the
+pixel box of the pose's projected vertices; the chunks take the hypotheses one at a time from a
+shared counter (:func:`_take_next`, an atomic add), so a thread that gets less of a core (the stage
+worker's refinement beside it, app/pipeline/stages.py) takes fewer of them: numba's ``prange`` itself
+hands its iterations out statically, half to each thread. Every hypothesis is scored alone, so
+which chunk takes it changes no bit of ``out_ll``.
 """
 from __future__ import annotations
 
@@ -45,6 +49,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numba  # noqa: E402 (after OMP_WAIT_POLICY)
 import numpy as np
 from numba import prange
+from numba.core import cgutils, types
+from numba.extending import intrinsic
 
 from app.filter.likelihood_ref import LOG_FLOOR, LikelihoodParams
 
@@ -82,6 +88,30 @@ def pack_params(p: LikelihoodParams) -> np.ndarray:
                      p.pixel_weight, p.occluder_margin, float(p.occlusion == "smooth_exponential"),
                      float(bool(p.classification)), float(bool(p.background_ratio)),
                      math.log(p.z_max), math.log(max(p_u, LOG_FLOOR)), float(product)], dtype=np.float64)
+
+
+# ---------------------------------------------------------------- the threads' shared counter
+
+@intrinsic
+def _fetch_add(typingctx, counter, value):
+    """``counter[0] += value`` as one atomic read-modify-write; returns the value before (int64).
+    ``counter``: a 1-d int64 array shared by a ``prange``'s threads."""
+    if not (isinstance(counter, types.Array) and counter.dtype == types.int64 and counter.ndim == 1):
+        return None
+    sig = types.int64(counter, types.int64)
+
+    def codegen(context, builder, signature, args):
+        array = context.make_array(signature.args[0])(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, signature.args[0], array, [context.get_constant(types.intp, 0)])
+        return builder.atomic_rmw("add", ptr, args[1], "monotonic")
+
+    return sig, codegen
+
+
+@_njit(inline="always")
+def _take_next(counter):
+    """The next hypothesis index for a chunk of :func:`batch` (all taken: >= N)."""
+    return _fetch_add(counter, 1)
 
 
 # ---------------------------------------------------------------- rasterisation
@@ -375,12 +405,16 @@ def batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out
         for v in prange(h):
             for u in range(w):
                 exp_lam_z[v, u] = math.exp(-prm[1] * float(depth_meas[v, u]))
+    counter = np.zeros(1, np.int64)          # the next hypothesis to take (_take_next)
     for c in prange(chunks):
         p = np.empty((vertices.shape[0], 6))
         poly = np.empty((4, 3))
         box = np.empty(4, np.int64)
         zbuf = zbufs[c]
-        for j in range(c, n, chunks):
+        while True:
+            j = _take_next(counter)
+            if j >= n:
+                break
             _render_one(T_camera_bone[j], vertices, faces, cam, cull, p, poly, zbuf, box)
             if not render:
                 out_ll[j] = _score_and_clear(depth_meas, exp_lam_z, zbuf, box, prm)
