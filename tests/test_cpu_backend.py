@@ -299,3 +299,31 @@ def test_the_batch_scores_and_renders_each_pose_as_it_does_alone(option, rng):
     finally:
         numba.set_num_threads(threads)
     assert backend.log_likelihood(poses[:0], depth).shape == (0,)
+
+
+def test_the_vertex_transform_is_the_poses_arithmetic_to_the_bit(rng):
+    """_render_one's camera-frame vertices and projections (its scratch ``p``, which the evidence pass
+    leaves filled) are x = T00 vx + T01 vy + T02 vz + T03 (left to right, as numpy computes it here),
+    u = fx x / z + cx with 1 / z, bit for bit: the pose's entries read once per pose change nothing."""
+    from app.render.cpu_likelihood import CPULikelihoodBackend
+    from tests.test_backend_conformance import CAMERAS, FAR, NEAR, random_poses
+    from app.mesh import load_mesh, outward_wound, prepare_mesh
+    from app.sim.simulator import DEFAULT_MESH
+
+    mesh = prepare_mesh(load_mesh(DEFAULT_MESH), max_triangles=1000, center=False)
+    backend = CPULikelihoodBackend(mesh.vertices, mesh.faces, CAMERAS["160x120"], 1, near=NEAR, far=FAR,
+                                   cull_back_faces=outward_wound(mesh))
+    depth = np.zeros((120, 160), np.float32)
+    vx, vy, vz = backend.vertices[:, 0], backend.vertices[:, 1], backend.vertices[:, 2]
+    fx, fy, cx, cy = backend.cam[:4]
+    for T in random_poses(rng, 12, mesh):
+        backend.evidence(T, depth, 1)
+        p = backend._vertex_scratch
+        xyz = [T[r, 0] * vx + T[r, 1] * vy + T[r, 2] * vz + T[r, 3] for r in range(3)]
+        for r in range(3):
+            np.testing.assert_array_equal(p[:, r], xyz[r])
+        front = xyz[2] >= NEAR
+        iz = 1.0 / xyz[2][front]
+        np.testing.assert_array_equal(p[front, 3], fx * xyz[0][front] * iz + cx)
+        np.testing.assert_array_equal(p[front, 4], fy * xyz[1][front] * iz + cy)
+        np.testing.assert_array_equal(p[front, 5], iz)

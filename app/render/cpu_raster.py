@@ -232,12 +232,20 @@ def _render_one(T, vertices, faces, cam, cull, p, poly, zbuf, box):
     """
     fx, fy, cx, cy, near, far = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5]
     u_min, v_min, u_max, v_max = np.inf, np.inf, -np.inf, -np.inf
+    # the pose's entries in locals: numba reloaded T's 12 entries for every vertex (the stores into
+    # ``p`` may alias T as far as it knows); the same arithmetic, in the same order
+    t00, t01, t02, t03 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
+    t10, t11, t12, t13 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+    t20, t21, t22, t23 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
     for i in range(vertices.shape[0]):
-        for r in range(3):
-            p[i, r] = T[r, 0] * vertices[i, 0] + T[r, 1] * vertices[i, 1] + T[r, 2] * vertices[i, 2] + T[r, 3]
-        if p[i, 2] >= near:
-            iz = 1.0 / p[i, 2]
-            p[i, 3], p[i, 4], p[i, 5] = fx * p[i, 0] * iz + cx, fy * p[i, 1] * iz + cy, iz
+        vx, vy, vz = vertices[i, 0], vertices[i, 1], vertices[i, 2]
+        x = t00 * vx + t01 * vy + t02 * vz + t03
+        y = t10 * vx + t11 * vy + t12 * vz + t13
+        z = t20 * vx + t21 * vy + t22 * vz + t23
+        p[i, 0], p[i, 1], p[i, 2] = x, y, z
+        if z >= near:
+            iz = 1.0 / z
+            p[i, 3], p[i, 4], p[i, 5] = fx * x * iz + cx, fy * y * iz + cy, iz
             u_min, u_max = min(u_min, p[i, 3]), max(u_max, p[i, 3])
             v_min, v_max = min(v_min, p[i, 4]), max(v_max, p[i, 4])
         else:                                   # clipped triangles can reach anywhere
