@@ -263,3 +263,67 @@ def test_a_camera_in_a_faces_plane_renders_without_dividing_by_zero():
     ll = tracker.backend.log_likelihood(T_camera_bone[None], np.full((120, 160), 0.5, np.float32))
     assert np.all(np.isfinite(ll))
     tracker.release()
+
+
+@pytest.mark.parametrize("option", ["beam", "background_ratio", "ratio_classification"])
+def test_the_batch_scores_and_renders_each_pose_as_it_does_alone(option, rng):
+    """cpu_raster.batch hands the poses out to its chunks one at a time from a shared counter (an
+    atomic add): every pose is scored (and rendered) once, bit for bit as in a batch of its own, for
+    batches smaller and larger than the chunk count, poses through the near plane and off screen,
+    on one numba thread and on all of them."""
+    import numba
+
+    from app.render.cpu_likelihood import CPULikelihoodBackend
+    from tests.test_backend_conformance import CAMERAS, FAR, NEAR, OPTIONS as CASES, measured_image, random_poses, true_pose
+    from app.mesh import load_mesh, outward_wound, prepare_mesh
+    from app.sim.simulator import DEFAULT_MESH
+
+    mesh = prepare_mesh(load_mesh(DEFAULT_MESH), max_triangles=1000, center=False)
+    params = replace(LikelihoodParams(), **CASES[option])
+    backend = CPULikelihoodBackend(mesh.vertices, mesh.faces, CAMERAS["160x120"], 1, params, near=NEAR, far=FAR,
+                                   cull_back_faces=outward_wound(mesh))
+    truth = backend.render_depth(true_pose(mesh)[None])[0]
+    depth = measured_image(truth, rng, params.z_max)
+    poses = np.concatenate([random_poses(rng, 24, mesh), np.repeat(true_pose(mesh)[None], 3, axis=0)])
+    alone = np.array([backend.log_likelihood(T[None], depth)[0] for T in poses])
+    images = np.concatenate([backend.render_depth(T[None]) for T in poses])
+    assert np.all(np.isfinite(alone)) and len(set(alone.tolist())) > 10, "distinct scores tested"
+    threads = numba.get_num_threads()
+    try:
+        for n_threads in sorted({1, threads}):
+            numba.set_num_threads(n_threads)
+            for n in (1, 3, backend.chunks + 1, len(poses)):
+                assert np.array_equal(backend.log_likelihood(poses[:n], depth), alone[:n])
+                assert np.array_equal(backend.render_depth(poses[:n]), images[:n])
+            assert not backend.zbufs.any(), "the z-buffers are left cleared"
+    finally:
+        numba.set_num_threads(threads)
+    assert backend.log_likelihood(poses[:0], depth).shape == (0,)
+
+
+def test_the_vertex_transform_is_the_poses_arithmetic_to_the_bit(rng):
+    """_render_one's camera-frame vertices and projections (its scratch ``p``, which the evidence pass
+    leaves filled) are x = T00 vx + T01 vy + T02 vz + T03 (left to right, as numpy computes it here),
+    u = fx x / z + cx with 1 / z, bit for bit: the pose's entries read once per pose change nothing."""
+    from app.render.cpu_likelihood import CPULikelihoodBackend
+    from tests.test_backend_conformance import CAMERAS, FAR, NEAR, random_poses
+    from app.mesh import load_mesh, outward_wound, prepare_mesh
+    from app.sim.simulator import DEFAULT_MESH
+
+    mesh = prepare_mesh(load_mesh(DEFAULT_MESH), max_triangles=1000, center=False)
+    backend = CPULikelihoodBackend(mesh.vertices, mesh.faces, CAMERAS["160x120"], 1, near=NEAR, far=FAR,
+                                   cull_back_faces=outward_wound(mesh))
+    depth = np.zeros((120, 160), np.float32)
+    vx, vy, vz = backend.vertices[:, 0], backend.vertices[:, 1], backend.vertices[:, 2]
+    fx, fy, cx, cy = backend.cam[:4]
+    for T in random_poses(rng, 12, mesh):
+        backend.evidence(T, depth, 1)
+        p = backend._vertex_scratch
+        xyz = [T[r, 0] * vx + T[r, 1] * vy + T[r, 2] * vz + T[r, 3] for r in range(3)]
+        for r in range(3):
+            np.testing.assert_array_equal(p[:, r], xyz[r])
+        front = xyz[2] >= NEAR
+        iz = 1.0 / xyz[2][front]
+        np.testing.assert_array_equal(p[front, 3], fx * xyz[0][front] * iz + cx)
+        np.testing.assert_array_equal(p[front, 4], fy * xyz[1][front] * iz + cy)
+        np.testing.assert_array_equal(p[front, 5], iz)

@@ -60,3 +60,41 @@ def test_the_particles_poses_and_rotation_step_equal_the_general_functions_to_th
     rotvec[0] = 0.0                                  # the small-angle branch
     rotvec[-1] = 1e-9
     np.testing.assert_array_equal(motion._rotate_left(rotvec, q), quat.multiply(quat.exp_map(rotvec), q))
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 200, 1000])
+def test_the_shifts_quaternions_by_runs_equal_from_matrix_to_the_bit(rng, n):
+    """particle_filter.from_matrix_runs (one eigh per run of equal rotations) gives quat.from_matrix's
+    values, on resampled clouds (runs of copies, systematic resampling's order), clouds without copies,
+    and rotations differing from their neighbour only in a zero's sign or one bit; and
+    ParticleFilter.shift_to's cloud is the one computed with from_matrix over all particles."""
+    from app.filter import resampling
+    from app.filter.particle_filter import FilterConfig, ParticleFilter, from_matrix_runs
+
+    for spread in (0.05, 1.5):
+        p, q = random_particles(rng, n, spread)
+        state = motion.ParticleState(p, np.zeros((n, 3)), q, np.zeros((n, 3)), rng.normal(0.0, 3.0, n))
+        if n:
+            state = state.take(resampling.systematic(state.lw, rng.random()))
+        delta = se3.from_quat_trans(quat.exp_map(rng.normal(0, 0.1, 3)), rng.normal(0, 0.01, 3))
+        R = (delta @ state.poses())[:, :3, :3]
+        np.testing.assert_array_equal(from_matrix_runs(R), quat.from_matrix(R))
+        np.testing.assert_array_equal(from_matrix_runs(R[::-1]), quat.from_matrix(R[::-1]))
+        if n >= 2:
+            twins = np.repeat(R[:1], n, axis=0)
+            twins[1::3, 0, 1] = -twins[1::3, 0, 1] if twins[0, 0, 1] == 0 else np.nextafter(twins[1::3, 0, 1], 2.0)
+            twins[2::5, 2, 2] = np.nextafter(twins[2::5, 2, 2], -2.0)
+            np.testing.assert_array_equal(from_matrix_runs(twins), quat.from_matrix(twins))
+            zeros = np.repeat(np.eye(3)[None], n, axis=0)
+            zeros[::2, 0, 1] = -0.0                          # -0.0 == 0.0, but not the same bits
+            np.testing.assert_array_equal(from_matrix_runs(zeros), quat.from_matrix(zeros))
+
+        pf = ParticleFilter(FilterConfig(particles=max(n, 1)), model=None, rng=rng)
+        if n:
+            pf.state = state.copy()
+            T_old = se3.from_quat_trans(quat.exp_map(rng.normal(0, 0.3, 3)), rng.normal(0, 0.1, 3))
+            T_new = delta @ T_old
+            pf.shift_to(T_new, T_old)
+            poses = (T_new @ se3.inverse(T_old)) @ state.poses()
+            np.testing.assert_array_equal(pf.state.q, quat.from_matrix(poses[:, :3, :3]))
+            np.testing.assert_array_equal(pf.state.p, poses[:, :3, 3])

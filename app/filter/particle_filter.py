@@ -176,7 +176,7 @@ class ParticleFilter:
         Velocities and weights are kept; the last estimate becomes T_new."""
         delta = T_base_bone_new @ se3.inverse(T_base_bone_old)
         poses = delta @ self.state.poses()
-        self.state = replace(self.state, p=poses[:, :3, 3].copy(), q=quat.from_matrix(poses[:, :3, :3]))
+        self.state = replace(self.state, p=poses[:, :3, 3].copy(), q=from_matrix_runs(poses[:, :3, :3]))
         if self._last_estimate is not None:
             self._last_estimate = replace(self._last_estimate, T_base_bone=np.array(T_base_bone_new, float))
 
@@ -353,6 +353,30 @@ def substeps(dt: float, nominal: float) -> int:
     if dt <= 0 or nominal <= 0:
         return 1
     return int(min(max(1, np.ceil(dt / nominal - 1e-6)), MAX_SUBSTEPS))
+
+
+def from_matrix_runs(R: np.ndarray) -> np.ndarray:
+    """quat.from_matrix(R) of (N, 3, 3) rotations, computed once per run of consecutive matrices equal
+    bit for bit: the same (N, 4) values to the bit, since from_matrix takes each matrix alone
+    (elementwise arithmetic and one LAPACK eigh per matrix; tests/test_estimate_fast.py).
+
+    :meth:`ParticleFilter.shift_to` converts the whole cloud after every feedback, and the cloud it
+    shifts was just resampled (systematic: an ancestor's copies side by side), so most rows repeat
+    the one before: on crest_left_02 with 1,000 particles about 210 runs (BENCHMARKS.md "Filter
+    rate and CPU"); the batched eigh was 1 ms of the frame.
+    """
+    R = np.ascontiguousarray(R, dtype=float)
+    n = len(R)
+    if n < 2:
+        return quat.from_matrix(R)
+    bits = R.reshape(n, 9).view(np.uint64)
+    new = np.empty(n, dtype=bool)
+    new[0] = True
+    np.any(bits[1:] != bits[:-1], axis=1, out=new[1:])
+    starts = np.flatnonzero(new)
+    if len(starts) == n:
+        return quat.from_matrix(R)
+    return quat.from_matrix(R[starts])[np.cumsum(new) - 1]
 
 
 def _tick(timings: dict, stage: str, t0: float) -> float:

@@ -28,7 +28,7 @@ from app.render.batched import DEFAULT_FAR, DEFAULT_NEAR
 
 log = logging.getLogger(__name__)
 
-CHUNKS_PER_THREAD = 4   # z-buffers per numba thread: hypotheses j, j + C, ... share one (load balance)
+CHUNKS_PER_THREAD = 4   # z-buffers per numba thread (cpu_raster.batch: the chunks take the hypotheses one at a time)
 _first_call_s: float | None = None
 
 

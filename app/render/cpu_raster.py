@@ -28,8 +28,12 @@ background ratio with the occluder margin, α tempering or the pixel-count regul
 4.37), packed into a float64 vector by :func:`pack_params`; without classification the logs are
 summed as the log of a running product of the pixels' densities (:func:`_score_and_clear`).
 
-Parallelism: ``prange`` over chunks of hypotheses (hypothesis j goes to chunk j mod C); each chunk
-owns one z-buffer, read and cleared only inside the pixel box of the pose's projected vertices.
+Parallelism: ``prange`` over chunks, each owning one z-buffer, read and cleared only inside the
+pixel box of the pose's projected vertices; the chunks take the hypotheses one at a time from a
+shared counter (:func:`_take_next`, an atomic add), so a thread that gets less of a core (the stage
+worker's refinement beside it, app/pipeline/stages.py) takes fewer of them: numba's ``prange`` itself
+hands its iterations out statically, half to each thread. Every hypothesis is scored alone, so
+which chunk takes it changes no bit of ``out_ll``.
 """
 from __future__ import annotations
 
@@ -45,6 +49,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numba  # noqa: E402 (after OMP_WAIT_POLICY)
 import numpy as np
 from numba import prange
+from numba.core import cgutils, types
+from numba.extending import intrinsic
 
 from app.filter.likelihood_ref import LOG_FLOOR, LikelihoodParams
 
@@ -82,6 +88,30 @@ def pack_params(p: LikelihoodParams) -> np.ndarray:
                      p.pixel_weight, p.occluder_margin, float(p.occlusion == "smooth_exponential"),
                      float(bool(p.classification)), float(bool(p.background_ratio)),
                      math.log(p.z_max), math.log(max(p_u, LOG_FLOOR)), float(product)], dtype=np.float64)
+
+
+# ---------------------------------------------------------------- the threads' shared counter
+
+@intrinsic
+def _fetch_add(typingctx, counter, value):
+    """``counter[0] += value`` as one atomic read-modify-write; returns the value before (int64).
+    ``counter``: a 1-d int64 array shared by a ``prange``'s threads."""
+    if not (isinstance(counter, types.Array) and counter.dtype == types.int64 and counter.ndim == 1):
+        return None
+    sig = types.int64(counter, types.int64)
+
+    def codegen(context, builder, signature, args):
+        array = context.make_array(signature.args[0])(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, signature.args[0], array, [context.get_constant(types.intp, 0)])
+        return builder.atomic_rmw("add", ptr, args[1], "monotonic")
+
+    return sig, codegen
+
+
+@_njit(inline="always")
+def _take_next(counter):
+    """The next hypothesis index for a chunk of :func:`batch` (all taken: >= N)."""
+    return _fetch_add(counter, 1)
 
 
 # ---------------------------------------------------------------- rasterisation
@@ -202,12 +232,20 @@ def _render_one(T, vertices, faces, cam, cull, p, poly, zbuf, box):
     """
     fx, fy, cx, cy, near, far = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5]
     u_min, v_min, u_max, v_max = np.inf, np.inf, -np.inf, -np.inf
+    # the pose's entries in locals: numba reloaded T's 12 entries for every vertex (the stores into
+    # ``p`` may alias T as far as it knows); the same arithmetic, in the same order
+    t00, t01, t02, t03 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
+    t10, t11, t12, t13 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+    t20, t21, t22, t23 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
     for i in range(vertices.shape[0]):
-        for r in range(3):
-            p[i, r] = T[r, 0] * vertices[i, 0] + T[r, 1] * vertices[i, 1] + T[r, 2] * vertices[i, 2] + T[r, 3]
-        if p[i, 2] >= near:
-            iz = 1.0 / p[i, 2]
-            p[i, 3], p[i, 4], p[i, 5] = fx * p[i, 0] * iz + cx, fy * p[i, 1] * iz + cy, iz
+        vx, vy, vz = vertices[i, 0], vertices[i, 1], vertices[i, 2]
+        x = t00 * vx + t01 * vy + t02 * vz + t03
+        y = t10 * vx + t11 * vy + t12 * vz + t13
+        z = t20 * vx + t21 * vy + t22 * vz + t23
+        p[i, 0], p[i, 1], p[i, 2] = x, y, z
+        if z >= near:
+            iz = 1.0 / z
+            p[i, 3], p[i, 4], p[i, 5] = fx * x * iz + cx, fy * y * iz + cy, iz
             u_min, u_max = min(u_min, p[i, 3]), max(u_max, p[i, 3])
             v_min, v_max = min(v_min, p[i, 4]), max(v_max, p[i, 4])
         else:                                   # clipped triangles can reach anywhere
@@ -375,12 +413,16 @@ def batch(T_camera_bone, vertices, faces, cam, cull, depth_meas, prm, zbufs, out
         for v in prange(h):
             for u in range(w):
                 exp_lam_z[v, u] = math.exp(-prm[1] * float(depth_meas[v, u]))
+    counter = np.zeros(1, np.int64)          # the next hypothesis to take (_take_next)
     for c in prange(chunks):
         p = np.empty((vertices.shape[0], 6))
         poly = np.empty((4, 3))
         box = np.empty(4, np.int64)
         zbuf = zbufs[c]
-        for j in range(c, n, chunks):
+        while True:
+            j = _take_next(counter)
+            if j >= n:
+                break
             _render_one(T_camera_bone[j], vertices, faces, cam, cull, p, poly, zbuf, box)
             if not render:
                 out_ll[j] = _score_and_clear(depth_meas, exp_lam_z, zbuf, box, prm)
