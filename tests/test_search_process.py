@@ -168,3 +168,70 @@ def test_a_worker_process_that_fails_counts_as_nothing_found_and_the_searches_go
         assert not worker.in_flight and runner.work["searches"] == 2    # inline, on this frame
     finally:
         tracker.release()
+
+
+def test_the_frames_likelihood_runs_on_one_numba_thread_while_a_search_runs_and_its_result_is_the_same(trial):
+    """While a search is on the worker (here a thread, held by an event), the filter's step runs its
+    numba kernels on one thread (the search has the other core), and on the configured count before
+    and after; the likelihood's chunks are fixed when the backend is made, so one thread scores the
+    same poses to the same values. Counted per call, no wall time."""
+    import threading
+
+    import numba
+
+    from app.pipeline.tracker import DepthTracker
+    from app.tracking.search_worker import numba_threads
+    from app.trial.reader import open_trial
+
+    reader = open_trial(trial)
+    tracker = DepthTracker(_config("thread"), reader.load_mesh(), reader.meta.camera)
+    worker = tracker.recovery_runner.worker
+    release, build = threading.Event(), worker._build
+
+    class Held:
+        def __init__(self):
+            self.search = build()
+            self.backend = self.search.backend
+
+        def run(self, *args, **kw):
+            release.wait()
+            return self.search.run(*args, **kw)
+
+    worker._build = Held
+    step, threads = tracker.filter.step, []
+
+    def counted(*args, **kw):
+        threads.append((tracker.recovery_runner.searching, numba.get_num_threads()))
+        return step(*args, **kw)
+
+    tracker.filter.step = counted
+    configured = numba.get_num_threads()
+    tracker.start(reader.meta.initial_pose)
+    T_base_camera, valid = reader.camera_poses()
+    frames = [f for f in reader.iter_frames() if f.index % EVERY == 0][:8]
+    try:
+        for k, frame in enumerate(frames):
+            if k == 2:
+                tracker.recovery.pending = "a test"                 # handed to the worker on this frame
+            if k == 6:
+                release.set()
+                worker._future.result()
+            tracker.process(frame.depth_m, frame.stamp, T_base_camera[frame.index])
+        from app.depth_image import downsample_nearest
+
+        frame = frames[-1]
+        width, height = tracker.config.resolution
+        small = downsample_nearest(frame.depth_m, width, height)
+        T = np.linalg.inv(T_base_camera[frame.index]) @ reader.groundtruth[frame.index]
+        poses = np.repeat(T[None], tracker.config.particles, axis=0)
+        poses[:, :3, 3] += np.random.default_rng(0).normal(0.0, 0.003, (len(poses), 3))
+        both = np.array(tracker.backend.log_likelihood(poses, small), copy=True)
+        with numba_threads(1):
+            one = np.array(tracker.backend.log_likelihood(poses, small), copy=True)
+        assert np.all(np.isfinite(both)) and np.array_equal(one, both)
+    finally:
+        release.set()
+        tracker.release()
+    searching = [n for s, n in threads if s]
+    assert len(searching) >= 3 and set(searching) == {1}
+    assert {n for s, n in threads if not s} == {configured} and numba.get_num_threads() == configured
