@@ -37,7 +37,7 @@ from app.geometry.camera import PinholeCamera
 from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD
 from app.pipeline.recovery_runner import build_wide_search, make_recovery, usable_frame
 from app.pipeline.stages import PARALLEL, StageWorker, stages_mode
-from app.tracking.search_worker import INLINE, PROCESS, SearchWorker, search_worker_mode, while_searching
+from app.tracking.search_worker import INLINE, PROCESS, SearchWorker, search_worker_mode
 from app.tracking.start import StartByDetection
 
 log = logging.getLogger(__name__)
@@ -266,8 +266,7 @@ class DepthTracker:
         reinitialised = self._recover(depth_small, depth_m, T_base_camera, stamp)
         ahead = self._track_fit_ahead(depth_m, T_base_camera)
         try:
-            with while_searching(self.recovery_runner is not None and self.recovery_runner.searching):
-                result = self.filter.step(depth_small, stamp, T_base_camera)     # one numba thread beside a search
+            result = self.filter.step(depth_small, stamp, T_base_camera)
         finally:
             track_fit = self._take(ahead)
         if self.refined_track is not None:

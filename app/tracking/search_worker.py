@@ -37,7 +37,6 @@ import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
-from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -209,12 +208,6 @@ class SearchWorker:
         self._search = None
 
 
-def while_searching(searching: bool):
-    """The frame loop's numba threads for one frame: one while a search runs on the worker
-    (:func:`numba_threads`), else as they are."""
-    return numba_threads(1) if searching else nullcontext()
-
-
 def run_job(search, rng: np.random.Generator, job: SearchJob | DetectJob) -> SearchOutcome:
     """One job with ``search`` and ``rng``: the recovery's wide search, or a start's detection (the result
     then is (Detection or None, the detector's (evaluations, refinements))); its wall and CPU seconds on
@@ -273,23 +266,6 @@ def shorten_gil_switch() -> None:
     from a GIL-free kernel waits less for the other (this worker, app/pipeline/stages.py's)."""
     if sys.getswitchinterval() > SWITCH_INTERVAL_S:
         sys.setswitchinterval(SWITCH_INTERVAL_S)
-
-
-@contextmanager
-def numba_threads(n: int):
-    """The calling thread's numba kernels on ``n`` threads within the block, its count restored after.
-    The frame loop's likelihood runs on one thread while a search runs beside it (app/pipeline/tracker.py):
-    its parallel kernel's chunks are fixed when the backend is made (app/render/cpu_likelihood.py), so the
-    result is the same on any number of threads, and with the search on the other core a second numba
-    thread only waits for a core at each kernel's barrier (OpenMP spins there before it sleeps)."""
-    import numba
-
-    before = numba.get_num_threads()
-    numba.set_num_threads(min(n, before))
-    try:
-        yield
-    finally:
-        numba.set_num_threads(before)
 
 
 def one_numba_thread() -> None:
