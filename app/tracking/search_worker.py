@@ -27,6 +27,11 @@ refiner's association, scipy) then never hold the frame loop's GIL, and the oper
 frame loop's threads the cores first: a thread of the same process could not be given a lower priority
 without the loop waiting on a GIL held by a thread the scheduler keeps off the cores. Each job's
 images are pickled to the child (about 1-2 MB, once per search) by the executor's own thread.
+Measured on the shared 2-core sandbox (2026-11-28, BENCHMARKS.md "The search in a worker process"):
+a frame beside a search cost what it costs without one (the thread had doubled it: 16.6 against
+8.1 ms of CPU); the GIL itself was 3-4 % of the loop's wall time, the cores' share most of it. The
+price: the niced search takes longer while the loop and other jobs are busy (0.5-5 s against
+0.5-3.8 s on the thread), so a found pose arrives later; ``thread`` keeps the old behaviour.
 """
 from __future__ import annotations
 
