@@ -64,24 +64,27 @@ def _knock(tracker, T_base_bone: np.ndarray) -> None:
             track.prior.T_base_bone = T_off.copy()
 
 
-def test_auto_is_a_process_in_a_live_session_and_inline_in_a_replay(trial):
+def test_process_is_chosen_by_name_and_auto_stays_a_thread_in_a_live_session(trial):
     from app.pipeline.tracker import DepthTracker
     from app.tracking.search_worker import search_worker_mode
     from app.trial.reader import open_trial
 
-    assert search_worker_mode("auto", True) == "process" and search_worker_mode("auto", False) == "inline"
-    assert search_worker_mode("thread", False) == "thread"
+    assert search_worker_mode("auto", True) == "thread" and search_worker_mode("auto", False) == "inline"
+    assert search_worker_mode("process", False) == "process"
     with pytest.raises(ValueError):
         search_worker_mode("fork", True)
     reader = open_trial(trial)
     mesh = reader.load_mesh()
-    live = DepthTracker(_config("auto"), mesh, reader.meta.camera, live=True)
-    replayed = DepthTracker(_config("auto"), mesh, reader.meta.camera)
+    trackers = [DepthTracker(_config("process"), mesh, reader.meta.camera),
+                DepthTracker(_config("auto"), mesh, reader.meta.camera, live=True),
+                DepthTracker(_config("auto"), mesh, reader.meta.camera)]
     try:
-        assert live.recovery_runner.worker.process and replayed.recovery_runner.worker is None
+        assert [t.recovery_runner.worker is not None and t.recovery_runner.worker.process for t in trackers] == \
+            [True, False, False]
+        assert trackers[2].recovery_runner.worker is None
     finally:
-        live.release()
-        replayed.release()
+        for t in trackers:
+            t.release()
 
 
 def test_a_search_in_the_worker_process_never_stops_the_frames_and_its_result_is_taken_later(trial):

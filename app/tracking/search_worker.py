@@ -2,7 +2,7 @@
 
 Import as ``from app.tracking.search_worker import SearchWorker``. Issue 35, Deliver 3: a wide search
 (1-4 s of CPU) blocked a live session's frame loop, with no estimate meanwhile. With
-``recovery.search_worker`` ``process`` (``auto``: in a live session, ``osteonav track``) or ``thread``
+``recovery.search_worker`` ``thread`` (``auto``: in a live session, ``osteonav track``) or ``process``
 the recovery hands the due search to this worker and the tracker goes on with its track, in the lifecycle's
 ``searching`` state (never ok); the result is taken on the first frame after it is ready and applied
 there (app/pipeline/recovery_runner.py): a found pose is a base-frame pose, so the camera's motion
@@ -29,9 +29,11 @@ without the loop waiting on a GIL held by a thread the scheduler keeps off the c
 images are pickled to the child (about 1-2 MB, once per search) by the executor's own thread.
 Measured on the shared 2-core sandbox (2026-11-28, BENCHMARKS.md "The search in a worker process"):
 a frame beside a search cost what it costs without one (the thread had doubled it: 16.6 against
-8.1 ms of CPU); the GIL itself was 3-4 % of the loop's wall time, the cores' share most of it. The
-price: the niced search takes longer while the loop and other jobs are busy (0.5-5 s against
-0.5-3.8 s on the thread), so a found pose arrives later; ``thread`` keeps the old behaviour.
+8.1 ms of CPU), and under other jobs' load (5-6.5) the session did better (latency p99 181-248
+against 231-385 ms); but at load 2.4-2.8, the nearest to a dedicated machine, it did a little worse
+(latency median 20.6-22.6 against 14.3-18.7 ms, 41-44 against 47-53 frames/s, three pairs), and the
+niced search takes longer while the loop is busy (0.5-5 s against 0.5-3.8 s). The GIL itself was
+3-4 % of the loop's wall time, the cores' share most of it. So ``auto`` stays ``thread``.
 """
 from __future__ import annotations
 
@@ -57,10 +59,10 @@ SWITCH_INTERVAL_S = 0.0005   # the GIL handed over every 0.5 ms, not Python's 5:
 
 
 def search_worker_mode(choice: str, live: bool) -> str:
-    """``recovery.search_worker`` resolved: ``auto`` is ``process`` in a live session, else ``inline``."""
+    """``recovery.search_worker`` resolved: ``auto`` is ``thread`` in a live session, else ``inline``."""
     if choice not in MODES:
         raise ValueError(f"recovery.search_worker must be one of {', '.join(MODES)}, got {choice!r}")
-    return (PROCESS if live else INLINE) if choice == AUTO else choice
+    return (THREAD if live else INLINE) if choice == AUTO else choice
 
 
 @dataclass
