@@ -228,7 +228,7 @@ KEYS: dict[str, _Key] = {
     "recovery.sliding_factor": _f("recovery.sliding_factor", 1.0, 1000.0),
     "recovery.still_window_s": _f("recovery.still_window_s", 0.0, 60.0),
     "recovery.confirm_moved": _Key(("recovery", "confirm_moved"), "bool"),
-    "recovery.search_worker": _Key(("recovery", "search_worker"), "choice", choices=("auto", "inline", "thread")),
+    "recovery.search_worker": _Key(("recovery", "search_worker"), "choice", choices=("auto", "inline", "thread", "process")),
     "render.resolution": _Key(("resolution",), "resolution", 8, 4096),
     "render.near": _f("near", 0.0, 10.0, lo_open=True),
     "render.far": _f("far", 0.0, 100.0, lo_open=True),

@@ -17,6 +17,7 @@ import math
 import time
 from collections import defaultdict
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 import trimesh
@@ -36,7 +37,7 @@ from app.geometry.camera import PinholeCamera
 from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD
 from app.pipeline.recovery_runner import build_wide_search, make_recovery, usable_frame
 from app.pipeline.stages import PARALLEL, StageWorker, stages_mode
-from app.tracking.search_worker import THREAD, SearchWorker, search_worker_mode
+from app.tracking.search_worker import INLINE, PROCESS, SearchWorker, search_worker_mode
 from app.tracking.start import StartByDetection
 
 log = logging.getLogger(__name__)
@@ -88,9 +89,12 @@ class DepthTracker:
         self._start_detection: StartByDetection | None = None   # init.method auto without a pose (start_by_detection)
         self.recovery_runner = make_recovery(config, self.backend, self.camera, self.filter, self.refined_track,
                                              self.mesh_vertices, self._run_smc)
-        if self.wide_search is not None and search_worker_mode(config.recovery.search_worker, live) == THREAD:
-            self.recovery_runner.worker = SearchWorker(self._worker_search,
-                                                       np.random.default_rng(self.filter.rng.integers(2**63)))
+        mode = search_worker_mode(config.recovery.search_worker, live)
+        if self.wide_search is not None and mode != INLINE:
+            rng = np.random.default_rng(self.filter.rng.integers(2**63))
+            build = partial(build_worker_search, config, self.mesh_vertices, self.mesh_faces, self.camera, cull,
+                            np.asarray(mesh.vertices, float), np.asarray(mesh.faces), camera)
+            self.recovery_runner.worker = SearchWorker(build, rng, process=mode == PROCESS)
             self.recovery_runner.worker.prepare()
         self.template_points = "mesh_vertices"
         self._T_base_bone_last: np.ndarray | None = None
@@ -418,17 +422,10 @@ class DepthTracker:
         return {k: 1e3 * v / max(self._frames, 1) for k, v in self._timings.items()}
 
     def _worker_search(self):
-        """The search worker's own wide search, built on its thread: its own likelihood backend (a GL
-        context belongs to its thread) and refiner, on the same mesh, cameras and configuration."""
-        from app.render.backends import make_backend
-
-        c = self.config
-        backend, _ = make_backend(c.backend, self.mesh_vertices, self.mesh_faces, self.camera, c.particles,
-                                  c.likelihood, near=c.near, far=c.far, cull_back_faces=self._cull)
+        """The search worker's own wide search (:func:`build_worker_search` on this tracker's parts)."""
         mesh = self._mesh
-        refiner = Refiner(np.asarray(mesh.vertices, float), np.asarray(mesh.faces), self._camera_full,
-                          refine_params(c), seed=c.seed)
-        return build_wide_search(c, backend, self.camera, refiner, self.mesh_vertices)
+        return build_worker_search(self.config, self.mesh_vertices, self.mesh_faces, self.camera, self._cull,
+                                   np.asarray(mesh.vertices, float), np.asarray(mesh.faces), self._camera_full)
 
     def release(self) -> None:
         if self.recovery_runner is not None and self.recovery_runner.worker is not None:
@@ -436,6 +433,21 @@ class DepthTracker:
         if self._stage_worker is not None:
             self._stage_worker.close()
         self.backend.release()
+
+
+def build_worker_search(c: TrackerConfig, vertices: np.ndarray, faces: np.ndarray, camera: PinholeCamera,
+                        cull: bool, full_vertices: np.ndarray, full_faces: np.ndarray, camera_full: PinholeCamera):
+    """The search worker's own wide search, built on its thread or in its process
+    (app/tracking/search_worker.py): its own likelihood backend (a GL context belongs to its thread)
+    on the tracking mesh (``vertices``, ``faces``) at the filter's ``camera``, and its own refiner on the
+    full mesh at the full-resolution ``camera_full``, with the tracker's configuration ``c``. Module
+    level and from picklable parts, so that a worker process can build it."""
+    from app.render.backends import make_backend
+
+    backend, _ = make_backend(c.backend, vertices, faces, camera, c.particles, c.likelihood, near=c.near, far=c.far,
+                              cull_back_faces=cull)
+    refiner = Refiner(full_vertices, full_faces, camera_full, refine_params(c), seed=c.seed)
+    return build_wide_search(c, backend, camera, refiner, vertices)
 
 
 def _timed(fn, *args):

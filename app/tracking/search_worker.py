@@ -1,9 +1,9 @@
-"""Searches off the frame loop: a wide search runs on a worker thread while the track goes on.
+"""Searches off the frame loop: a wide search runs on a worker (a process or a thread) while the track goes on.
 
 Import as ``from app.tracking.search_worker import SearchWorker``. Issue 35, Deliver 3: a wide search
 (1-4 s of CPU) blocked a live session's frame loop, with no estimate meanwhile. With
-``recovery.search_worker`` ``thread`` (``auto``: in a live session, ``osteonav track``) the recovery
-hands the due search to this worker and the tracker goes on with its track, in the lifecycle's
+``recovery.search_worker`` ``thread`` (``auto``: in a live session, ``osteonav track``) or ``process``
+the recovery hands the due search to this worker and the tracker goes on with its track, in the lifecycle's
 ``searching`` state (never ok); the result is taken on the first frame after it is ready and applied
 there (app/pipeline/recovery_runner.py): a found pose is a base-frame pose, so the camera's motion
 since the search's frame is already in it (the robot's encoders), and the bone is taken to have
@@ -18,21 +18,42 @@ own random generator, drawn once from the tracker's; it is built when the tracke
 The numba kernels release the GIL (app/render/cpu_raster.py ``_njit``) and the worker runs them on
 one thread, so on two cores the search and the frames run side by side.
 A search that raises is logged and counts as one that found nothing: the session goes on.
+
+``process`` (issue 35): the worker is a child process (spawned, one numba thread, ``SEARCH_NICE`` lower
+priority) that builds its own search from picklable parts (app/pipeline/tracker.py's
+:func:`~app.pipeline.tracker.build_worker_search`) and keeps its own generator (the same one a thread
+would have: drawn once from the tracker's). The search's Python parts (numpy between the kernels, the
+refiner's association, scipy) then never hold the frame loop's GIL, and the operating system gives the
+frame loop's threads the cores first: a thread of the same process could not be given a lower priority
+without the loop waiting on a GIL held by a thread the scheduler keeps off the cores. Each job's
+images are pickled to the child (about 1-2 MB, once per search) by the executor's own thread.
+Measured on the shared 2-core sandbox (2026-11-28, BENCHMARKS.md "The search in a worker process"):
+a frame beside a search cost what it costs without one (the thread had doubled it: 16.6 against
+8.1 ms of CPU), and under other jobs' load (5-6.5) the session did better (latency p99 181-248
+against 231-385 ms); but at load 2.4-2.8, the nearest to a dedicated machine, it did a little worse
+(latency median 20.6-22.6 against 14.3-18.7 ms, 41-44 against 47-53 frames/s, three pairs), and the
+niced search takes longer while the loop is busy (0.5-5 s against 0.5-3.8 s). The GIL itself was
+3-4 % of the loop's wall time, the cores' share most of it. So ``auto`` stays ``thread``.
 """
 from __future__ import annotations
 
 import logging
+import multiprocessing
+import os
 import sys
 import time
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 log = logging.getLogger(__name__)
-INLINE, THREAD, AUTO = "inline", "thread", "auto"
-MODES = (AUTO, INLINE, THREAD)
+INLINE, THREAD, PROCESS, AUTO = "inline", "thread", "process", "auto"
+MODES = (AUTO, INLINE, THREAD, PROCESS)
+SEARCH_NICE = 5              # the search process's niceness above the frame loop's: the loop's threads get the
+                             # cores first when both want them; the search still gets a share (weight 335
+                             # against 1024 per nice-0 thread), so it is slowed, not starved, by the loop
 SWITCH_INTERVAL_S = 0.0005   # the GIL handed over every 0.5 ms, not Python's 5: the frame loop's many short
                              # Python steps between GIL-free kernels each waited up to 5 ms for the worker
 
@@ -81,19 +102,25 @@ class SearchOutcome:
 
 
 class SearchWorker:
-    """One search at a time on a worker thread.
+    """One search at a time on a worker thread, or in a worker process (``process``).
 
     Parameters
     ----------
-    build : () -> WideSearch, called once on the worker's thread (its own backend and refiner)
-    rng : the worker's generator
+    build : () -> WideSearch, called once on the worker's thread or in the worker process (its own backend
+        and refiner); picklable with ``process`` (a module-level function, or a partial of one)
+    rng : the worker's generator (with ``process`` a copy goes to the child, which draws from it)
+    process : run the searches in a spawned child process (module docstring) instead of a thread
     """
 
-    def __init__(self, build: Callable[[], object], rng: np.random.Generator):
-        self._build, self.rng = build, rng
-        shorten_gil_switch()
+    def __init__(self, build: Callable[[], object], rng: np.random.Generator, process: bool = False):
+        self._build, self.rng, self.process = build, rng, process
         self._search = None
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="osteonav-search")
+        if process:
+            self._executor = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                                 initializer=_child_init, initargs=(build, rng, SEARCH_NICE))
+        else:
+            shorten_gil_switch()
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="osteonav-search")
         self._future: Future | None = None
         self.job: SearchJob | None = None
         self.failed = False                                 # a search raised: inline from then on (safe)
@@ -114,6 +141,8 @@ class SearchWorker:
         recovery and the start search inline, as in a replay."""
         if self.failed:
             return False
+        if self.process:                                    # its own process: its own threading layer
+            return True
         import numba
 
         try:
@@ -126,7 +155,11 @@ class SearchWorker:
         if self._future is not None:
             raise RuntimeError("a search is already in flight")
         self.job = job
-        self._future = self._executor.submit(self._run, job)
+        try:
+            self._future = self._executor.submit(_child_run if self.process else self._run, job)
+        except Exception as exc:                            # e.g. the child process died: taken as a failed search
+            self._future = Future()
+            self._future.set_exception(exc)
 
     def take(self) -> tuple[SearchJob, SearchOutcome | None]:
         """The finished search's job and outcome (None when it raised: logged; it found nothing)."""
@@ -144,23 +177,18 @@ class SearchWorker:
         """The job on the worker's thread: the recovery's wide search, or a start's detection (the
         result then is (Detection or None, the detector's (evaluations, refinements)))."""
         self._built()
-        wall0, cpu0 = time.perf_counter(), time.thread_time()
-        if isinstance(job, DetectJob):
-            from app.tracking.detector import SearchDetector
-
-            detector = SearchDetector(self._search, self.rng, job.start)
-            found = detector.detect(job.depth_small, job.depth_m, job.T_base_camera, job.point)
-            result = (found, detector.last_work)
-        else:
-            result = self._search.run(job.depth_small, job.depth_m, job.T_base_camera, job.T_base_bone_ok,
-                                      job.track, self.rng, incumbent=job.incumbent)
-        return SearchOutcome(result, time.perf_counter() - wall0, time.thread_time() - cpu0)
+        return run_job(self._search, self.rng, job)
 
     def prepare(self) -> None:
         """Build the worker's search now, on its thread, before a search is due (the first search then
         does not pay for it while the frames wait for the GIL); a build that fails is retried by the
-        first search, whose failure is then reported (:meth:`take`)."""
-        self._executor.submit(self._built).add_done_callback(lambda f: f.exception())
+        first search, whose failure is then reported (:meth:`take`). A process is started here (its
+        imports and numba's cache load then overlap the first frames)."""
+        try:
+            future = self._executor.submit(_child_prepare if self.process else self._built)
+        except Exception:                                   # reported by the first search
+            return
+        future.add_done_callback(lambda f: f.exception())
 
     def _built(self) -> None:
         """The worker's search, built once; its numba kernels on one thread (numba's count is per
@@ -173,7 +201,10 @@ class SearchWorker:
         """Wait for a search in flight, release the worker's backend on its own thread (a GL context's),
         and stop the thread."""
         try:
-            self._executor.submit(self._release).result()
+            self._executor.submit(_child_release if self.process else self._release).result()
+        except Exception:                                   # a dead child has nothing left to release
+            if not self.process:
+                raise
         finally:
             self._executor.shutdown(wait=True, cancel_futures=True)
 
@@ -182,6 +213,59 @@ class SearchWorker:
         if backend is not None and hasattr(backend, "release"):
             backend.release()
         self._search = None
+
+
+def run_job(search, rng: np.random.Generator, job: SearchJob | DetectJob) -> SearchOutcome:
+    """One job with ``search`` and ``rng``: the recovery's wide search, or a start's detection (the result
+    then is (Detection or None, the detector's (evaluations, refinements))); its wall and CPU seconds on
+    the calling thread."""
+    wall0, cpu0 = time.perf_counter(), time.thread_time()
+    if isinstance(job, DetectJob):
+        from app.tracking.detector import SearchDetector
+
+        detector = SearchDetector(search, rng, job.start)
+        found = detector.detect(job.depth_small, job.depth_m, job.T_base_camera, job.point)
+        result = (found, detector.last_work)
+    else:
+        result = search.run(job.depth_small, job.depth_m, job.T_base_camera, job.T_base_bone_ok,
+                            job.track, rng, incumbent=job.incumbent)
+    return SearchOutcome(result, time.perf_counter() - wall0, time.thread_time() - cpu0)
+
+
+# -- the worker process's side (``process``): its search and generator, built once --------------------
+_CHILD: dict = {}
+
+
+def _child_init(build: Callable[[], object], rng: np.random.Generator, nice: int) -> None:
+    """The child's start: lower its priority (``nice``), one numba thread, remember how to build."""
+    try:
+        os.nice(nice)
+    except (AttributeError, OSError):                       # not on this platform: the same priority
+        pass
+    one_numba_thread()
+    _CHILD.update(build=build, rng=rng, search=None)
+
+
+def _child_built():
+    if _CHILD["search"] is None:
+        _CHILD["search"] = _CHILD["build"]()
+    return _CHILD["search"]
+
+
+def _child_prepare() -> None:
+    _child_built()                                          # nothing sent back: the search stays in the child
+
+
+def _child_run(job: SearchJob | DetectJob) -> SearchOutcome:
+    return run_job(_child_built(), _CHILD["rng"], job)
+
+
+def _child_release() -> None:
+    search = _CHILD.get("search")
+    backend = getattr(search, "backend", None)
+    if backend is not None and hasattr(backend, "release"):
+        backend.release()
+    _CHILD["search"] = None
 
 
 def shorten_gil_switch() -> None:
