@@ -126,4 +126,29 @@ def write_recording(path: str | Path, depth_units: np.ndarray, stamps_s: np.ndar
             sensor.stop()
             sensor.close()
     del recorder  # the file is finalised when the recorder goes away
+    stored = count_depth_frames(path)
+    if stored != n:
+        raise OSError(f"the RealSense recording {path} holds {stored} of the {n} depth frames written (the SDK's "
+                      "recorder dropped the rest: a full or slow disk?); the file is incomplete: do not use it as the trial")
     return Path(path)
+
+
+def count_depth_frames(path: str | Path, timeout_ms: int = 5000) -> int:
+    """The depth frames a RealSense recording holds, read in order (the SDK's non-real-time playback)."""
+    from plugins.realsense import _rs
+
+    rs = _rs()
+    pipeline, config = rs.pipeline(), rs.config()
+    config.enable_device_from_file(str(Path(path)), False)
+    config.enable_stream(rs.stream.depth)
+    config.resolve(pipeline).get_device().as_playback().set_real_time(False)
+    pipeline.start(config)
+    count = 0
+    try:
+        while True:
+            ok, frames = pipeline.try_wait_for_frames(timeout_ms)
+            if not ok:
+                return count
+            count += frames.get_depth_frame() is not None and bool(frames.get_depth_frame())
+    finally:
+        pipeline.stop()

@@ -124,3 +124,17 @@ def test_a_late_start_drops_no_recorded_frame(tmp_path, monkeypatch):
     stamps = 5.0 + np.arange(n) / 30.0
     path = write_recording(tmp_path / f"late{recording_suffix()}", units, stamps, CAMERA, depth_scale=0.0001)
     check_playback(path, units, stamps, np.arange(n), 0.0001, paced=False)
+
+
+def test_a_recording_that_lost_frames_is_an_error_not_a_silent_short_file(tmp_path, monkeypatch):
+    """The SDK's recorder can store fewer frames than it was given (a 60 s trial kept 2,257 of 5,347 on the
+    loaded sandbox, BENCHMARKS.md): write_recording counts what the file holds and raises unless all are there."""
+    import plugins.realsense_recording as rec
+
+    units = np.full((5, 48, 64), 4000, np.uint16)
+    stamps = 100.0 + np.arange(5) / 30.0
+    path = write_recording(tmp_path / f"all{recording_suffix()}", units, stamps, CAMERA, depth_scale=0.0001, fps=30)
+    assert rec.count_depth_frames(path) == 5
+    monkeypatch.setattr(rec, "count_depth_frames", lambda p, timeout_ms=5000: 3)     # the recorder dropped two
+    with pytest.raises(OSError, match="holds 3 of the 5 depth frames"):
+        write_recording(tmp_path / f"short{recording_suffix()}", units, stamps, CAMERA, depth_scale=0.0001, fps=30)
