@@ -49,6 +49,11 @@ class MotionGate:
         self._history: deque[tuple[float, np.ndarray]] = deque()
         self._last_motion: float | None = None
 
+    def mark(self, stamp: float) -> None:
+        """Another test saw the bone move at ``stamp`` (the held test: the image's own fit contradicts the
+        pose the static prior held): the settle restarts there, as after a speed above the threshold."""
+        self._last_motion = float(stamp)
+
     def reset(self) -> None:
         self._history.clear()
         self._last_motion = None
