@@ -48,6 +48,7 @@ def test_hardware_example_names_the_robot_address_and_calibration():
     (minimal(calibration={"handeye": []}), "calibration.handeye", "hand_eye"),
     (minimal(bone={"pose": []}), "bone.pose", "initial_pose"),
     (minimal(loop={"stall": 1}), "loop.stall", "stall_timeout_s"),
+    (minimal(loop={"robot_lost_s": 1.0}), "loop.robot_lost_s", "status.lost_no_pose_s"),
     (minimal(format="osteonav-session/9"), "format", "osteonav-session/1"),
     ({"robot": {"plugin": "ur"}}, "camera", "realsense"),
 ])
@@ -145,3 +146,22 @@ def test_missing_hardware_package_names_the_install_command(monkeypatch):
 
     with pytest.raises(ConfigError, match=r"pip install pyrealsense2"):
         RealSenseCamera().open(SessionClock(), lambda *a: None)
+
+
+def test_the_live_loop_has_one_missing_pose_clock_the_trackers(tmp_path):
+    """Issue 32: the session's floor reads the tracker's status.lost_no_pose_s (it had its own
+    loop.robot_lost_s, 1 s against the tracker's 0.5 s); a tracker without one gets the status default."""
+    from types import SimpleNamespace
+
+    from app.filter.status import LOST_NO_POSE_S
+    from app.pipeline.engine_tracker import EngineTracker
+    from app.session.loop import LiveLoop
+
+    engine = SimpleNamespace(config=SimpleNamespace(status=SimpleNamespace(lost_no_pose_s=0.3)))
+    assert EngineTracker(engine).lost_no_pose_s == 0.3
+    assert EngineTracker(SimpleNamespace()).lost_no_pose_s == LOST_NO_POSE_S
+    session = LiveLoop.__new__(LiveLoop)
+    session.tracker = EngineTracker(engine)
+    assert session._lost_no_pose_s() == 0.3
+    session.tracker = None
+    assert session._lost_no_pose_s() == LOST_NO_POSE_S

@@ -2,7 +2,7 @@
 
 Faults (times in seconds after the sources start): a corrupt frame (NaN pixels), a wrong-size
 frame, a frame stamped before the previous one, a camera stall, a camera disconnect and
-reconnect, a camera clock jump, NaN joints, a robot disconnect longer than ``robot_lost_s``.
+reconnect, a camera clock jump, NaN joints, a robot disconnect longer than the tracker's ``lost_no_pose_s``.
 Checked: the loop runs to the end, each event is logged at its time, the status goes uncertain
 or lost (no template) while it lasts and back to ok after, and every good frame reaches the sinks.
 """
@@ -50,6 +50,7 @@ class FakeTracker:
         self.calls = []
 
     description = "fake tracker"
+    lost_no_pose_s = 0.8        # the live loop's floor reads the tracker's missing-pose clock
 
     def start(self, T_base_bone):
         self.T = np.asarray(T_base_bone)
@@ -240,7 +241,7 @@ def session(tmp_path, faults=True, seconds=5.0, **extra):
         "bone": {"initial_pose": np.eye(4).tolist()},
         "outputs": [{"plugin": "collect"}],
         "out": str(tmp_path / "out"),
-        "loop": {"stall_timeout_s": 0.3, "robot_lost_s": 0.8, "duration_s": seconds + 1.0},
+        "loop": {"stall_timeout_s": 0.3, "duration_s": seconds + 1.0},
     }
     raw.update(extra)
     return parse_session(raw, tmp_path)
@@ -296,7 +297,7 @@ def test_loop_survives_every_fault_and_recovers(tmp_path, fake_plugins):
     assert set(_status_between(est, t0, 2.35, 2.55)) == {"ok"}
     # NaN joints: no camera pose for those frames -> uncertain
     assert "uncertain" in _status_between(est, t0, 2.6, 2.85)
-    # robot disconnected: uncertain first, lost after robot_lost_s
+    # robot disconnected: uncertain first, lost after the tracker's lost_no_pose_s
     during = _status_between(est, t0, 3.05, 4.25)
     assert during[0] == "uncertain" and during[-1] == "lost"
     assert all(not e.show_template for e in est if 3.05 < e.stamp - t0 < 4.25)

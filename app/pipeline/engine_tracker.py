@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from app.filter.status import LOST_NO_POSE_S
 from app.interfaces import DepthFrame, TrackerResult
 
 
@@ -19,6 +20,14 @@ class EngineTracker:
     def __init__(self, engine):
         self.engine = engine
         self.description = str(getattr(engine, "gl_description", type(engine).__name__))
+
+    @property
+    def lost_no_pose_s(self) -> float:
+        """s without a camera pose before the status is lost: the engine's ``status.lost_no_pose_s`` (the
+        live loop's floor reads it, so a session has one missing-pose clock; issue 32)."""
+        config = getattr(self.engine, "config", None)
+        status = getattr(config, "status", None)
+        return float(status.lost_no_pose_s) if status is not None else LOST_NO_POSE_S
 
     def start(self, T_base_bone: np.ndarray) -> None:
         self.engine.start(T_base_bone)

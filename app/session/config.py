@@ -32,6 +32,13 @@ class PluginSpec:
     key: str = ""
 
 
+RENAMED_LOOP = {   # loop keys of earlier session files: what replaced them
+    "robot_lost_s": "removed (issue 32: one missing-pose clock): the status is lost after the tracker's "
+                    "status.lost_no_pose_s (0.5 s by default) without a camera pose; set it in the tracker's "
+                    "config (tracker.params.config) and remove this key",
+}
+
+
 @dataclass
 class LoopConfig:
     """Loop timing (seconds) and queue sizes."""
@@ -39,7 +46,6 @@ class LoopConfig:
     stall_timeout_s: float = 0.5      # no frame for this long: the camera is stalled (status lost)
     robot_wait_s: float = 0.05        # wait this long for joints covering a frame's stamp
     max_joint_gap_s: float = 0.05     # joint samples further apart than this do not interpolate
-    robot_lost_s: float = 1.0         # no camera pose for this long: status lost
     duration_s: float | None = None   # stop after this long (None: until stopped)
     tracker_queue: int = 2            # frames waiting for the tracker (newest kept)
     joint_buffer_s: float = 10.0      # joint history kept for interpolation
@@ -332,6 +338,9 @@ def _intrinsics(value: Any, base: Path, src: str) -> PinholeCamera | None:
 def _loop_config(loop_raw: dict, src: str) -> LoopConfig:
     """``loop``: LoopConfig's fields, each a finite positive number (or null)."""
     loop = LoopConfig()
+    for old, why in RENAMED_LOOP.items():
+        if old in loop_raw:
+            raise ConfigError(f"loop.{old}", why, src)
     for k, v in loop_raw.items():
         _allowed(f"loop.{k}", k, tuple(LoopConfig.__dataclass_fields__), src)
         if v is not None and (not _is_number(v) or not 0 < v < float("inf")):

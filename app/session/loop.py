@@ -16,7 +16,7 @@ from collections import Counter
 import numpy as np
 
 from app import plugins_registry as registry
-from app.filter.status import Reason, codes
+from app.filter.status import LOST_NO_POSE_S, Reason, codes
 from app.errors import ConfigError
 from app.interfaces import DepthFrame, Estimate, SessionClock
 from app.pipeline.frame_core import FrameCore
@@ -223,8 +223,8 @@ class LiveLoop:
         self.last_frame_host = t_pop
         T_base_camera, reasons = self._camera_pose(frame, t_pop)
         floor = None
-        if T_base_camera is None:   # capped without a camera pose: uncertain, lost after robot_lost_s
-            floor = "lost" if t_pop - self.last_pose_host > self.lc.robot_lost_s else "uncertain"
+        if T_base_camera is None:   # capped without a camera pose: uncertain, lost after the tracker's lost_no_pose_s
+            floor = "lost" if t_pop - self.last_pose_host > self._lost_no_pose_s() else "uncertain"
         if hasattr(self.point_source, "observe"):   # the pointer sees this frame's image before the tracker asks
             self.point_source.observe(frame)
         est = self.core.process(frame, T_base_camera, reasons, floor)
@@ -235,6 +235,12 @@ class LiveLoop:
             self.latency.add(frame, t_pop, self.core.t_estimate, self.clock.now())
         if self.progress:
             self.progress(est)
+
+    def _lost_no_pose_s(self) -> float:
+        """The one missing-pose clock (issue 32): the tracker's ``status.lost_no_pose_s``
+        (:attr:`app.pipeline.engine_tracker.EngineTracker.lost_no_pose_s`), the status module's default for a
+        tracker that has none."""
+        return float(getattr(self.tracker, "lost_no_pose_s", LOST_NO_POSE_S))
 
     def _camera_pose(self, frame: DepthFrame, now: float) -> tuple[np.ndarray | None, list[str]]:
         """``T_base_camera = FK(q(stamp)) T_flange_camera``, q interpolated at the frame's stamp, or None."""
