@@ -1,6 +1,7 @@
 """The motion gate's speed is the template points' largest displacement over its window (closed forms; issue 32:
 one speed instead of a position speed and an angular speed)."""
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -62,12 +63,7 @@ def test_a_failed_held_test_restarts_the_settle_of_the_steady_test():
     the tracker's steady test restarts its settle there (status.settle_s), so the frames after the prior
     releases are not ok while the estimate, still slow over the window, catches up (or_fast_reposition
     crest_right_03 seed 3: two frames ok at 1.5 and 2.6 mm off after a release)."""
-    from types import SimpleNamespace
-
-    import numpy as np
-
     from app.config import TrackerConfig
-    from app.filter.motion_gate import MotionGate
     from app.filter.particle_filter import FilterOutput
     from app.filter.status import Reason, TrackingStatus
     from app.pipeline.tracker import DepthTracker
