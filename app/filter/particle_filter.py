@@ -330,7 +330,7 @@ class ParticleFilter:
             n_nan=update.n_nan, n_particles=self.state.n, weighed=weighed, seconds_without_pose=stamp - since,
             speed=speed, seconds_since_motion=since_motion,
             template_spread=template_spread(self.state.p, self.state.q, self.state.lw, self.motion_gate.points_bone,
-                                            pose, self.config.status.lost_spread),
+                                            pose, self.config.status.lost_spread, self.motion_gate.reach),
         ), self.config.status)
 
 
