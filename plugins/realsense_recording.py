@@ -25,6 +25,8 @@ from app.geometry import se3
 from app.geometry.camera import PinholeCamera
 from app.image_streams import ColorStream
 
+_POLL_MS = 50   # count_depth_frames' poll for the next frame
+
 
 def _intrinsics(rs, camera: PinholeCamera, distortion=None):
     intr = rs.intrinsics()
@@ -134,7 +136,12 @@ def write_recording(path: str | Path, depth_units: np.ndarray, stamps_s: np.ndar
 
 
 def count_depth_frames(path: str | Path, timeout_ms: int = 5000) -> int:
-    """The depth frames a RealSense recording holds, read in order (the SDK's non-real-time playback)."""
+    """The depth frames a RealSense recording holds, read in order (the SDK's non-real-time playback) to
+    the file's end: the playback has stopped and no frame is left. In non-real-time playback the SDK
+    hands each frame on before it reads the next, so once it reports ``stopped`` every frame is queued;
+    the count ends at the first empty poll after that, not after a wait (it waited ``timeout_ms`` for a
+    frame that never came: 5 s of every recording written). ``timeout_ms`` without a frame while it
+    still plays ends the count too (a stalled reader)."""
     from plugins.realsense import _rs
 
     rs = _rs()
@@ -142,13 +149,19 @@ def count_depth_frames(path: str | Path, timeout_ms: int = 5000) -> int:
     config.enable_device_from_file(str(Path(path)), False)
     config.enable_stream(rs.stream.depth)
     config.resolve(pipeline).get_device().as_playback().set_real_time(False)
-    pipeline.start(config)
-    count = 0
+    playback = pipeline.start(config).get_device().as_playback()
+    count, quiet_ms = 0, 0
     try:
-        while True:
-            ok, frames = pipeline.try_wait_for_frames(timeout_ms)
-            if not ok:
-                return count
-            count += frames.get_depth_frame() is not None and bool(frames.get_depth_frame())
+        while quiet_ms < timeout_ms:
+            ended = playback.current_status() == rs.playback_status.stopped    # before the poll: all queued
+            ok, frames = pipeline.try_wait_for_frames(_POLL_MS)
+            if ok:
+                count += bool(frames.get_depth_frame())
+                quiet_ms = 0
+            elif ended:
+                break
+            else:
+                quiet_ms += _POLL_MS
+        return count
     finally:
         pipeline.stop()

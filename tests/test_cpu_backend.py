@@ -208,6 +208,19 @@ def test_the_tracker_on_the_cpu_backend_tracks_a_static_bone(tmp_path):
     assert np.median(add[45:]) < 2.5 and np.percentile(add[45:], 95) < 5.0
 
 
+def _crest_backend(params: LikelihoodParams | None = None):
+    """(mesh, backend): the default crest prepared as the tracker prepares it (1,000 triangles, not centred)
+    and a one-pose CPU backend on it at 160x120 with tests/test_backend_conformance.py's clip planes."""
+    from app.mesh import load_mesh, outward_wound, prepare_mesh
+    from app.render.cpu_likelihood import CPULikelihoodBackend
+    from app.sim.simulator import DEFAULT_MESH
+    from tests.test_backend_conformance import CAMERAS, FAR, NEAR
+
+    mesh = prepare_mesh(load_mesh(DEFAULT_MESH), max_triangles=1000, center=False)
+    return mesh, CPULikelihoodBackend(mesh.vertices, mesh.faces, CAMERAS["160x120"], 1, params, near=NEAR, far=FAR,
+                                      cull_back_faces=outward_wound(mesh))
+
+
 @pytest.mark.parametrize("option", ["beam", "background_ratio", "ratio_classification"])
 def test_the_fused_evidence_counts_equal_depth_evidence_on_random_inputs(option, rng):
     """CPULikelihoodBackend.evidence (one numba pass over the pose's pixel box) gives the same counts
@@ -215,15 +228,10 @@ def test_the_fused_evidence_counts_equal_depth_evidence_on_random_inputs(option,
     camera, off screen, through the near plane, on the border) and measured images with noise,
     occluders, invalid pixels and pixels exactly at the occluder and inlier thresholds."""
     from app.filter.observation import depth_evidence
-    from app.render.cpu_likelihood import CPULikelihoodBackend
-    from tests.test_backend_conformance import CAMERAS, FAR, NEAR, OPTIONS as CASES, measured_image, random_poses, true_pose
-    from app.mesh import load_mesh, outward_wound, prepare_mesh
-    from app.sim.simulator import DEFAULT_MESH
+    from tests.test_backend_conformance import OPTIONS as CASES, measured_image, random_poses, true_pose
 
-    mesh = prepare_mesh(load_mesh(DEFAULT_MESH), max_triangles=1000, center=False)
     params = replace(LikelihoodParams(), **CASES[option])
-    backend = CPULikelihoodBackend(mesh.vertices, mesh.faces, CAMERAS["160x120"], 1, params, near=NEAR, far=FAR,
-                                   cull_back_faces=outward_wound(mesh))
+    mesh, backend = _crest_backend(params)
     truth = backend.render_depth(true_pose(mesh)[None])[0]
     poses = random_poses(rng, 24, mesh)
     for i in range(3):
@@ -273,15 +281,10 @@ def test_the_batch_scores_and_renders_each_pose_as_it_does_alone(option, rng):
     on one numba thread and on all of them."""
     import numba
 
-    from app.render.cpu_likelihood import CPULikelihoodBackend
-    from tests.test_backend_conformance import CAMERAS, FAR, NEAR, OPTIONS as CASES, measured_image, random_poses, true_pose
-    from app.mesh import load_mesh, outward_wound, prepare_mesh
-    from app.sim.simulator import DEFAULT_MESH
+    from tests.test_backend_conformance import OPTIONS as CASES, measured_image, random_poses, true_pose
 
-    mesh = prepare_mesh(load_mesh(DEFAULT_MESH), max_triangles=1000, center=False)
     params = replace(LikelihoodParams(), **CASES[option])
-    backend = CPULikelihoodBackend(mesh.vertices, mesh.faces, CAMERAS["160x120"], 1, params, near=NEAR, far=FAR,
-                                   cull_back_faces=outward_wound(mesh))
+    mesh, backend = _crest_backend(params)
     truth = backend.render_depth(true_pose(mesh)[None])[0]
     depth = measured_image(truth, rng, params.z_max)
     poses = np.concatenate([random_poses(rng, 24, mesh), np.repeat(true_pose(mesh)[None], 3, axis=0)])
@@ -305,14 +308,9 @@ def test_the_vertex_transform_is_the_poses_arithmetic_to_the_bit(rng):
     """_render_one's camera-frame vertices and projections (its scratch ``p``, which the evidence pass
     leaves filled) are x = T00 vx + T01 vy + T02 vz + T03 (left to right, as numpy computes it here),
     u = fx x / z + cx with 1 / z, bit for bit: the pose's entries read once per pose change nothing."""
-    from app.render.cpu_likelihood import CPULikelihoodBackend
-    from tests.test_backend_conformance import CAMERAS, FAR, NEAR, random_poses
-    from app.mesh import load_mesh, outward_wound, prepare_mesh
-    from app.sim.simulator import DEFAULT_MESH
+    from tests.test_backend_conformance import NEAR, random_poses
 
-    mesh = prepare_mesh(load_mesh(DEFAULT_MESH), max_triangles=1000, center=False)
-    backend = CPULikelihoodBackend(mesh.vertices, mesh.faces, CAMERAS["160x120"], 1, near=NEAR, far=FAR,
-                                   cull_back_faces=outward_wound(mesh))
+    mesh, backend = _crest_backend()
     depth = np.zeros((120, 160), np.float32)
     vx, vy, vz = backend.vertices[:, 0], backend.vertices[:, 1], backend.vertices[:, 2]
     fx, fy, cx, cy = backend.cam[:4]

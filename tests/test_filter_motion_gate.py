@@ -1,6 +1,7 @@
 """The motion gate's speed is the template points' largest displacement over its window (closed forms; issue 32:
 one speed instead of a position speed and an angular speed)."""
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -62,12 +63,7 @@ def test_a_failed_held_test_restarts_the_settle_of_the_steady_test():
     the tracker's steady test restarts its settle there (status.settle_s), so the frames after the prior
     releases are not ok while the estimate, still slow over the window, catches up (or_fast_reposition
     crest_right_03 seed 3: two frames ok at 1.5 and 2.6 mm off after a release)."""
-    from types import SimpleNamespace
-
-    import numpy as np
-
     from app.config import TrackerConfig
-    from app.filter.motion_gate import MotionGate
     from app.filter.particle_filter import FilterOutput
     from app.filter.status import Reason, TrackingStatus
     from app.pipeline.tracker import DepthTracker
@@ -95,3 +91,13 @@ def test_a_failed_held_test_restarts_the_settle_of_the_steady_test():
     first_ok = settle.index(TrackingStatus.OK)
     assert st.settle_s <= stamps[61 + first_ok] - stamps[60] <= st.settle_s + 1.5 * period   # settle_s after it
     assert all("moving" in [r.code for r in o.reasons] for o in after[:first_ok])
+
+
+def test_the_reach_is_kept_with_the_points():
+    """MotionGate.reach (template_spread's max |x|) follows every assignment of points_bone."""
+    gate = MotionGate(0.2, 0.03)
+    assert gate.reach == 0.0
+    gate.points_bone = POINTS.tolist()
+    assert gate.points_bone.shape == (3, 3) and gate.reach == pytest.approx(0.08, abs=1e-15)
+    gate.points_bone = 2.0 * POINTS
+    assert gate.reach == pytest.approx(0.16, abs=1e-15)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ from app.errors import ConfigError
 from app.filter.recovery import RecoveryConfig, RecoveryPolicy
 from app.filter.status import TrackingStatus
 from app.geometry import se3
+from tests.held_search import HeldSearch, assert_found_after_the_hold, knock, track_held_search
 
 KNOCK_S = 1.2          # the track is knocked off here (ok well before: the start converges in ~0.5 s)
 EVERY = 3              # every 3rd frame of the 90 Hz trial
@@ -43,23 +45,6 @@ def _due(policy):
     return policy
 
 
-def _knock(tracker, T_base_bone: np.ndarray) -> None:
-    """Turn the whole track a quarter turn about the bone's centroid (base frame): the cloud, the
-    refinement's track and its static-bone prior's anchor. Knocking only the first two tests
-    nothing since the prior (app/filter/static_prior.py): its anchor pulled the refined track back
-    to the truth on the next frame (0.2 mm on crest_left_02)."""
-    centre = se3.transform_points(T_base_bone, tracker.mesh_vertices.mean(axis=0)[None])[0]
-    turn = se3.from_rotvec_trans(KNOCK_RAD, centre - se3.from_rotvec_trans(KNOCK_RAD, np.zeros(3))[:3, :3] @ centre)
-    T_off = turn @ T_base_bone
-    T_off[:3, 3] += KNOCK_M
-    tracker.filter.shift_to(T_off, T_base_bone)
-    track = tracker.refined_track
-    if track is not None and track.T_base_bone is not None:
-        track.T_base_bone = T_off
-        if track.prior is not None and track.prior.active:
-            track.prior.T_base_bone = T_off.copy()
-
-
 def _track(trial_dir, config):
     """(stamps s from the start, ADD mm, statuses, reinitialised flags, tracker.report())."""
     from app.pipeline.tracker import DepthTracker
@@ -81,7 +66,7 @@ def _track(trial_dir, config):
         t = frame.stamp - reader.stamps[0]
         if t >= KNOCK_S and not knocked:
             assert statuses[-1] == "ok", "the test needs an ok track before knocking it off"
-            _knock(tracker, result.T_base_bone)
+            knock(tracker, result.T_base_bone, KNOCK_RAD, KNOCK_M)
             knocked = True
         result = tracker.process(frame.depth_m, frame.stamp, T_base_camera[i] if valid[i] else None)
         if result.refined:                                          # the recovery's bar test gets the fit's share
@@ -145,48 +130,11 @@ def test_a_search_on_the_worker_never_stops_the_frames_and_its_result_is_taken_l
     tracker = DepthTracker(config, mesh, reader.meta.camera)
     worker = tracker.recovery_runner.worker
     assert worker is not None and DepthTracker(_enabled(), mesh, reader.meta.camera).recovery_runner.worker is None
-    release, build = threading.Event(), worker._build
-
-    class HeldSearch:
-        def __init__(self):
-            self.search = build()                       # the worker's own backend and refiner, on its thread
-            self.backend = self.search.backend
-
-        def run(self, *args, **kw):
-            release.wait()
-            return self.search.run(*args, **kw)
-
-    worker._build = HeldSearch
+    release = threading.Event()
+    worker._build = partial(HeldSearch, release, worker._build)     # built on the worker's thread
     tracker.start(reader.meta.initial_pose)
-    T_base_camera, valid = reader.camera_poses()
-    held, taken, found, results, knocked = [], None, None, [], False
-    for frame in reader.iter_frames():
-        i = frame.index
-        if i % EVERY:
-            continue
-        t = frame.stamp - reader.stamps[0]
-        if t >= KNOCK_S and not knocked:
-            _knock(tracker, results[-1].T_base_bone)
-            knocked = True
-        result = tracker.process(frame.depth_m, frame.stamp, T_base_camera[i] if valid[i] else None)
-        add = 1e3 * metrics.add(result.T_base_bone, reader.groundtruth[i], points)
-        results.append(result)
-        assert not (result.status == "ok" and add > 5.0)
-        if tracker.recovery_runner.searching and taken is None:
-            held.append((result.state, result.status))
-            if len(held) == HELD:
-                release.set()
-                worker._future.result()                 # the worker finishes; the next frame takes it
-        elif held and taken is None:
-            taken = result
-        if taken is not None and found is None and add < 2.0:
-            found = t
-    tracker.release()
-    assert len(held) >= HELD and all(state == "searching" and status != "ok" for state, status in held)
-    assert taken is not None and taken.reinitialised and taken.state == "confirming"
-    assert found is not None and found - KNOCK_S <= 2.0
-    report = tracker.report()["recovery"]
-    assert report["events"][0]["kind"] == "search" and report["search"]["found"] >= 1
+    run = track_held_search(tracker, reader, points, release, HELD, EVERY, KNOCK_S)
+    assert_found_after_the_hold(run, tracker, HELD, KNOCK_S)
 
 
 def test_recovery_disabled_keeps_a_knocked_off_track_off(trial):

@@ -11,13 +11,11 @@ from functools import partial
 import numpy as np
 import pytest
 
-from app import metrics
 from app.config import load_config
-from app.geometry import se3
+from tests.held_search import HeldSearch, assert_found_after_the_hold, track_held_search
 
 EVERY = 3              # every 3rd frame of the 90 Hz trial
 KNOCK_S = 1.2          # the track is knocked off here (ok well before)
-KNOCK_RAD = np.array([0.0, 0.0, np.pi / 2])
 HELD = 4               # frames processed while the search is held in the child
 
 
@@ -35,33 +33,8 @@ def _config(worker: str):
     return replace(config, recovery=replace(config.recovery, enabled=True, search_worker=worker))
 
 
-class _HeldSearch:
-    """The child's real search, each run held until ``release`` is set (in the child process)."""
-
-    def __init__(self, release, build):
-        self.release, self.search = release, build()
-        self.backend = self.search.backend
-
-    def run(self, *args, **kw):
-        self.release.wait()
-        return self.search.run(*args, **kw)
-
-
 def _broken_build():
     raise RuntimeError("no likelihood backend in this process")
-
-
-def _knock(tracker, T_base_bone: np.ndarray) -> None:
-    """A quarter turn of the whole track about the bone's centroid (test_recovery.py's knock)."""
-    centre = se3.transform_points(T_base_bone, tracker.mesh_vertices.mean(axis=0)[None])[0]
-    turn = se3.from_rotvec_trans(KNOCK_RAD, centre - se3.from_rotvec_trans(KNOCK_RAD, np.zeros(3))[:3, :3] @ centre)
-    T_off = turn @ T_base_bone
-    tracker.filter.shift_to(T_off, T_base_bone)
-    track = tracker.refined_track
-    if track is not None and track.T_base_bone is not None:
-        track.T_base_bone = T_off
-        if track.prior is not None and track.prior.active:
-            track.prior.T_base_bone = T_off.copy()
 
 
 def test_process_is_chosen_by_name_and_auto_stays_a_thread_in_a_live_session(trial):
@@ -103,44 +76,13 @@ def test_a_search_in_the_worker_process_never_stops_the_frames_and_its_result_is
     real = runner.worker
     assert real.process and real.safe()
     release = multiprocessing.get_context("spawn").Event()
-    runner.worker = SearchWorker(partial(_HeldSearch, release, real._build), real.rng, process=True)
+    runner.worker = SearchWorker(partial(HeldSearch, release, real._build), real.rng, process=True)
     real.close()
     worker = runner.worker
     worker.prepare()
     tracker.start(reader.meta.initial_pose)
-    T_base_camera, valid = reader.camera_poses()
-    held, taken, found, results, knocked = [], None, None, [], False
-    try:
-        for frame in reader.iter_frames():
-            i = frame.index
-            if i % EVERY:
-                continue
-            t = frame.stamp - reader.stamps[0]
-            if t >= KNOCK_S and not knocked:
-                _knock(tracker, results[-1].T_base_bone)
-                knocked = True
-            result = tracker.process(frame.depth_m, frame.stamp, T_base_camera[i] if valid[i] else None)
-            add = 1e3 * metrics.add(result.T_base_bone, reader.groundtruth[i], points)
-            results.append(result)
-            assert not (result.status == "ok" and add > 5.0)
-            if runner.searching and taken is None:
-                assert not worker.ready()                       # held in the child: the frames did not wait
-                held.append((result.state, result.status))
-                if len(held) == HELD:
-                    release.set()
-                    worker._future.result()                     # the child finishes; the next frame takes it
-            elif held and taken is None:
-                taken = result
-            if taken is not None and found is None and add < 2.0:
-                found = t
-    finally:
-        release.set()
-        tracker.release()
-    assert len(held) >= HELD and all(state == "searching" and status != "ok" for state, status in held)
-    assert taken is not None and taken.reinitialised and taken.state == "confirming"
-    assert found is not None and found - KNOCK_S <= 2.0
-    report = tracker.report()["recovery"]
-    assert report["events"][0]["kind"] == "search" and report["search"]["found"] >= 1
+    run = track_held_search(tracker, reader, points, release, HELD, EVERY, KNOCK_S)
+    report = assert_found_after_the_hold(run, tracker, HELD, KNOCK_S)
     assert report["search"]["cpu_s"] > 0.0                      # the child's CPU seconds came back with it
 
 

@@ -74,13 +74,16 @@ MAX_TEMPLATE_POINTS = 64    # the exact spread is taken over at most this many o
 
 
 def template_spread(p: np.ndarray, q: np.ndarray, lw: np.ndarray, points_bone: np.ndarray,
-                    pose: PoseEstimate, limit: float) -> float:
+                    pose: PoseEstimate, limit: float, reach: float | None = None) -> float:
     """m, the template's points' spread over the particles (module docstring): the largest over the points
     of sqrt(Σ_j W_j |R_j x + p_j - Σ_k W_k (R_k x + p_k)|²). Computed only where it could exceed ``limit``:
     when the bound position_spread + rotation_spread max|x| is within ``limit`` the bound is returned
-    (a frame at rest costs nothing; the status compares it with ``limit`` only)."""
+    (a frame at rest costs nothing; the status compares it with ``limit`` only). ``reach``: max|x| (m) when
+    the caller keeps it (the filter's :attr:`app.filter.motion_gate.MotionGate.reach`), else computed here."""
     points_bone = np.asarray(points_bone, float).reshape(-1, 3)
-    bound = pose.position_spread + pose.rotation_spread * float(np.max(np.linalg.norm(points_bone, axis=1)))
+    if reach is None:
+        reach = float(np.max(np.linalg.norm(points_bone, axis=1)))
+    bound = pose.position_spread + pose.rotation_spread * reach
     if bound <= limit or not np.isfinite(bound):
         return float(bound)
     if len(points_bone) > MAX_TEMPLATE_POINTS:

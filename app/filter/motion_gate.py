@@ -40,14 +40,29 @@ class MotionGate:
     speed_threshold : m/s, above it the bone is moving
     points_bone : (N, 3) float, m, bone frame: the template's points (default: the bone frame's origin;
         the tracker sets the template's, :attr:`points_bone`)
+
+    Attributes
+    ----------
+    reach : m, the largest distance of a template point from the bone frame's origin, kept with
+        :attr:`points_bone` (the filter's lost spread bound, :func:`app.filter.estimate.template_spread`)
     """
 
     def __init__(self, window_s: float, speed_threshold: float, points_bone: np.ndarray | None = None):
         self.window_s = window_s
         self.speed_threshold = speed_threshold
-        self.points_bone = np.zeros((1, 3)) if points_bone is None else np.asarray(points_bone, float).reshape(-1, 3)
+        self.points_bone = np.zeros((1, 3)) if points_bone is None else points_bone
         self._history: deque[tuple[float, np.ndarray]] = deque()
         self._last_motion: float | None = None
+
+    @property
+    def points_bone(self) -> np.ndarray:
+        """(N, 3) float, m, bone frame: the template's points."""
+        return self._points_bone
+
+    @points_bone.setter
+    def points_bone(self, points_bone: np.ndarray) -> None:
+        self._points_bone = np.asarray(points_bone, float).reshape(-1, 3)
+        self.reach = float(np.max(np.linalg.norm(self._points_bone, axis=1)))     # once, not every frame
 
     def mark(self, stamp: float) -> None:
         """Another test saw the bone move at ``stamp`` (the held test: the image's own fit contradicts the

@@ -38,6 +38,7 @@ likelihood (render + likelihood in the backend), weight, resample, estimate.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field, replace
 
@@ -152,6 +153,9 @@ class ParticleFilter:
         self._last_estimate: PoseEstimate | None = None
         t = config.status
         self.motion_gate = MotionGate(t.motion_window_s, t.uncertain_speed)   # the tracker sets its points_bone
+        # the motion test on the filter's mean can fire only with a finite speed or a settle time; with the
+        # refinement the tracker switches both off (its own test reads its output pose, tracker._filter_config)
+        self._motion_test = math.isfinite(t.uncertain_speed) or t.settle_s > 0
 
     # -- initialisation ---------------------------------------------------------------------
     def initialise(self, T_base_bone: np.ndarray, sigma_p: float | None = None,
@@ -317,7 +321,8 @@ class ParticleFilter:
                 stamp: float, weighed: bool) -> tuple[TrackingStatus, list]:
         """(status, reasons): the status rules (app/filter/status.py) with the motion gate's speeds."""
         since = self._last_pose_stamp if self._last_pose_stamp is not None else self._first_stamp
-        speed, since_motion = self.motion_gate.update(stamp, pose.T_base_bone)
+        speed, since_motion = (self.motion_gate.update(stamp, pose.T_base_bone) if self._motion_test
+                               else (0.0, math.inf))                       # the test is off: nothing to measure
         return verdict(StatusInputs(
             position_spread=pose.position_spread, rotation_spread=pose.rotation_spread,
             ess_ratio=update.ess / self.state.n, inlier_fraction=evidence.inlier_fraction,
@@ -325,7 +330,7 @@ class ParticleFilter:
             n_nan=update.n_nan, n_particles=self.state.n, weighed=weighed, seconds_without_pose=stamp - since,
             speed=speed, seconds_since_motion=since_motion,
             template_spread=template_spread(self.state.p, self.state.q, self.state.lw, self.motion_gate.points_bone,
-                                            pose, self.config.status.lost_spread),
+                                            pose, self.config.status.lost_spread, self.motion_gate.reach),
         ), self.config.status)
 
 
