@@ -70,28 +70,33 @@ def estimate(p: np.ndarray, q: np.ndarray, lw: np.ndarray) -> PoseEstimate:
     )
 
 
-MAX_TEMPLATE_POINTS = 64    # the exact spread is taken over at most this many of the points, evenly chosen
-
-
 def template_spread(p: np.ndarray, q: np.ndarray, lw: np.ndarray, points_bone: np.ndarray,
                     pose: PoseEstimate, limit: float, reach: float | None = None) -> float:
     """m, the template's points' spread over the particles (module docstring): the largest over the points
     of sqrt(Σ_j W_j |R_j x + p_j - Σ_k W_k (R_k x + p_k)|²). Computed only where it could exceed ``limit``:
     when the bound position_spread + rotation_spread max|x| is within ``limit`` the bound is returned
     (a frame at rest costs nothing; the status compares it with ``limit`` only). ``reach``: max|x| (m) when
-    the caller keeps it (the filter's :attr:`app.filter.motion_gate.MotionGate.reach`), else computed here."""
+    the caller keeps it (the filter's :attr:`app.filter.motion_gate.MotionGate.reach`), else computed here.
+
+    Exact over every point, in closed form: with R̄ = Σ W_j R_j, p̄ = Σ W_j p_j, ΔR_j = R_j - R̄ and
+    Δp_j = p_j - p̄, the variance at x is xᵀ A x + 2 bᵀ x + c with A = Σ W_j ΔR_jᵀ ΔR_j, b = Σ W_j ΔR_jᵀ Δp_j
+    and c = Σ W_j |Δp_j|² (3x3 sums over the particles once, then 3x3 per point; it was a subsample of 64
+    of the points before 2026-11-28, which could miss the largest)."""
     points_bone = np.asarray(points_bone, float).reshape(-1, 3)
     if reach is None:
         reach = float(np.max(np.linalg.norm(points_bone, axis=1)))
     bound = pose.position_spread + pose.rotation_spread * reach
     if bound <= limit or not np.isfinite(bound):
         return float(bound)
-    if len(points_bone) > MAX_TEMPLATE_POINTS:
-        points_bone = points_bone[np.linspace(0, len(points_bone) - 1, MAX_TEMPLATE_POINTS).astype(int)]
     W = normalised_weights(lw)
-    x = np.einsum("nij,mj->nmi", quat.to_matrix(q), points_bone) + p[:, None, :]     # (N, M, 3)
-    d = x - np.einsum("n,nmi->mi", W, x)[None]
-    return float(np.sqrt(np.max(np.einsum("n,nmi,nmi->m", W, d, d))))
+    R = quat.to_matrix(q)                                                    # (N, 3, 3)
+    dR = R - np.einsum("n,nij->ij", W, R)[None]
+    dp = p - (W @ p)[None]
+    A = np.einsum("n,nki,nkj->ij", W, dR, dR)
+    b = np.einsum("n,nki,nk->i", W, dR, dp)
+    c = float(W @ np.einsum("ni,ni->n", dp, dp))
+    var = np.einsum("mi,ij,mj->m", points_bone, A, points_bone) + 2.0 * points_bone @ b + c
+    return float(np.sqrt(max(float(np.max(var)), 0.0)))
 
 
 def _weighted_mean_quaternion(q: np.ndarray, W: np.ndarray) -> np.ndarray:
