@@ -20,6 +20,7 @@ bisection (Q falls monotonically in x).
 """
 from __future__ import annotations
 
+import functools
 import math
 from statistics import NormalDist
 
@@ -51,6 +52,7 @@ def chi2_sf(x: float, dof: int) -> float:
     return 2.0 * _STANDARD.cdf(-root) + 2.0 * _STANDARD.pdf(root) * total
 
 
+@functools.lru_cache(maxsize=64)
 def chi2_level(alpha: float, dof: int) -> float:
     """x with P(χ²_dof > x) = alpha (bisection to 1e-10 relative)."""
     lo, hi = 0.0, 1.0
