@@ -61,6 +61,7 @@ def test_a_number_without_its_kind_is_refused(tmp_path):
     ("recovery.far_m", "refine.competitor_distance"),
     ("recovery.far_angle", "refine.competitor_distance"),
     ("refine.competitor_angle", "refine.competitor_distance"),
+    ("refine.competitor_margin", "refine.nearby_margin"),
     ("recovery.min_visible_share", "status.min_fitness"),
     ("recovery.max_backoff_doublings", "recovery.after_uncertain_s"),
     ("status.lost_position_spread", "status.lost_spread"),

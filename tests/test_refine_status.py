@@ -11,7 +11,7 @@ import trimesh
 
 from app import metrics
 from app.filter.refine import Refiner, RefineParams
-from app.filter.refine_track import RefineConfig, RefinedTrack
+from app.filter.refine_track import RefineConfig, RefinedTrack, share_margin
 from app.filter.status import (RefinementEvidence, StatusThresholds, TrackingStatus, refinement_reasons,
                                with_refinement)
 from app.geometry import se3
@@ -58,7 +58,7 @@ def test_a_competing_pose_within_the_margin_is_never_ok(twin_frame):
     # the filter now says the other copy: both refinements converge, 12 cm apart, fits within the margin
     second = track.update(depth, T_BASE_CAMERA, T_base_b)
     assert second.competitor
-    assert abs(second.fitness - second.competitor_fitness) <= RefineConfig().competitor_margin
+    assert abs(second.fitness - second.competitor_fitness) <= share_margin(RefineConfig(), track.last_info["correlation"])
     evidence = RefinementEvidence(second.fitness, second.template_std, second.competitor, second.behind)
     assert with_refinement(TrackingStatus.OK, evidence, StatusThresholds()) == TrackingStatus.UNCERTAIN
     assert any("competing" in r for r in refinement_reasons(evidence, StatusThresholds()))

@@ -16,7 +16,8 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   :func:`consistent_sharp`: at 0.65 m a fit 17 deg off was 0.002 sharper than one 3 deg off but left
   16 % of the measurements behind the model against 4 %, BENCHMARKS.md §6d);
 - when both refinements ran, converged more than ``competitor_distance`` (5 mm of the template) apart and
-  the loser's sharp share is within ``competitor_margin`` (0.05) of the winner's, a competing pose
+  the loser's sharp share is within :func:`share_margin` (``nearby_margin`` sqrt(f); it was
+  ``competitor_margin``, 0.05, before issue 32) of the winner's, a competing pose
   explains the image about as well: the frame is ambiguous (the status cannot be ok, status.py);
 - the track starts at the coarse initial pose (:meth:`RefinedTrack.seed`): the filter's first
   weighing can jump far (measured on crest_left_03, static_occluded: 17.8 mm off after the first
@@ -91,7 +92,7 @@ SEED_STARTS_RNG = 20261124     # the multi-start's own generator seed (:meth:`Re
 class RefineConfig:
     """``refine.*`` of the configuration (module docstring). enabled; stride (1 full / 2 half sensor
     resolution); iterations; samples (model points); keep_fitness; reseed_fitness;
-    competitor_distance (m, the template's largest displacement), also the recovery's "far"; competitor_margin; feedback (from
+    competitor_distance (m, the template's largest displacement), also the recovery's "far"; feedback (from
     fits confirming status.min_fitness, which was refine.feedback_fitness before issue 32);
     static_prior, prior_release_chi2, prior_clear_ratio, prior_information_frames, prior_motion_frames,
     prior_forget_ratio (app/filter/static_prior.py); seed_starts, seed_spread (the seeded first frame's multi-start,
@@ -110,7 +111,6 @@ class RefineConfig:
     keep_fitness: float = 0.3
     reseed_fitness: float = 0.6
     competitor_distance: float = 0.005
-    competitor_margin: float = 0.05
     feedback: bool = True
     feedback_spread: float = 0.003
     feedback_spread_angle: float = math.radians(2.0)
@@ -173,6 +173,15 @@ def behind_excess(result: RefineResult) -> float:
     so the status is not ok and a search does not confirm the fit (issue 32: it was tested against a
     fixed 2 %, ``FALLBACK_BEHIND_SHARE``, a share of one simulator's noise)."""
     return float(result.behind - result.behind_allowed)
+
+
+def share_margin(config: RefineConfig, correlation: float) -> float:
+    """The margin within which two fits' shares on one image are not told apart: ``nearby_margin`` sqrt(f),
+    f the fit's residual correlation factor (n correlated pixels carry the evidence of n / f, so two shares
+    differ by chance sqrt(f) times more; app/tracking/fit_test.py). One margin since issue 32 for the
+    competitor rule (a far fit within it explains the image about as well), the nearby search (a fit
+    beyond it explains the image better) and the wide search's replacement of a confirmed track."""
+    return config.nearby_margin * math.sqrt(max(float(correlation), 1.0))
 
 
 def consistent_sharp(result: RefineResult) -> float:
@@ -417,7 +426,7 @@ class RefinedTrack:
         if len(fits) > 1:
             competitor_fitness = fits[1][2].fitness
             apart = self.template_gap(T_best, fits[1][1]) > c.competitor_distance
-            competitor = apart and fits[1][2].sharp >= best.sharp - c.competitor_margin
+            competitor = apart and fits[1][2].sharp >= best.sharp - share_margin(c, best.correlation)
         std = template_std(best.H, self.plan_points, self.inflation)
         if self.prior is not None and best.fitness >= c.keep_fitness:
             source, T_best, best, std = self._held(fits, source, T_best, best, std)

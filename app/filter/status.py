@@ -87,8 +87,10 @@ lowered to UNCERTAIN, never raised, when
   precision, not wrongness (issue 12: the smallest eigenvalue of H did not separate wrong from
   right poses at all);
 - a competing pose explains the image about as well: the refinements from the own track and from
-  the filter's estimate converged > 5 mm / 5 deg apart with their shares within 1 σ less than
-  ``refine.competitor_margin`` = 0.05 apart (tests/test_refine_status.py builds such a frame).
+  the filter's estimate converged more than ``refine.competitor_distance`` = 5 mm of the template apart
+  with their shares within 1 σ less than ``refine.nearby_margin`` sqrt(f) apart (one margin since issue 32;
+  it was ``competitor_margin`` = 0.05: 0.015 changed none of 48 status runs; tests/test_refine_status.py
+  builds such a frame).
 - a pose near the track explains the image better: every ``refine.nearby_every`` = 10 frames
   the track refines from ``refine.nearby_starts`` = 4 poses drawn 2 mm / 2 deg about its pose, and a fit
   that moves the template by more than ``max_template_std`` = 1 mm (its largest point displacement)
