@@ -161,7 +161,8 @@ def _record(rs, path: Path, device, stereo, rgb_sensor, profiles: dict, streams:
         if rgb_sensor is not None and rgb_sensor is not stereo:
             rgb_sensor.open(profiles["color"])
             rgb_sensor.start(queue)
-        for k in range(len(numbers)):
+        n = len(streams[0][1])
+        for k in range(n):
             for name, frames, bpp in streams:
                 frame = rs.software_video_frame()
                 frame.pixels = frames[k]
@@ -173,7 +174,7 @@ def _record(rs, path: Path, device, stereo, rgb_sensor, profiles: dict, streams:
                 (rgb_sensor if name == "color" else stereo).on_video_frame(frame)
             while queue.poll_for_frame():
                 pass
-            if ((k + 1) % IN_FLIGHT == 0 or k + 1 == len(numbers)) and wait_for_writer(recorder) is None:
+            if ((k + 1) % IN_FLIGHT == 0 or k + 1 == n) and wait_for_writer(recorder) is None:
                 raise OSError(f"the RealSense recorder's writer has not written its queued frames in {WRITER_LIMIT_S:.0f} s "
                               "(a hung or very slow disk?)")
         for sensor in (stereo, rgb_sensor if rgb_sensor is not stereo else None):
