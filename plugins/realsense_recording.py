@@ -13,9 +13,23 @@ sensor as a D415 has it (``separate_color_sensor=True`` does that): with pyreals
 recording whose streams come from two sensors sometimes plays back nothing, or only its last
 frameset, through a pipeline (measured: 1 run in 4 gave no frame; 8 of 8 runs with one sensor
 delivered every frame). A camera's own two-sensor recordings may therefore play unreliably.
+
+Every frame is stored, however slow the disk. The SDK's recorder hands each frame to one writer
+thread through an unbounded queue (``record_device``'s dispatcher) and drops nothing while frames
+come; but when the recorder is destroyed it waits at most 10 s for that queue to drain
+(``dispatcher::flush``) and then discards what is left ("timeout waiting for flush"): pushing a
+60 s trial as fast as Python can kept 2,257-2,652 of its 5,347 frames, the first ones. So the frames
+are pushed :data:`IN_FLIGHT` instants at a time, and after each batch the writer is waited for:
+``recorder.pause()`` queues a marker behind the frames and returns once the writer has reached it
+(the same flush, so within 10 s; a return that took the whole 10 s may be a timeout and is
+repeated). The writer never holds more than one batch, and its queue is empty before the recorder
+goes. The file is written under a temporary name beside ``path`` and renamed to ``path`` only once
+it holds every depth frame (counted by playing it back); otherwise it is removed and OSError raised.
 """
 from __future__ import annotations
 
+import os
+import secrets
 import time
 from pathlib import Path
 
@@ -26,6 +40,10 @@ from app.geometry.camera import PinholeCamera
 from app.image_streams import ColorStream
 
 _POLL_MS = 50   # count_depth_frames' poll for the next frame
+IN_FLIGHT = 32  # instants (depth + infrared + colour frames) pushed before waiting for the recorder's writer
+_SDK_FLUSH_S = 10.0   # the recorder's flush gives up after this (librealsense dispatcher::flush)
+WRITER_LIMIT_S = 120.0   # a writer that has not written one batch in this long: OSError (a hung disk)
+_monotonic = time.monotonic
 
 
 def _intrinsics(rs, camera: PinholeCamera, distortion=None):
@@ -102,37 +120,90 @@ def write_recording(path: str | Path, depth_units: np.ndarray, stamps_s: np.ndar
                                                                       rs.format.rgb8, 3, fps, color_stream.distortion))
         profiles["depth"].register_extrinsics_to(profiles["color"], _extrinsics(rs, se3.inverse(color_stream.T_depth_color)))
         streams.append(("color", np.ascontiguousarray(color, dtype=np.uint8), 3))
-    recorder = rs.recorder(str(Path(path)), device)
-    stereo.open([profiles[k] for k in ("depth", "ir", "color") if k in profiles and (k != "color" or rgb_sensor is stereo)])
-    queue = rs.frame_queue(16)
-    stereo.start(queue)
-    if rgb_sensor is not None and rgb_sensor is not stereo:
-        rgb_sensor.open(profiles["color"])
-        rgb_sensor.start(queue)
     numbers = np.arange(n) if frame_numbers is None else np.asarray(frame_numbers)
-    for k in range(n):
-        for name, frames, bpp in streams:
-            frame = rs.software_video_frame()
-            frame.pixels = frames[k]
-            frame.bpp, frame.stride = bpp, bpp * frames.shape[2]
-            frame.timestamp = float(stamps_s[k] * 1e3)
-            frame.domain = rs.timestamp_domain.hardware_clock
-            frame.frame_number = int(numbers[k])
-            frame.profile = profiles[name].as_video_stream_profile()
-            (rgb_sensor if name == "color" else stereo).on_video_frame(frame)
-        while queue.poll_for_frame():
-            pass
-    time.sleep(0.05)
-    for sensor in (stereo, rgb_sensor if rgb_sensor is not stereo else None):
-        if sensor is not None:
-            sensor.stop()
-            sensor.close()
-    del recorder  # the file is finalised when the recorder goes away
-    stored = count_depth_frames(path)
-    if stored != n:
-        raise OSError(f"the RealSense recording {path} holds {stored} of the {n} depth frames written (the SDK's "
-                      "recorder dropped the rest: a full or slow disk?); the file is incomplete: do not use it as the trial")
-    return Path(path)
+    path = Path(path)
+    partial = _partial_path(path)
+    try:
+        _record(rs, partial, device, stereo, rgb_sensor, profiles, streams, stamps_s, numbers)
+        stored = count_depth_frames(partial)
+        if stored != n:
+            raise OSError(f"the RealSense recording {path} holds {stored} of the {n} depth frames written (the SDK's "
+                          "recorder lost the rest); not kept")
+        os.replace(partial, path)
+    except BaseException:
+        _remove_partial(partial)
+        raise
+    return path
+
+
+def _partial_path(path: Path) -> Path:
+    """A name beside ``path`` (same directory and suffix, which the SDK reads the format from) that no file has."""
+    while True:
+        partial = path.with_name(f".{path.stem}.partial-{os.getpid()}-{secrets.token_hex(4)}{path.suffix}")
+        if not partial.exists():
+            return partial
+
+
+def _remove_partial(partial: Path) -> None:
+    for name in (partial, *(partial.with_name(partial.name + s) for s in ("-journal", "-wal", "-shm"))):
+        name.unlink(missing_ok=True)
+
+
+def _record(rs, path: Path, device, stereo, rgb_sensor, profiles: dict, streams: list, stamps_s, numbers) -> None:
+    """Push every instant's frames to the software device under an rs.recorder writing ``path``, at most
+    :data:`IN_FLIGHT` instants ahead of the recorder's writer; returns once the recorder is gone (the file
+    finalised)."""
+    recorder = rs.recorder(str(path), device)
+    try:
+        stereo.open([profiles[k] for k in ("depth", "ir", "color") if k in profiles and (k != "color" or rgb_sensor is stereo)])
+        queue = rs.frame_queue(16)
+        stereo.start(queue)
+        if rgb_sensor is not None and rgb_sensor is not stereo:
+            rgb_sensor.open(profiles["color"])
+            rgb_sensor.start(queue)
+        n = len(streams[0][1])
+        for k in range(n):
+            for name, frames, bpp in streams:
+                frame = rs.software_video_frame()
+                frame.pixels = frames[k]
+                frame.bpp, frame.stride = bpp, bpp * frames.shape[2]
+                frame.timestamp = float(stamps_s[k] * 1e3)
+                frame.domain = rs.timestamp_domain.hardware_clock
+                frame.frame_number = int(numbers[k])
+                frame.profile = profiles[name].as_video_stream_profile()
+                (rgb_sensor if name == "color" else stereo).on_video_frame(frame)
+            while queue.poll_for_frame():
+                pass
+            if ((k + 1) % IN_FLIGHT == 0 or k + 1 == n) and wait_for_writer(recorder) is None:
+                raise OSError(f"the RealSense recorder's writer has not written its queued frames in {WRITER_LIMIT_S:.0f} s "
+                              "(a hung or very slow disk?)")
+        for sensor in (stereo, rgb_sensor if rgb_sensor is not stereo else None):
+            if sensor is not None:
+                sensor.stop()
+                sensor.close()
+    finally:
+        del recorder  # the file is finalised when the recorder goes away (its queue is empty: nothing dropped)
+
+
+def wait_for_writer(recorder, limit_s: float | None = None) -> float | None:
+    """Wait until the recorder's writer thread has written every frame handed to it so far: the seconds
+    waited, or None when it had not after ``limit_s`` (:data:`WRITER_LIMIT_S`).
+
+    ``recorder.pause()`` queues a marker behind the frames and waits for the writer to reach it, but at most
+    10 s (the SDK's flush): a pause that returned sooner has seen every frame written; one that took the
+    whole 10 s may have timed out and is repeated. ``resume()`` is queued behind the marker, so the frames
+    pushed after it are recorded.
+    """
+    limit_s = WRITER_LIMIT_S if limit_s is None else limit_s
+    start = _monotonic()
+    while True:
+        t = _monotonic()
+        recorder.pause()
+        done = _monotonic()
+        if done - t < _SDK_FLUSH_S or done - start >= limit_s:
+            break
+    recorder.resume()
+    return done - start if done - t < _SDK_FLUSH_S else None
 
 
 def count_depth_frames(path: str | Path, timeout_ms: int = 5000) -> int:
