@@ -57,7 +57,9 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   the refinement's minimum is a plateau 1-2 mm wide on which the track's fit is not the best
   (BENCHMARKS.md §6j). A fit within 1 mm that explains the image better is searched about on the
   next frames (``nearby_followups``, 3; the status below ok meanwhile): on crest_left_02 the plateau's
-  competitors lay beyond such fits (§6k). It changes the status only, never the track;
+  competitors lay beyond such fits (§6k). It changes the status only, never the track. Its work is spread
+  over frames, ``nearby_per_frame`` (1) refinements or scorings per frame, each frame's step on its own
+  image: the answers are the inline ones, some frames later (issue 35: a search never stalls the loop);
 - the behind rule's evidence (``RefineOutcome.behind``): the kept fit's own excess, or the excess of
   the track's last ``behind_frames`` fits tested together when larger (app/filter/behind_pool.py;
   reset with the track): a pose 1-2 mm off along residual tissue leaves about one frame's bound
@@ -135,7 +137,7 @@ class RefineConfig:
     nearby_hold: int = 2
     nearby_followups: int = 3
     nearby_validate: bool = True
-    nearby_per_frame: int = 2
+    nearby_per_frame: int = 1
 
 
 @dataclass
@@ -153,8 +155,8 @@ class RefineOutcome:
     last nearby search (:class:`app.filter.nearby_search.NearbySearch`; NaN when none was found; with
     ``nearby_per_frame`` the answer of a frame up to a few frames back, the search's work spread over them);
     nearby_unanswered : the track's first nearby search has not finished yet (its work spread over the
-    next frames): the tracker keeps the status below ok meanwhile, as the inline search's first frame
-    could not be ok before it was answered;
+    next frames): the tracker keeps the status below ok until it has (inline, no frame of a track was
+    ok before its first search had answered);
     sharp : the frame's best fit's consistent sharp share (:func:`consistent_sharp`), kept or not (NaN
     when no fit converged): the recovery tests a found pose against the wide search's bar with it
     (app/filter/recovery.py, the sixth trigger; a fit too poor to keep is below the bar too)."""
