@@ -211,6 +211,7 @@ KEYS: dict[str, _Key] = {
     "refine.nearby_hold": _i("refine.nearby_hold", 1, 100_000),
     "refine.nearby_followups": _i("refine.nearby_followups", 0, 100),
     "refine.nearby_validate": _Key(("refine", "nearby_validate"), "bool"),
+    "refine.nearby_per_frame": _i("refine.nearby_per_frame", 0, 1_000),
     "recovery.enabled": _Key(("recovery", "enabled"), "bool"),
     "recovery.after_lost_s": _f("recovery.after_lost_s", 0.0, 3600.0, lo_open=True),
     "recovery.after_uncertain_s": _f("recovery.after_uncertain_s", 0.0, 3600.0),

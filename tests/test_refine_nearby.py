@@ -61,9 +61,11 @@ class _Landscape:
 
 
 def _track(minima, **config):
+    """A track on the stub; the search's work all on its own frame (``nearby_per_frame`` 0) unless given:
+    these tests pin the rules frame by frame (the spread search: test_the_spread_search_*)."""
     refiner = _Landscape(minima)
     points = np.array([[0.0, 0.0, 0.0], [0.03, 0.0, 0.0], [0.0, 0.02, 0.005]])
-    c = RefineConfig(static_prior=False, seed_starts=0, **config)
+    c = RefineConfig(static_prior=False, seed_starts=0, **{"nearby_per_frame": 0, **config})
     return refiner, RefinedTrack(refiner, c, points, inflation=6.0)
 
 
@@ -225,3 +227,95 @@ def test_a_validated_competitor_stays_while_it_still_explains_each_search_frame_
     refiner.unrefined = None
     rest = _run(track, 30)
     assert np.isnan(rest[-1].nearby)
+
+
+def _counted(track) -> dict:
+    """Counts the nearby search's refinements and scorings (``RefinedTrack._scored_fit`` / ``_scored_pose``,
+    the search's only work) on ``track``."""
+    calls = {"n": 0}
+    for name in ("_scored_fit", "_scored_pose"):
+        def counted(*args, _inner=getattr(track, name)):
+            calls["n"] += 1
+            return _inner(*args)
+        setattr(track, name, counted)
+    return calls
+
+
+class _FrameLandscape(_Landscape):
+    """The landscape with the capture radius read from the frame's image (``depth[0, 0]``, m): a step whose
+    work runs on a later frame sees its own frame's image, as the refiner sees the depth it is given."""
+
+    def refine(self, depth, T_camera_bone, start_width=None):
+        self.capture = float(depth[0, 0])
+        return super().refine(depth, T_camera_bone, start_width)
+
+
+def _inline_and_spread(minima, frames: int, per_frame: int, capture_from: int = 1, **config):
+    """The same frames on two tracks over the same landscape: the search's work all on its frame
+    (``nearby_per_frame`` 0) and spread (``per_frame``). From frame ``capture_from`` on, a refinement from
+    a draw ends in the best minimum within 1 mm (:func:`_after_first_frame`). Returns the inline answers and,
+    per spread frame, (answer, frames answered, unanswered flag, refinements and scorings counted); each
+    inline frame's (answer, refinements and scorings)."""
+    tracks = []
+    for c in ({"nearby_per_frame": 0}, {"nearby_per_frame": per_frame}):
+        refiner = _FrameLandscape(minima)
+        points = np.array([[0.0, 0.0, 0.0], [0.03, 0.0, 0.0], [0.0, 0.02, 0.005]])
+        tracks.append(RefinedTrack(refiner, RefineConfig(static_prior=False, seed_starts=0, **c, **config), points, 6.0))
+    inline, spread = tracks
+    inline_calls, calls = _counted(inline), _counted(spread)
+    answers, rows = [], []
+    for frame in range(frames):
+        depth = np.full((2, 2), 0.001 if frame >= capture_from else 0.0)
+        inline_calls["n"] = 0
+        answers.append((inline.update(depth, np.eye(4), _pose()).nearby, inline_calls["n"]))
+        calls["n"] = 0
+        out = spread.update(depth, np.eye(4), _pose())
+        assert spread.nearby.work == calls["n"]
+        rows.append((out.nearby, spread.nearby.answered, out.nearby_unanswered, calls["n"]))
+    return answers, rows
+
+
+_SPREAD_CASES = [
+    ([(_pose(), 0.70), (_pose(0.0008), 0.90), (_pose(0.0016), 0.95)],
+     {"nearby_every": 10, "nearby_followups": 3, "nearby_sigma_p": 1e-9, "nearby_sigma_r": 1e-9}),
+    ([(_pose(), 0.70), (_pose(0.0015), 0.75)], {"nearby_every": 10, "nearby_hold": 2}),
+    ([(_pose(), 0.70), (_pose(0.0008), 0.90)], {"nearby_every": 10, "nearby_followups": 3, "nearby_sigma_p": 1e-9,
+                                                 "nearby_sigma_r": 1e-9}),
+
+]
+_SPREAD_IDS = ["follow-up-then-competitor", "competitor-validated", "follow-ups-only"]
+
+
+@pytest.mark.parametrize("per_frame", [2, 3])
+@pytest.mark.parametrize("minima, config", _SPREAD_CASES, ids=_SPREAD_IDS)
+def test_the_spread_search_does_at_most_nearby_per_frame_a_frame_and_answers_as_inline_later(per_frame, minima,
+                                                                                             config):
+    """Issue 35 (a search never stalls the frame loop): with ``nearby_per_frame`` the search runs at most that
+    many refinements and scorings per frame, each frame's step on its own frame's image; the answer on a
+    frame is the inline answer of the last frame answered (the same decisions, some frames later), and a
+    track whose first search has not finished says so (the tracker keeps the status below ok). It falls
+    behind only where the inline search did more on one frame, and catches up between searches."""
+    answers, rows = _inline_and_spread(minima, 60, per_frame, **config)
+    assert max(work for *_, work in rows) <= per_frame
+    behind = [frame + 1 - answered for frame, (_, answered, _, _) in enumerate(rows)]
+    assert (max(behind) > 0) == (max(work for _, work in answers) > per_frame)
+    for frame, (answer, answered, unanswered, _) in enumerate(rows):
+        assert unanswered == (answered == 0)
+        if answered:
+            assert answer == pytest.approx(answers[answered - 1][0], nan_ok=True)
+    assert any(answer > 0.0 for answer, _ in answers)                           # the inline search found something
+    assert sum(work for *_, work in rows) <= sum(work for _, work in answers)    # no work added
+    assert 0 in behind[-10:]                                                    # caught up
+
+
+@pytest.mark.parametrize("minima, config", _SPREAD_CASES, ids=_SPREAD_IDS)
+def test_a_budget_below_the_searchs_demand_falls_at_most_nearby_every_frames_behind(minima, config):
+    """One refinement a frame is below the demand of a search with three follow-ups every 10 frames
+    (17 refinements in 13 frames): the answer would fall further behind each period; it stops at
+    ``nearby_every`` frames (a frame that far behind runs its work), and the answers stay the inline ones."""
+    answers, rows = _inline_and_spread(minima, 80, 1, **config)
+    behind = [frame + 1 - answered for frame, (_, answered, _, _) in enumerate(rows)]
+    assert max(behind) <= config["nearby_every"]
+    for answer, answered, _, _ in rows:
+        if answered:
+            assert answer == pytest.approx(answers[answered - 1][0], nan_ok=True)

@@ -57,6 +57,7 @@ the first four on 149, and eight every 10 frames doubled the refinement's cost (
 from __future__ import annotations
 
 import math
+from collections import deque
 from typing import Callable
 
 import numpy as np
@@ -90,11 +91,11 @@ class NearbySearch:
     def __init__(self, config, points_bone: np.ndarray, draws: Draws, gap: float = MAX_TEMPLATE_STD_M):
         self.config, self.points_bone, self.draws = config, np.asarray(points_bone, float), draws
         self.gap = float(gap)
-        self.map = map          # fit over the starts, lazily in order (app/pipeline/stages.py: two at a time)
+        self.map, self.width = map, 1   # fit over the starts, ``width`` at a time (app/pipeline/stages.py: pairs, 2)
         self.reset()
 
     def reset(self) -> None:
-        """A new track: its first frame searches, from a fresh generator."""
+        """A new track: its first frame searches, from a fresh generator; frames not yet answered are dropped."""
         self._rng = np.random.default_rng(NEARBY_RNG)
         self._since = self.config.nearby_every
         self._gap, self._T_kept_competitor, self._age = math.nan, None, 0
@@ -103,6 +104,16 @@ class NearbySearch:
         self._margin = self.config.nearby_margin           # nearby_margin sqrt(f) of the last step's fit
         self._unchecked: tuple[np.ndarray, np.ndarray] | None = None   # (T_base competitor, T_base kept) to validate
         self._validated: np.ndarray | None = None                     # T_base of a competitor validated out of sample
+        self._queue: deque = deque()        # [steps, request] of each frame not yet answered, oldest first
+        self._frames = 0                    # frames of the track stepped
+        self.answered = 0                   # frames of the track answered: the answer is frame ``answered``'s
+        self.answer = math.nan              # that frame's answer (m; NaN: none)
+        self.work = 0                       # refinements and scorings run by the last :meth:`step`
+
+    @property
+    def pending(self) -> int:
+        """Frames stepped but not answered yet (their work spread over the next frames: ``nearby_per_frame``)."""
+        return self._frames - self.answered
 
     def step(self, fit: Fit, T_base_bone_kept: np.ndarray, own: float, correlation: float = 1.0,
              score: Score | None = None) -> float:
@@ -112,24 +123,70 @@ class NearbySearch:
         fits' shares on one image differ by chance sqrt(f) times more when n pixels carry the evidence
         of n / f, so the margin is ``nearby_margin`` sqrt(f) (0.015 was chosen on independent noise).
         ``score``: the consistent sharp share of a pose on this frame without refining it; with it, a
-        competitor found on the last frame is validated here (:meth:`_validate`)."""
+        competitor found on the last frame is validated here (:meth:`_validate`).
+
+        The work per call is bounded (``nearby_per_frame`` > 0, issue 35: a search never stalls the
+        frame loop): the frames' steps run in order, each exactly as on its own frame (its image, its
+        kept pose), at most ``nearby_per_frame`` refinements and scorings per call; a search
+        that needs more finishes on later calls. The answer is then that of the last frame whose step
+        has finished (:attr:`answered`; :attr:`pending` frames behind): the inline answers, the same
+        decisions, some frames later. ``fit`` and ``score`` must keep their frame's image until then
+        (the caller hands a new depth array per frame). 0: all of a frame's work on its own call.
+
+        The answer falls at most ``nearby_every`` frames behind: a budget below the search's average
+        demand (at the defaults a search and three follow-ups, 17 refinements, then 10 frames without:
+        1.3 a frame) would let it fall further behind each period, so a frame that many behind runs its
+        work regardless."""
+        self._queue.append([self._frame_steps(fit, T_base_bone_kept, own, correlation, score), None])
+        self._frames += 1
+        budget = self.config.nearby_per_frame
+        self.work = 0
+        while self._queue:
+            entry = self._queue[0]
+            steps, request = entry
+            results = None
+            if request is not None:
+                fn, items = request
+                if budget > 0 and self.work + len(items) > budget and self.pending < self.config.nearby_every:
+                    break
+                results = list(self.map(fn, items))
+                self.work += len(items)
+            try:
+                entry[1] = steps.send(results)
+            except StopIteration as done:
+                self._queue.popleft()
+                self.answered += 1
+                self.answer = done.value
+        return self.answer
+
+    def _chunks(self, items: list) -> list[list]:
+        """``items`` in the chunks run at once: ``width`` (two with the stage worker's pairs), at most
+        ``nearby_per_frame``."""
+        budget = self.config.nearby_per_frame
+        n = max(1, min(self.width, budget) if budget > 0 else self.width)
+        return [items[i:i + n] for i in range(0, len(items), n)]
+
+    def _frame_steps(self, fit: Fit, T_base_bone_kept: np.ndarray, own: float, correlation: float,
+                     score: Score | None):
+        """:meth:`step`'s frame as steps: yields (fn, poses) for the work it needs next, receives the
+        results, and returns the frame's answer."""
         c = self.config
         self._margin = c.nearby_margin * math.sqrt(max(float(correlation), 1.0))
         if self._unchecked is not None and score is not None:
-            self._validate(score)
+            yield from self._validate(score)
         self._since += 1
         if c.nearby_starts <= 0 or c.nearby_every <= 0 or self._since < c.nearby_every:
             return self._gap
         following, self._since = self._T_kept_follow is not None, 0
         if self._validated is not None and score is not None and not following:
-            if self._still_better(score, T_base_bone_kept):
+            if (yield from self._still_better(score, T_base_bone_kept)):
                 self._age = 0
                 return self._gap
         if not following:
             self._age += 1
             if self._age >= c.nearby_hold:
                 self._gap = math.nan
-        found, better = self._search(fit, T_base_bone_kept, own)
+        found, better = yield from self._search(fit, T_base_bone_kept, own)
         if found is not None:
             self._gap, self._T_kept_competitor = found
             self._age, self._followups = 0, 0
@@ -143,7 +200,14 @@ class NearbySearch:
         self._followups = 0
         return self._gap
 
-    def _validate(self, score: Score) -> None:
+    def _scores(self, score: Score, poses: list):
+        """The shares of ``poses`` on the frame's image, unrefined (steps: yields the work, returns the shares)."""
+        shares = []
+        for chunk in self._chunks(poses):
+            shares += yield score, chunk
+        return shares
+
+    def _validate(self, score: Score):
         """Out of sample: the competitor and the kept pose of the frame it was found on, both as they
         were (not refined again), scored on this frame's image. A competitor refined on one frame can
         chase that frame's noise: a stereo camera's, correlated over its matching window, leaves
@@ -151,18 +215,18 @@ class NearbySearch:
         varied 0.54-0.72 between frames). A competitor that does not explain the new frame better
         than the kept pose is withdrawn (the status's answer is NaN again); one that does stays."""
         (T_base_competitor, T_base_kept), self._unchecked = self._unchecked, None
-        competitor, kept = score(T_base_competitor), score(T_base_kept)
+        competitor, kept = yield from self._scores(score, [T_base_competitor, T_base_kept])
         if not (competitor > kept):
             self._gap, self._T_kept_competitor = math.nan, None
         else:
             self._validated = T_base_competitor
         self.validations.append((float(competitor), float(kept)))
 
-    def _still_better(self, score: Score, T_base_kept: np.ndarray) -> bool:
+    def _still_better(self, score: Score, T_base_kept: np.ndarray):
         """A validated competitor, on a search's frame: both poses as they are, scored on this frame's
         image. While the competitor still explains it better it stays the answer (no new search: the
         evidence is already out of sample); else it is dropped and the search runs as usual."""
-        competitor, kept = score(self._validated), score(T_base_kept)
+        competitor, kept = yield from self._scores(score, [self._validated, T_base_kept])
         self.validations.append((float(competitor), float(kept)))
         if competitor > kept:
             return True
@@ -173,7 +237,9 @@ class NearbySearch:
         """Refine from the retried competitor's pose, then from ``nearby_starts`` draws about the kept pose
         or, in a follow-up, about the better fit followed. Returns (competitor, better): the first fit
         more than ``gap`` (status.max_template_std) away scoring at least ``nearby_margin`` above ``own``, and else the best
-        such fit within the gap, each as (gap m, pose relative to the kept one), or None."""
+        such fit within the gap, each as (gap m, pose relative to the kept one), or None. Steps: yields
+        the refinements a chunk at a time (:meth:`_chunks`), in order; a fit computed in the chunk of
+        the one that stops the search is dropped, as the pairs' lazy map dropped it."""
         c = self.config
         T_base_centre = T_base_kept if self._T_kept_follow is None else T_base_kept @ self._T_kept_follow
         starts = list(self.draws(T_base_centre, c.nearby_starts, c.nearby_sigma_p, c.nearby_sigma_r, self._rng))
@@ -182,15 +248,16 @@ class NearbySearch:
         self._T_kept_competitor, self._T_kept_follow = None, None
         T_kept_base, threshold = se3.inverse(T_base_kept), own + self._margin
         better, best_score = None, threshold
-        for scored in self.map(fit, starts):
-            if scored is None:
-                continue
-            T_base_fit, score = scored
-            if score < threshold:
-                continue
-            gap = metrics.mdd(T_base_fit, T_base_kept, self.points_bone)
-            if gap > self.gap:
-                return (gap, T_kept_base @ T_base_fit), None
-            if score >= best_score:
-                better, best_score = (gap, T_kept_base @ T_base_fit), score
+        for chunk in self._chunks(starts):
+            for scored in (yield fit, chunk):
+                if scored is None:
+                    continue
+                T_base_fit, score = scored
+                if score < threshold:
+                    continue
+                gap = metrics.mdd(T_base_fit, T_base_kept, self.points_bone)
+                if gap > self.gap:
+                    return (gap, T_kept_base @ T_base_fit), None
+                if score >= best_score:
+                    better, best_score = (gap, T_kept_base @ T_base_fit), score
         return None, better

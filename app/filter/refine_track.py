@@ -58,7 +58,9 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   the refinement's minimum is a plateau 1-2 mm wide on which the track's fit is not the best
   (BENCHMARKS.md §6j). A fit within 1 mm that explains the image better is searched about on the
   next frames (``nearby_followups``, 3; the status below ok meanwhile): on crest_left_02 the plateau's
-  competitors lay beyond such fits (§6k). It changes the status only, never the track;
+  competitors lay beyond such fits (§6k). It changes the status only, never the track. Its work is spread
+  over frames, ``nearby_per_frame`` (1) refinements or scorings per frame, each frame's step on its own
+  image: the answers are the inline ones, some frames later (issue 35: a search never stalls the loop);
 - the behind rule's evidence (``RefineOutcome.behind``): the kept fit's own excess, or the excess of
   the track's last ``behind_frames`` fits tested together when larger (app/filter/behind_pool.py;
   reset with the track): a pose 1-2 mm off along residual tissue leaves about one frame's bound
@@ -100,9 +102,10 @@ class RefineConfig:
     app/filter/refine.py :func:`~app.filter.refine.fill_holes`); tissue_border (a measurement beside a
     buried one is left out of the fit: app/filter/refine.py step 5); behind_frames (the behind rule
     tested over this many of the track's last fits: app/filter/behind_pool.py); nearby_every, nearby_starts,
-    nearby_sigma_p (m), nearby_sigma_r (rad), nearby_margin, nearby_hold, nearby_followups (the search
-    for a competitor near the track: :class:`app.filter.nearby_search.NearbySearch`; its gap is the status's
-    tolerance, status.max_template_std, which was refine.nearby_gap before issue 32)."""
+    nearby_sigma_p (m), nearby_sigma_r (rad), nearby_margin, nearby_hold, nearby_followups, nearby_per_frame
+    (the search for a competitor near the track: :class:`app.filter.nearby_search.NearbySearch`; its gap is
+    the status's tolerance, status.max_template_std, which was refine.nearby_gap before issue 32;
+    nearby_per_frame bounds its refinements and scorings per frame, 0 none)."""
 
     enabled: bool = True
     stride: int = 2
@@ -134,6 +137,7 @@ class RefineConfig:
     nearby_hold: int = 2
     nearby_followups: int = 3
     nearby_validate: bool = True
+    nearby_per_frame: int = 1
 
 
 @dataclass
@@ -148,7 +152,11 @@ class RefineOutcome:
     pixels whose noise carries the evidence of n / f, so a fit's Δχ² under H is f times its own), when
     it did not release onto it (0 when it did, NaN without the prior; status.py); nearby :
     the template gap (m) to a fit near the track that explains the image better, found by the
-    last nearby search (:class:`app.filter.nearby_search.NearbySearch`; NaN when none was found);
+    last nearby search (:class:`app.filter.nearby_search.NearbySearch`; NaN when none was found; with
+    ``nearby_per_frame`` the answer of a frame up to a few frames back, the search's work spread over them);
+    nearby_unanswered : the track's first nearby search has not finished yet (its work spread over the
+    next frames): the tracker keeps the status below ok until it has (inline, no frame of a track was
+    ok before its first search had answered);
     sharp : the frame's best fit's consistent sharp share (:func:`consistent_sharp`), kept or not (NaN
     when no fit converged): the recovery tests a found pose against the wide search's bar with it
     (app/filter/recovery.py, the sixth trigger; a fit too poor to keep is below the bar too)."""
@@ -164,6 +172,7 @@ class RefineOutcome:
     held_chi2: float = float("nan")
     nearby: float = float("nan")
     sharp: float = float("nan")
+    nearby_unanswered: bool = False
 
 
 def behind_excess(result: RefineResult) -> float:
@@ -438,10 +447,12 @@ class RefinedTrack:
         held_chi2 = self.last_info.get("held_chi2", float("nan")) / max(best.correlation, 1.0)
         self.last_info.update(correlation=best.correlation, noise_mm=1e3 * best.noise)
         behind, nearby, sharp = behind_excess(best), float("nan"), consistent_sharp(best)
+        unanswered = False
         if kept is not None:
             pooled = self.behind_pool.add(best.behind, best.behind_mean, best.behind_var, best.expected)
             behind = max(behind, pooled) if np.isfinite(pooled) else behind
             nearby = self.nearby.step(lambda T_start: self._scored_fit(depth, T_camera_base, T_start), kept, sharp,
                                       best.correlation, lambda T: self._scored_pose(depth, T_camera_base, T))
+            unanswered = self.nearby.answered == 0
         return RefineOutcome(kept, best.fitness, std, competitor, competitor_fitness, source, time.perf_counter() - t0,
-                             behind, held_chi2, nearby, sharp)
+                             behind, held_chi2, nearby, sharp, unanswered)

@@ -80,7 +80,7 @@ class DepthTracker:
         self.stages = stages_mode(config.stages, self.refined_track is not None)
         self._stage_worker = StageWorker() if self.stages == PARALLEL else None     # app/pipeline/stages.py
         if self._stage_worker is not None:
-            self.refined_track.nearby.map = self._stage_worker.pairs
+            self.refined_track.nearby.map, self.refined_track.nearby.width = self._stage_worker.pairs, 2
         self._timings: dict[str, float] = defaultdict(float)
         self._frames = 0
         self._pending_point: np.ndarray | None = None
@@ -371,6 +371,9 @@ class DepthTracker:
                                       out.nearby)
         status = with_refinement(result.status, evidence, self.config.status)
         reasons = result.reasons + tuple(refinement_reasons(evidence, self.config.status))
+        if out.nearby_unanswered:        # the track's first nearby search spread over frames (refine.nearby_per_frame)
+            status = _at_most_uncertain(status)
+            reasons += (Reason("ambiguous", "the search for a better pose near the new track has not finished"),)
         timings = {**result.timings, "refine": out.seconds}
         T_base_bone = out.T_base_bone if out.T_base_bone is not None else result.T_base_bone
         return replace(result, T_base_bone=T_base_bone, status=status, timings=timings, refine_fitness=out.fitness,
