@@ -209,7 +209,6 @@ KEYS: dict[str, _Key] = {
     "refine.nearby_sigma_r": _f("refine.nearby_sigma_r", 0.0, math.pi, lo_open=True),
     "refine.nearby_margin": _f("refine.nearby_margin", 0.0, 1.0),
     "refine.nearby_hold": _i("refine.nearby_hold", 1, 100_000),
-    "refine.nearby_followups": _i("refine.nearby_followups", 0, 100),
     "refine.nearby_validate": _Key(("refine", "nearby_validate"), "bool"),
     "refine.nearby_per_frame": _i("refine.nearby_per_frame", 0, 1_000),
     "recovery.enabled": _Key(("recovery", "enabled"), "bool"),
@@ -419,6 +418,10 @@ RENAMED = {   # keys of earlier configurations: what replaced them
     "refine.competitor_margin": "replaced by refine.nearby_margin (issue 32: one margin within which two fits' "
                                 "shares are not told apart, x sqrt(f) for correlated noise; 0.05 against 0.015 "
                                 "changed none of 48 status runs); remove the key",
+    "refine.nearby_followups": "removed (issue 32): the nearby search no longer searches again about a better fit "
+                               "within the tolerance; its scene (crest_left_02 or_model_mismatch) is never ok while "
+                               "> 1 mm off without it, and the status and recovery matrices kept every run's safety; "
+                               "remove the key",
     "recovery.kept_move_angle": "replaced by status.max_template_std (the template's largest displacement covers the "
                                 "rotation: 1 deg moves points 50 mm out 0.9 mm); remove the key",
 }

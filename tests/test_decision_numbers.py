@@ -85,6 +85,11 @@ def test_a_merged_key_names_the_key_that_replaced_it(old, new):
         config_from_dict({section: {name: 0.001}})
 
 
+def test_a_removed_key_says_so():
+    with pytest.raises(ConfigError, match=r"refine.nearby_followups.*removed \(issue 32\)"):
+        config_from_dict({"refine": {"nearby_followups": 3}})
+
+
 def test_the_merged_numbers_are_the_ones_they_replaced():
     """The values each removed key had (5 mm / 5 deg, 1 s, 1 mm, 0.6) are its replacement's defaults, and
     the code reads the replacement (so the defaults' behaviour is unchanged: BENCHMARKS.md's replays)."""

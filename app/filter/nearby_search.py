@@ -26,18 +26,12 @@ competitor and the kept pose, both as they are, are scored on the new image: the
 unless it explains it better. A validated one is checked so again on each search's frame instead of
 being searched for again, and stays the answer while it still explains the image better.
 
-Follow-ups: a search that finds no competitor but a fit within ``gap`` (status.max_template_std) scoring at least
-``nearby_margin`` above the track's searches again on the next frame, its draws about that
-fit, up to ``nearby_followups`` frames in a row; meanwhile the answer is that fit's gap (the
-status below ok: the image prefers a pose the track is not at, and how far the better poses
-extend is not known yet). Why: on crest_left_02 (or_model_mismatch seed 0, or_deep_tissue
-seed 2) the searches of the first ok-able frames found fits 0.2-0.5 mm away better by
-+0.017 to +0.047 and nothing beyond 1 mm, and 23 frames 1.0-1.2 mm off were ok with the
-template's outline up to 3.2 mm off; searched about those fits, a competitor 1.1-1.4 mm away
-showed within 1-3 frames (those 23 frames are no longer ok). Its cost in the matrix's 232 runs
-without residual tissue: 149 of their 46,890 ok frames (0.3 %) in 32 runs, mostly one frame
-whose follow-up then found nothing; 115 of them in two fast repositions where such a frame
-restarted the recovery's 90-frame confirmation (BENCHMARKS.md §6k).
+Follow-ups removed (issue 32, 2026-11-28): a search that found no competitor but a fit within ``gap``
+scoring above the track's searched again about that fit on the next frames (``refine.nearby_followups``,
+3; crest_left_02 or_model_mismatch seed 0 had 14 frames ok 1.0-1.2 mm off without them, §6k). Since the
+status's correlation correction and the validation that scene no longer needs them (0 frames ok while
+> 1 mm off either way), and the status matrix and the recovery matrix measured without them kept every
+run's safety (BENCHMARKS.md "Decision numbers").
 
 Why the search: under residual tissue on the ridge (or_deep_tissue, or_model_mismatch) the track sat in a
 minimum 1-1.8 mm off that the 5 mm / 5 deg competitor rule cannot see, and its status was ok on
@@ -99,7 +93,6 @@ class NearbySearch:
         self._rng = np.random.default_rng(NEARBY_RNG)
         self._since = self.config.nearby_every
         self._gap, self._T_kept_competitor, self._age = math.nan, None, 0
-        self._T_kept_follow, self._followups = None, 0
         self.validations: list[tuple[float, float]] = []   # (competitor, kept) shares of each validation
         self._margin = self.config.nearby_margin           # nearby_margin sqrt(f) of the last step's fit
         self._unchecked: tuple[np.ndarray, np.ndarray] | None = None   # (T_base competitor, T_base kept) to validate
@@ -134,8 +127,9 @@ class NearbySearch:
         (the caller hands a new depth array per frame). 0: all of a frame's work on its own call.
 
         The answer falls at most ``nearby_every`` frames behind: a budget below the search's average
-        demand (at the defaults a search and three follow-ups, 17 refinements, then 10 frames without:
-        1.3 a frame) would let it fall further behind each period, so a frame that many behind runs its
+        demand (at the defaults a search of up to five refinements and a validation's two scorings every
+        10 frames: 0.7 a frame; 1.3 with the follow-ups removed in issue 32) would let it fall further
+        behind each period, so a frame that many behind runs its
         work regardless."""
         self._queue.append([self._frame_steps(fit, T_base_bone_kept, own, correlation, score), None])
         self._frames += 1
@@ -177,27 +171,20 @@ class NearbySearch:
         self._since += 1
         if c.nearby_starts <= 0 or c.nearby_every <= 0 or self._since < c.nearby_every:
             return self._gap
-        following, self._since = self._T_kept_follow is not None, 0
-        if self._validated is not None and score is not None and not following:
+        self._since = 0
+        if self._validated is not None and score is not None:
             if (yield from self._still_better(score, T_base_bone_kept)):
                 self._age = 0
                 return self._gap
-        if not following:
-            self._age += 1
-            if self._age >= c.nearby_hold:
-                self._gap = math.nan
-        found, better = yield from self._search(fit, T_base_bone_kept, own)
+        self._age += 1
+        if self._age >= c.nearby_hold:
+            self._gap = math.nan
+        found = yield from self._search(fit, T_base_bone_kept, own)
         if found is not None:
             self._gap, self._T_kept_competitor = found
-            self._age, self._followups = 0, 0
+            self._age = 0
             if c.nearby_validate:
                 self._unchecked = (T_base_bone_kept @ self._T_kept_competitor, np.array(T_base_bone_kept, float))
-            return self._gap
-        if better is not None and self._followups < c.nearby_followups:
-            gap, self._T_kept_follow = better
-            self._followups, self._since = self._followups + 1, c.nearby_every - 1
-            return gap if math.isnan(self._gap) else self._gap
-        self._followups = 0
         return self._gap
 
     def _scores(self, score: Score, poses: list):
@@ -234,20 +221,17 @@ class NearbySearch:
         return False
 
     def _search(self, fit: Fit, T_base_kept: np.ndarray, own: float):
-        """Refine from the retried competitor's pose, then from ``nearby_starts`` draws about the kept pose
-        or, in a follow-up, about the better fit followed. Returns (competitor, better): the first fit
-        more than ``gap`` (status.max_template_std) away scoring at least ``nearby_margin`` above ``own``, and else the best
-        such fit within the gap, each as (gap m, pose relative to the kept one), or None. Steps: yields
+        """Refine from the retried competitor's pose, then from ``nearby_starts`` draws about the kept pose.
+        Returns the first fit more than ``gap`` (status.max_template_std) away scoring at least ``nearby_margin``
+        above ``own``, as (gap m, pose relative to the kept one), or None. Steps: yields
         the refinements a chunk at a time (:meth:`_chunks`), in order; a fit computed in the chunk of
         the one that stops the search is dropped, as the pairs' lazy map dropped it."""
         c = self.config
-        T_base_centre = T_base_kept if self._T_kept_follow is None else T_base_kept @ self._T_kept_follow
-        starts = list(self.draws(T_base_centre, c.nearby_starts, c.nearby_sigma_p, c.nearby_sigma_r, self._rng))
+        starts = list(self.draws(T_base_kept, c.nearby_starts, c.nearby_sigma_p, c.nearby_sigma_r, self._rng))
         if self._T_kept_competitor is not None:
             starts.insert(0, T_base_kept @ self._T_kept_competitor)
-        self._T_kept_competitor, self._T_kept_follow = None, None
+        self._T_kept_competitor = None
         T_kept_base, threshold = se3.inverse(T_base_kept), own + self._margin
-        better, best_score = None, threshold
         for chunk in self._chunks(starts):
             for scored in (yield fit, chunk):
                 if scored is None:
@@ -257,7 +241,5 @@ class NearbySearch:
                     continue
                 gap = metrics.mdd(T_base_fit, T_base_kept, self.points_bone)
                 if gap > self.gap:
-                    return (gap, T_kept_base @ T_base_fit), None
-                if score >= best_score:
-                    better, best_score = (gap, T_kept_base @ T_base_fit), score
-        return None, better
+                    return gap, T_kept_base @ T_base_fit
+        return None

@@ -56,9 +56,8 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   about its pose; a fit moving the template by more than ``status.max_template_std`` (1 mm) whose consistent share
   exceeds the track's by ``nearby_margin`` (0.015) keeps the status below ok: under residual tissue
   the refinement's minimum is a plateau 1-2 mm wide on which the track's fit is not the best
-  (BENCHMARKS.md §6j). A fit within 1 mm that explains the image better is searched about on the
-  next frames (``nearby_followups``, 3; the status below ok meanwhile): on crest_left_02 the plateau's
-  competitors lay beyond such fits (§6k). It changes the status only, never the track. Its work is spread
+  (BENCHMARKS.md §6j; the follow-up searches about a better fit within 1 mm, §6k, were removed in
+  issue 32: their scene no longer needs them). It changes the status only, never the track. Its work is spread
   over frames, ``nearby_per_frame`` (1) refinements or scorings per frame, each frame's step on its own
   image: the answers are the inline ones, some frames later (issue 35: a search never stalls the loop);
 - the behind rule's evidence (``RefineOutcome.behind``): the kept fit's own excess, or the excess of
@@ -102,7 +101,7 @@ class RefineConfig:
     app/filter/refine.py :func:`~app.filter.refine.fill_holes`); tissue_border (a measurement beside a
     buried one is left out of the fit: app/filter/refine.py step 5); behind_frames (the behind rule
     tested over this many of the track's last fits: app/filter/behind_pool.py); nearby_every, nearby_starts,
-    nearby_sigma_p (m), nearby_sigma_r (rad), nearby_margin, nearby_hold, nearby_followups, nearby_per_frame
+    nearby_sigma_p (m), nearby_sigma_r (rad), nearby_margin, nearby_hold, nearby_per_frame
     (the search for a competitor near the track: :class:`app.filter.nearby_search.NearbySearch`; its gap is
     the status's tolerance, status.max_template_std, which was refine.nearby_gap before issue 32;
     nearby_per_frame bounds its refinements and scorings per frame, 0 none)."""
@@ -135,7 +134,6 @@ class RefineConfig:
     nearby_sigma_r: float = math.radians(2.0)
     nearby_margin: float = 0.015
     nearby_hold: int = 2
-    nearby_followups: int = 3
     nearby_validate: bool = True
     nearby_per_frame: int = 1
 

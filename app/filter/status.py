@@ -96,10 +96,9 @@ lowered to UNCERTAIN, never raised, when
   that moves the template by more than ``max_template_std`` = 1 mm (its largest point displacement)
   while its share within 1 σ less its excess behind exceeds the track's own by ``nearby_margin`` = 0.015
   keeps the status below ok until the next search finds none (app/filter/nearby_search.py
-  ``NearbySearch``); a fit within 1 mm that scores so (the track is not at the image's best pose)
-  keeps it below ok while ``refine.nearby_followups`` = 3 searches on the next frames look about
-  it for one further away (crest_left_02 under residual tissue: 23 ok frames 1.0-1.2 mm off, the
-  outline up to 3.2 mm off, none with them; §6k). A 1 mm template error is the clinical tolerance;
+  ``NearbySearch``; its follow-ups about a better fit within 1 mm, §6k, were removed in issue 32: since
+  the correlation correction and the validation their scene, crest_left_02 under residual tissue, is
+  never ok while > 1 mm off without them). A 1 mm template error is the clinical tolerance;
   the 5 mm / 5 deg competitor above cannot see such a pose. Measured (BENCHMARKS.md §6j, 40 trials of the eight CT crests, the
   frames every other rule left ok, every 5th frame searched): as shipped it fired on 10 of the 15
   residual-tissue frames > 1 mm off and on 137 of the 145 nearer ones (their minimum is a plateau:
