@@ -24,7 +24,8 @@ from app.pipeline.stages import StageWorker, stages_mode
 @pytest.fixture(scope="module")
 def replays(tmp_path_factory):
     """A 1 s static_occluded trial replayed with filter.stages serial and parallel (50 particles, cpu
-    backend), and which threads made the parallel run's track refinements and nearby fits."""
+    backend, the nearby search's work two fits a frame so that it runs them in pairs; the default, one,
+    runs them on the loop), and which threads made the parallel run's track refinements and nearby fits."""
     from app.filter import refine_track
     from app.filter.refine_track import RefinedTrack
 
@@ -42,7 +43,8 @@ def replays(tmp_path_factory):
 
     for mode in ("serial", "parallel"):
         config = base / f"{mode}.yaml"
-        config.write_text(f"filter:\n  particles: 50\n  stages: {mode}\nrender:\n  backend: cpu\n")
+        config.write_text(f"filter:\n  particles: 50\n  stages: {mode}\nrender:\n  backend: cpu\n"
+                          "refine:\n  nearby_per_frame: 2\n")   # two a frame: the search's fits in pairs
         out[mode] = base / mode
         if mode == "parallel":
             RefinedTrack.track_fit, RefinedTrack._scored_fit = spy("track_fit", track_fit), spy("scored_fit", scored_fit)
