@@ -129,3 +129,17 @@ def test_the_template_spread_is_the_largest_over_every_point():
         d = x - np.einsum("n,nmi->mi", W, x)[None]
         definition = np.sqrt(np.einsum("n,nmi,nmi->m", W, d, d))
         assert template_spread(p, q, lw, points, pose, limit=0.0) == pytest.approx(definition.max(), rel=1e-9)
+
+
+def test_a_new_tracks_unfinished_nearby_search_keeps_the_status_below_ok():
+    """RefinementEvidence.nearby_unanswered (the first nearby search spread over frames,
+    refine.nearby_per_frame): not ok, reason ambiguous, until it has answered; never raised."""
+    from app.filter.status import RefinementEvidence, refinement_reasons, with_refinement
+
+    good = RefinementEvidence(0.9, 5e-4, False, -0.01, float("nan"), float("nan"))
+    t = StatusThresholds()
+    assert with_refinement(TrackingStatus.OK, good, t) == TrackingStatus.OK
+    waiting = replace(good, nearby_unanswered=True)
+    assert with_refinement(TrackingStatus.OK, waiting, t) == TrackingStatus.UNCERTAIN
+    assert [r.code for r in refinement_reasons(waiting, t)] == ["ambiguous"]
+    assert with_refinement(TrackingStatus.LOST, waiting, t) == TrackingStatus.LOST

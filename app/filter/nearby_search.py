@@ -70,6 +70,16 @@ Score = Callable[[np.ndarray], float]
 Draws = Callable[..., np.ndarray]
 
 
+
+def share_margin(config, correlation: float) -> float:
+    """The margin within which two fits' shares on one image are not told apart: ``nearby_margin`` sqrt(f),
+    f the fit's residual correlation factor (n correlated pixels carry the evidence of n / f, so two shares
+    differ by chance sqrt(f) times more; app/tracking/fit_test.py). One margin since issue 32 for the
+    competitor rule (a far fit within it explains the image about as well), the nearby search (a fit
+    beyond it explains the image better) and the wide search's replacement of a confirmed track.
+    ``config``: the refine settings (app/filter/refine_track.py ``RefineConfig``)."""
+    return config.nearby_margin * math.sqrt(max(float(correlation), 1.0))
+
 class NearbySearch:
     """The search of the module docstring for one track.
 
@@ -165,7 +175,7 @@ class NearbySearch:
         """:meth:`step`'s frame as steps: yields (fn, poses) for the work it needs next, receives the
         results, and returns the frame's answer."""
         c = self.config
-        self._margin = c.nearby_margin * math.sqrt(max(float(correlation), 1.0))
+        self._margin = share_margin(c, correlation)
         if self._unchecked is not None and score is not None:
             yield from self._validate(score)
         self._since += 1

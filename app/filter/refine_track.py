@@ -76,7 +76,7 @@ import numpy as np
 from app import metrics
 from app.filter.behind_pool import BehindPool
 from app.filter.motion import draws_about_centroid
-from app.filter.nearby_search import NearbySearch
+from app.filter.nearby_search import NearbySearch, share_margin
 from app.filter.refine import RENDER_LEVER as REFINE_LEVER
 from app.filter.refine import Refiner, RefineResult, template_std
 from app.filter.static_prior import StaticPrior, StaticPriorConfig
@@ -180,15 +180,6 @@ def behind_excess(result: RefineResult) -> float:
     so the status is not ok and a search does not confirm the fit (issue 32: it was tested against a
     fixed 2 %, ``FALLBACK_BEHIND_SHARE``, a share of one simulator's noise)."""
     return float(result.behind - result.behind_allowed)
-
-
-def share_margin(config: RefineConfig, correlation: float) -> float:
-    """The margin within which two fits' shares on one image are not told apart: ``nearby_margin`` sqrt(f),
-    f the fit's residual correlation factor (n correlated pixels carry the evidence of n / f, so two shares
-    differ by chance sqrt(f) times more; app/tracking/fit_test.py). One margin since issue 32 for the
-    competitor rule (a far fit within it explains the image about as well), the nearby search (a fit
-    beyond it explains the image better) and the wide search's replacement of a confirmed track."""
-    return config.nearby_margin * math.sqrt(max(float(correlation), 1.0))
 
 
 def consistent_sharp(result: RefineResult) -> float:

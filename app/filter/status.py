@@ -310,7 +310,10 @@ class RefinementEvidence:
     held_chi2 : the static prior's Δχ² from the pose it kept (held or fused) to this frame's own fit,
     when it did not release onto that fit (app/filter/static_prior.py; 0 when released, NaN without it);
     nearby : m, the template gap to a fit near the track that explains the image better
-    (app/filter/nearby_search.py ``NearbySearch``; NaN when the last search found none).
+    (app/filter/nearby_search.py ``NearbySearch``; NaN when the last search found none);
+    nearby_unanswered : the track's first nearby search has not finished (its work spread over frames,
+    ``refine.nearby_per_frame``): whether a pose near the new track explains the image better is not
+    known yet (inline, no frame of a track was ok before its first search had answered).
     """
 
     fitness: float
@@ -319,6 +322,7 @@ class RefinementEvidence:
     behind: float = float("nan")
     held_chi2: float = float("nan")
     nearby: float = float("nan")
+    nearby_unanswered: bool = False
 
 
 def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
@@ -344,6 +348,8 @@ def refinement_reasons(r: RefinementEvidence, t: StatusThresholds) -> list[str]:
     if r.held_chi2 > held:
         reasons.append(Reason("held", f"the image's own fit contradicts the held pose (Δχ² {r.held_chi2:.1f} > "
                               f"{held:.2f}; the bone starting to move?)"))
+    if r.nearby_unanswered:
+        reasons.append(Reason("ambiguous", "the search for a better pose near the new track has not finished"))
     return reasons
 
 

@@ -368,12 +368,9 @@ class DepthTracker:
                 and out.fitness >= st.min_fitness and not out.competitor):
             self.filter.shift_to(out.T_base_bone, result.T_base_bone)
         evidence = RefinementEvidence(out.fitness, out.template_std, out.competitor, out.behind, out.held_chi2,
-                                      out.nearby)
+                                      out.nearby, out.nearby_unanswered)
         status = with_refinement(result.status, evidence, self.config.status)
         reasons = result.reasons + tuple(refinement_reasons(evidence, self.config.status))
-        if out.nearby_unanswered:        # the track's first nearby search spread over frames (refine.nearby_per_frame)
-            status = _at_most_uncertain(status)
-            reasons += (Reason("ambiguous", "the search for a better pose near the new track has not finished"),)
         timings = {**result.timings, "refine": out.seconds}
         T_base_bone = out.T_base_bone if out.T_base_bone is not None else result.T_base_bone
         return replace(result, T_base_bone=T_base_bone, status=status, timings=timings, refine_fitness=out.fitness,
@@ -432,12 +429,6 @@ class DepthTracker:
 
     def mean_timings_ms(self) -> dict[str, float]:
         return {k: 1e3 * v / max(self._frames, 1) for k, v in self._timings.items()}
-
-    def _worker_search(self):
-        """The search worker's own wide search (:func:`build_worker_search` on this tracker's parts)."""
-        mesh = self._mesh
-        return build_worker_search(self.config, self.mesh_vertices, self.mesh_faces, self.camera, self._cull,
-                                   np.asarray(mesh.vertices, float), np.asarray(mesh.faces), self._camera_full)
 
     def release(self) -> None:
         if self.recovery_runner is not None and self.recovery_runner.worker is not None:
