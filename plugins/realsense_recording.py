@@ -77,7 +77,7 @@ def write_recording(path: str | Path, depth_units: np.ndarray, stamps_s: np.ndar
                     depth_scale: float, fps: int = 30, frame_numbers: np.ndarray | None = None,
                     infrared: np.ndarray | None = None, color: np.ndarray | None = None,
                     color_stream: ColorStream | None = None, emitter: bool | None = None,
-                    separate_color_sensor: bool = False) -> Path:
+                    separate_color_sensor: bool = False, overwrite: bool = False) -> Path:
     """Write z16 depth frames (and optionally y8 infrared and rgb8 colour frames) to a RealSense recording.
 
     Parameters
@@ -90,6 +90,8 @@ def write_recording(path: str | Path, depth_units: np.ndarray, stamps_s: np.ndar
     infrared : (N, H, W) uint8 left-imager frames, or None
     color, color_stream : (N, Hc, Wc, 3) uint8 RGB frames and their camera (K, distortion, T_depth_color)
     emitter : stored as the depth sensor's ``emitter_enabled`` option (None: not stored)
+    overwrite : replace a file already at ``path`` (once the new recording is complete); without it an
+        existing file is refused (FileExistsError) and left as it is
     """
     from plugins.realsense import _rs
 
@@ -122,6 +124,9 @@ def write_recording(path: str | Path, depth_units: np.ndarray, stamps_s: np.ndar
         streams.append(("color", np.ascontiguousarray(color, dtype=np.uint8), 3))
     numbers = np.arange(n) if frame_numbers is None else np.asarray(frame_numbers)
     path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists: choose another path, or pass overwrite=True to replace it "
+                              "once the new recording is complete")
     partial = _partial_path(path)
     try:
         _record(rs, partial, device, stereo, rgb_sensor, profiles, streams, stamps_s, numbers)

@@ -140,20 +140,23 @@ def test_a_recording_that_lost_frames_is_an_error_not_a_silent_short_file(tmp_pa
         write_recording(tmp_path / f"short{recording_suffix()}", units, stamps, CAMERA, depth_scale=0.0001, fps=30)
     before = path.read_bytes()
     with pytest.raises(OSError, match="holds 3 of the 5 depth frames"):
-        write_recording(path, units, stamps, CAMERA, depth_scale=0.0001, fps=30)
+        write_recording(path, units, stamps, CAMERA, depth_scale=0.0001, fps=30, overwrite=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
     assert path.read_bytes() == before
 
 
-def test_a_recording_is_written_beside_its_path_and_replaces_a_file_there(tmp_path):
-    """Written under a temporary name in the same directory, renamed once complete: a file already at the
-    path is replaced (as the SDK's recorder always did), and nothing else is left."""
+def test_a_recording_is_written_beside_its_path_and_replaces_a_file_there_only_when_asked(tmp_path):
+    """Written under a temporary name in the same directory, renamed once complete. A file already at the
+    path is refused and left as it was; with overwrite=True it is replaced, and nothing else is left."""
     import plugins.realsense_recording as rec
 
     path = tmp_path / f"again{recording_suffix()}"
     path.write_bytes(b"an older file")
     units = np.full((4, 48, 64), 4000, np.uint16)
-    write_recording(path, units, 100.0 + np.arange(4) / 30.0, CAMERA, depth_scale=0.0001, fps=30)
+    with pytest.raises(FileExistsError, match="overwrite=True"):
+        write_recording(path, units, 100.0 + np.arange(4) / 30.0, CAMERA, depth_scale=0.0001, fps=30)
+    assert path.read_bytes() == b"an older file"
+    write_recording(path, units, 100.0 + np.arange(4) / 30.0, CAMERA, depth_scale=0.0001, fps=30, overwrite=True)
     assert rec.count_depth_frames(path) == 4
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
 
