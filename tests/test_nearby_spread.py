@@ -2,7 +2,7 @@
 frame loop; app/filter/nearby_search.py ``NearbySearch.step``, ``refine.nearby_per_frame``).
 
 The tracker runs the trial twice, the search's work all on its own frame (``nearby_per_frame`` 0, as before)
-and spread (1, the default): the spread run's nearby refinements and scorings are counted on every ``process()`` call
+and spread (1; the default is 2): the spread run's nearby refinements and scorings are counted on every ``process()`` call
 (work, not seconds), and its answer on each frame is the inline answer of the frame it has reached.
 """
 from __future__ import annotations

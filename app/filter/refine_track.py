@@ -58,7 +58,7 @@ held-out scenes: ICP's precision on 14, no frame ok while > 5 mm off):
   the refinement's minimum is a plateau 1-2 mm wide on which the track's fit is not the best
   (BENCHMARKS.md §6j; the follow-up searches about a better fit within 1 mm, §6k, were removed in
   issue 32: their scene no longer needs them). It changes the status only, never the track. Its work is spread
-  over frames, ``nearby_per_frame`` (1) refinements or scorings per frame, each frame's step on its own
+  over frames, ``nearby_per_frame`` (2) refinements or scorings per frame, each frame's step on its own
   image: the answers are the inline ones, some frames later (issue 35: a search never stalls the loop);
 - the behind rule's evidence (``RefineOutcome.behind``): the kept fit's own excess, or the excess of
   the track's last ``behind_frames`` fits tested together when larger (app/filter/behind_pool.py;
@@ -135,7 +135,7 @@ class RefineConfig:
     nearby_margin: float = 0.015
     nearby_hold: int = 2
     nearby_validate: bool = True
-    nearby_per_frame: int = 1
+    nearby_per_frame: int = 2
 
 
 @dataclass
