@@ -208,6 +208,7 @@ KEYS: dict[str, _Key] = {
     "refine.nearby_sigma_p": _f("refine.nearby_sigma_p", 0.0, 0.05, lo_open=True),
     "refine.nearby_sigma_r": _f("refine.nearby_sigma_r", 0.0, math.pi, lo_open=True),
     "refine.nearby_margin": _f("refine.nearby_margin", 0.0, 1.0),
+    "refine.nearby_hold": _i("refine.nearby_hold", 1, 100_000),
     "refine.nearby_validate": _Key(("refine", "nearby_validate"), "bool"),
     "refine.nearby_per_frame": _i("refine.nearby_per_frame", 0, 1_000),
     "recovery.enabled": _Key(("recovery", "enabled"), "bool"),
@@ -425,9 +426,6 @@ RENAMED = {   # keys of earlier configurations: what replaced them
                                "within the tolerance; its scene (crest_left_02 or_model_mismatch) is never ok while "
                                "> 1 mm off without it, and the status and recovery matrices kept every run's safety; "
                                "remove the key",
-    "refine.nearby_hold": "removed (issue 32): a competitor found is the answer until the next search (which starts "
-                          "from its pose), a validated one while it still explains the image better; the status and "
-                          "recovery matrices without the hold kept every run's safety; remove the key",
     "recovery.kept_move_angle": "replaced by status.max_template_std (the template's largest displacement covers the "
                                 "rotation: 1 deg moves points 50 mm out 0.9 mm); remove the key",
 }

@@ -90,10 +90,10 @@ def test_unknown_section_is_rejected_with_the_valid_ones():
     ({"refine": {"prior_forget_ratio": -1.0}}, "refine.prior_forget_ratio", "outside the allowed range"),
     ({"refine": {"outline_ring": "no"}}, "refine.outline_ring", "true or false"),
     ({"refine": {"tissue_border": 1}}, "refine.tissue_border", "true or false"),
-    ({"refine": {"nearby_every": -1}}, "refine.nearby_every", r"outside the allowed range"),
-    ({"refine": {"nearby_starts": 1.5}}, "refine.nearby_starts", "expected an integer"),
+    ({"refine": {"nearby_hold": -1}}, "refine.nearby_hold", r"outside the allowed range"),
+    ({"refine": {"nearby_hold": 1.5}}, "refine.nearby_hold", "expected an integer"),
     ({"refine": {"nearby_margin": 2.0}}, "refine.nearby_margin", "outside the allowed range"),
-    ({"refine": {"nearby_hold": 2}}, "refine.nearby_hold", "removed \\(issue 32\\)"),
+    ({"refine": {"nearby_hold": 0}}, "refine.nearby_hold", "outside the allowed range"),
     ({"refine": {"nearby_sigma_p": 0.0}}, "refine.nearby_sigma_p", "outside the allowed range"),
     ({"filter": [1, 2]}, "filter", "expected a mapping"),
 ])

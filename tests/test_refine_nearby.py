@@ -122,21 +122,16 @@ def test_the_search_runs_every_nearby_every_frames_and_stops_at_the_first_compet
     assert 2 <= len(refiner.starts) < 1 + 8   # found before the last draw (seeded generator)
 
 
-def test_a_competitor_is_retried_first_and_its_answer_goes_with_the_first_search_that_misses_it():
-    """Issue 32 removed ``refine.nearby_hold``: the next search refines from the competitor's pose first, and
-    when it finds none the answer is NaN from that search on (no hold over searches). Unvalidated here: the
-    validation's own keeping is the next tests'."""
-    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10, nearby_validate=False)
+def test_a_competitor_is_retried_first_and_held_for_nearby_hold_searches():
+    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10, nearby_hold=2)
     first = _run(track, 10)
     assert all(out.nearby == pytest.approx(0.0015) for out in first)
-    n_before = len(refiner.starts)
-    second = _run(track, 10)                      # the competitor still there: found again from its own pose
-    assert np.allclose(refiner.starts[n_before + 1], _pose(0.0015))
-    assert all(out.nearby == pytest.approx(0.0015) for out in second)
     refiner.minima = [(_pose(), 0.70)]            # the competitor goes (a clearer view)
     n_before = len(refiner.starts)
-    third = _run(track, 10)                       # the third search: from its pose first, none found
+    second = _run(track, 10)                      # the second search: from the competitor's pose first
     assert np.allclose(refiner.starts[n_before + 1], _pose(0.0015))
+    assert all(out.nearby == pytest.approx(0.0015) for out in second)   # none found, held once
+    third = _run(track, 10)
     assert all(np.isnan(out.nearby) for out in third)
 
 
@@ -175,7 +170,7 @@ def test_a_better_fit_within_the_gap_is_not_followed():
 def test_a_competitor_that_chased_one_frames_noise_is_withdrawn_on_the_next_frame():
     """Out-of-sample validation (``nearby_validate``): the competitor and the kept pose, unrefined, scored on
     the next frame. There the competitor explains the image no better (its share came from the first
-    frame's noise): withdrawn after one frame instead of kept until the next search. Where it still
+    frame's noise): withdrawn after one frame instead of held for nearby_hold searches. Where it still
     explains the image better, it stays (each validation scores the two poses once)."""
     refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10)
     first = _run(track, 1)[0]
@@ -199,8 +194,8 @@ def test_a_competitor_that_chased_one_frames_noise_is_withdrawn_on_the_next_fram
 def test_a_validated_competitor_stays_while_it_still_explains_each_search_frame_better():
     """Once validated out of sample, a competitor is checked again on each search's frame, both poses as
     they are (two scores, no refinement): while it still explains the image better it stays the answer
-    beyond the search that found it; the first frame it does not, it is dropped and the search runs as usual."""
-    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10)
+    beyond nearby_hold; the first frame it does not, it is dropped and the search runs as usual."""
+    refiner, track = _track([(_pose(), 0.70), (_pose(0.0015), 0.75)], nearby_every=10, nearby_hold=2)
     refiner.unrefined = [0.70, 0.72]                   # out of sample the competitor stays better
     outs = _run(track, 40)
     assert all(out.nearby == pytest.approx(0.0015) for out in outs)
@@ -262,8 +257,8 @@ def _inline_and_spread(minima, frames: int, per_frame: int, capture_from: int = 
 
 _SPREAD_CASES = [
     ([(_pose(), 0.70), (_pose(0.0015), 0.75)], {"nearby_every": 10, "nearby_validate": False}),
-    ([(_pose(), 0.70), (_pose(0.0015), 0.75)], {"nearby_every": 10}),
-    ([(_pose(), 0.70), (_pose(0.0015), 0.75)], {"nearby_every": 5}),
+    ([(_pose(), 0.70), (_pose(0.0015), 0.75)], {"nearby_every": 10, "nearby_hold": 2}),
+    ([(_pose(), 0.70), (_pose(0.0015), 0.75)], {"nearby_every": 5, "nearby_hold": 1}),
 ]
 _SPREAD_IDS = ["competitor-unvalidated", "competitor-validated", "competitor-every-5"]
 

@@ -15,14 +15,10 @@ and whose consistency (:func:`app.filter.refine_track.consistent_sharp`) exceeds
 stops at the first; its gap (m) is the answer until the next search (NaN: none). The status is
 not ok while there is one (status.py). The next
 search refines from the competitor's pose first (the track's pose moved with it in the base
-frame), so on a plateau a competitor that is still there is found again.
-
-Hold removed (issue 32, 2026-11-28): a competitor found was the answer for ``refine.nearby_hold`` (2)
-searches, because on a plateau one search's draws missed a competitor still there (crest_left_02
-or_model_mismatch: 3 of 32 searches, each leaving 10 frames ok while 1.0-1.3 mm off; §6j). Since the
-search starts from the competitor's pose and a validated competitor is checked again on each search's frame
-(below), one search's answer replaces the last: the status and recovery matrices without the hold kept
-every run's safety (BENCHMARKS.md "Decision numbers").
+frame), and a competitor found is the answer for ``nearby_hold`` searches unless a newer one
+replaces it: on a plateau one search's draws can miss a competitor that is still there
+(crest_left_02 or_model_mismatch: 3 of 32 searches found none, each leaving 10 frames ok
+while 1.0-1.3 mm off; BENCHMARKS.md §6j).
 
 Out of sample (``nearby_validate``, issue 32): a competitor is a fit refined on one frame and can chase
 that frame's noise (a stereo camera's is correlated over its matching window). On the next frame the
@@ -106,7 +102,7 @@ class NearbySearch:
         """A new track: its first frame searches, from a fresh generator; frames not yet answered are dropped."""
         self._rng = np.random.default_rng(NEARBY_RNG)
         self._since = self.config.nearby_every
-        self._gap, self._T_kept_competitor = math.nan, None
+        self._gap, self._T_kept_competitor, self._age = math.nan, None, 0
         self.validations: list[tuple[float, float]] = []   # (competitor, kept) shares of each validation
         self._margin = self.config.nearby_margin           # nearby_margin sqrt(f) of the last step's fit
         self._unchecked: tuple[np.ndarray, np.ndarray] | None = None   # (T_base competitor, T_base kept) to validate
@@ -188,11 +184,15 @@ class NearbySearch:
         self._since = 0
         if self._validated is not None and score is not None:
             if (yield from self._still_better(score, T_base_bone_kept)):
+                self._age = 0
                 return self._gap
-        self._gap = math.nan                     # each search's answer replaces the last (no hold since issue 32)
+        self._age += 1
+        if self._age >= c.nearby_hold:
+            self._gap = math.nan
         found = yield from self._search(fit, T_base_bone_kept, own)
         if found is not None:
             self._gap, self._T_kept_competitor = found
+            self._age = 0
             if c.nearby_validate:
                 self._unchecked = (T_base_bone_kept @ self._T_kept_competitor, np.array(T_base_bone_kept, float))
         return self._gap

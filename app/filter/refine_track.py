@@ -101,7 +101,7 @@ class RefineConfig:
     app/filter/refine.py :func:`~app.filter.refine.fill_holes`); tissue_border (a measurement beside a
     buried one is left out of the fit: app/filter/refine.py step 5); behind_frames (the behind rule
     tested over this many of the track's last fits: app/filter/behind_pool.py); nearby_every, nearby_starts,
-    nearby_sigma_p (m), nearby_sigma_r (rad), nearby_margin, nearby_per_frame
+    nearby_sigma_p (m), nearby_sigma_r (rad), nearby_margin, nearby_hold, nearby_per_frame
     (the search for a competitor near the track: :class:`app.filter.nearby_search.NearbySearch`; its gap is
     the status's tolerance, status.max_template_std, which was refine.nearby_gap before issue 32;
     nearby_per_frame bounds its refinements and scorings per frame, 0 none)."""
@@ -133,6 +133,7 @@ class RefineConfig:
     nearby_sigma_p: float = 0.002
     nearby_sigma_r: float = math.radians(2.0)
     nearby_margin: float = 0.015
+    nearby_hold: int = 2
     nearby_validate: bool = True
     nearby_per_frame: int = 2
 
