@@ -144,8 +144,8 @@ until issue 32). One reaction time since issue 32: the base was ``recovery.coold
 2 s, none ok while more than 1 mm off; BENCHMARKS.md "Decision numbers"). A declined search is retried after
 ``search_retry_s`` (0.33 s): retrying it after the cooldown's 0.16 s (one retry period for both) or both
 at 0.33 s found a moved bone later on 2 and 3 of the 8 fast repositions of BENCHMARKS.md "Decision
-numbers" (an earlier search on a partial view found a wrong pose), and at ``status.settle_s`` (0.3 s) one
-of 48 0.47 s later, so the two periods stay. The slow trigger counts only
+numbers" (an earlier search on a partial view found a wrong pose), and at ``status.settle_s`` (0.3 s)
+or_fast_reposition crest_left_05 seed 2 was found 0.47 s later instead of at once, so the retry keeps its own. The slow trigger counts only
 frames the rules do not find ok: a found pose awaiting its confirmation (below) is reported
 uncertain, and counting those frames fired a re-spread at the old pose before it was confirmed.
 
