@@ -129,7 +129,11 @@ def test_a_search_on_the_worker_never_stops_the_frames_and_its_result_is_taken_l
     points = np.asarray(mesh.vertices)
     tracker = DepthTracker(config, mesh, reader.meta.camera)
     worker = tracker.recovery_runner.worker
-    assert worker is not None and DepthTracker(_enabled(), mesh, reader.meta.camera).recovery_runner.worker is None
+    inline = DepthTracker(_enabled(), mesh, reader.meta.camera)     # a replay's tracker: no worker
+    try:
+        assert worker is not None and inline.recovery_runner.worker is None
+    finally:
+        inline.release()
     release = threading.Event()
     worker._build = partial(HeldSearch, release, worker._build)     # built on the worker's thread
     tracker.start(reader.meta.initial_pose)
