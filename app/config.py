@@ -221,6 +221,7 @@ KEYS: dict[str, _Key] = {
     "recovery.confirm_frames": _i("recovery.confirm_frames", 0, 1_000_000),
     "recovery.search": _Key(("recovery", "search"), "bool"),
     "recovery.search_evaluations": _i("recovery.search_evaluations", 100, 10_000_000),
+    "recovery.search_min_sharp": _f("recovery.search_min_sharp", 0.0, 1.0),
     "recovery.search_retry_s": _f("recovery.search_retry_s", 0.0, 3600.0),
     "recovery.sliding_factor": _f("recovery.sliding_factor", 1.0, 1000.0),
     "recovery.still_window_s": _f("recovery.still_window_s", 0.0, 60.0),
@@ -353,9 +354,6 @@ RENAMED = {   # keys of earlier configurations: what replaced them
                                        "frames whatever their rate): frames / 90 at 90 Hz, e.g. 90 -> 1.0; 0 = off",
     "recovery.cooldown_frames": "replaced by recovery.after_lost_s, in seconds (counted in processed frames whatever "
                                 "their rate): frames / 90 at 90 Hz, e.g. 10 -> 0.11 (the cooldown's base since issue 32)",
-    "recovery.search_min_sharp": "replaced by status.min_fitness (issue 32: the search's bar on a fit's share within "
-                                 "1 sigma is the fitness bar's share at 1 sigma for Gaussian residuals, "
-                                 "0.6 x 0.683 / 0.997 = 0.411, app/tracking/levels.py sharp_bar; it was 0.5); remove the key",
     "recovery.cooldown_s": "replaced by recovery.after_lost_s (issue 32: one reaction time; the wait between two "
                            "re-initialisations, doubled per attempt, starts at the bad frames' 0.11 s instead of "
                            "0.16 s; the recovery matrix found every bone within 2 s); remove the key",

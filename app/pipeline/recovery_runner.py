@@ -247,13 +247,13 @@ def _wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedT
 
 def build_wide_search(config, backend, camera: PinholeCamera, refiner, vertices: np.ndarray):
     """The wide search with the configured budget and bars (``recovery.search_evaluations``,
-    ``status.min_fitness`` and its share at 1 sigma, :func:`app.tracking.levels.sharp_bar`, ``refine.nearby_margin``, ``status.max_behind_excess``): the recovery's,
+    ``recovery.search_min_sharp``,
+    ``status.min_fitness``, ``refine.nearby_margin``, ``status.max_behind_excess``): the recovery's,
     and the detector's for a start without a pose (app/tracking/detector.py)."""
     from app.filter.wide_search import SearchConfig, WideSearch
 
-    fitness = config.status.min_fitness
-    search = SearchConfig(evaluations=config.recovery.search_evaluations, min_sharp=levels.sharp_bar(fitness),
-                          min_fitness=fitness,
+    search = SearchConfig(evaluations=config.recovery.search_evaluations, min_sharp=config.recovery.search_min_sharp,
+                          min_fitness=config.status.min_fitness,
                           margin=config.refine.nearby_margin, max_behind_excess=config.status.max_behind_excess)
     return WideSearch(backend, camera, refiner, vertices, search)
 

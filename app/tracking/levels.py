@@ -33,15 +33,6 @@ def normal_level(alpha: float) -> float:
     return -_STANDARD.inv_cdf(alpha)
 
 
-def sharp_bar(min_fitness: float, sharp_sigmas: float = 1.0, confirm_sigmas: float = 3.0) -> float:
-    """The share within ``sharp_sigmas`` σ that goes with a fitness of ``min_fitness`` within ``confirm_sigmas`` σ
-    for Gaussian residuals: min_fitness (2Φ(s) − 1) / (2Φ(c) − 1) (0.6 -> 0.411 at 1 and 3 σ). The wide search's
-    bar on a found fit's consistent sharp share (issue 32: it was ``recovery.search_min_sharp``, 0.5; one
-    fit-quality share, ``status.min_fitness``, asked of the fit at both widths)."""
-    within = lambda k: 2.0 * _STANDARD.cdf(k) - 1.0      # noqa: E731  P(|Z| < k)
-    return float(min_fitness) * within(sharp_sigmas) / within(confirm_sigmas)
-
-
 def chi2_sf(x: float, dof: int) -> float:
     """P(χ²_dof > x) for an integer dof >= 1 (module docstring: A&S 26.4.4-26.4.5)."""
     if x <= 0.0:
