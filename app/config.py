@@ -218,7 +218,6 @@ KEYS: dict[str, _Key] = {
     "recovery.respread_sigma_r": _f("recovery.respread_sigma_r", 0.0, math.pi, lo_open=True),
     "recovery.respreads": _i("recovery.respreads", 0, 100),
     "recovery.smc_evaluations": _i("recovery.smc_evaluations", 600, 10_000_000),
-    "recovery.cooldown_s": _f("recovery.cooldown_s", 0.0, 3600.0, lo_open=True),
     "recovery.confirm_frames": _i("recovery.confirm_frames", 0, 1_000_000),
     "recovery.search": _Key(("recovery", "search"), "bool"),
     "recovery.search_evaluations": _i("recovery.search_evaluations", 100, 10_000_000),
@@ -353,8 +352,11 @@ RENAMED = {   # keys of earlier configurations: what replaced them
                                   "whatever their rate; app/filter/recovery.py): frames / 90 at 90 Hz, e.g. 10 -> 0.11",
     "recovery.after_uncertain_frames": "replaced by recovery.after_uncertain_s, in seconds (counted in processed "
                                        "frames whatever their rate): frames / 90 at 90 Hz, e.g. 90 -> 1.0; 0 = off",
-    "recovery.cooldown_frames": "replaced by recovery.cooldown_s, in seconds (counted in processed frames whatever "
-                                "their rate): frames / 90 at 90 Hz, e.g. 15 -> 0.16",
+    "recovery.cooldown_frames": "replaced by recovery.after_lost_s, in seconds (counted in processed frames whatever "
+                                "their rate): frames / 90 at 90 Hz, e.g. 10 -> 0.11 (the cooldown's base since issue 32)",
+    "recovery.cooldown_s": "replaced by recovery.after_lost_s (issue 32: one reaction time; the wait between two "
+                           "re-initialisations, doubled per attempt, starts at the bad frames' 0.11 s instead of "
+                           "0.16 s; the recovery matrix found every bone within 2 s); remove the key",
     # issue 32: exact duplicates merged (same value, same meaning; replays byte-identical, BENCHMARKS.md)
     "recovery.far_m": "replaced by refine.competitor_distance (the same 5 mm: two poses this far apart are different "
                       "answers, for the competitor rule and for the recovery's \"far from the last ok pose\"); "

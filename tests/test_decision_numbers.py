@@ -78,6 +78,7 @@ def test_a_number_without_its_kind_is_refused(tmp_path):
     ("status.uncertain_rotation_spread", "status.max_template_std.*refine.feedback_spread_angle"),
     ("status.uncertain_angular_speed", "status.uncertain_speed"),
     ("recovery.hold_frames", "status.settle_s"),
+    ("recovery.cooldown_s", "recovery.after_lost_s"),
 ])
 def test_a_merged_key_names_the_key_that_replaced_it(old, new):
     section, name = old.split(".")

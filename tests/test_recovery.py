@@ -129,7 +129,11 @@ def test_a_search_on_the_worker_never_stops_the_frames_and_its_result_is_taken_l
     points = np.asarray(mesh.vertices)
     tracker = DepthTracker(config, mesh, reader.meta.camera)
     worker = tracker.recovery_runner.worker
-    assert worker is not None and DepthTracker(_enabled(), mesh, reader.meta.camera).recovery_runner.worker is None
+    inline = DepthTracker(_enabled(), mesh, reader.meta.camera)     # a replay's tracker: no worker
+    try:
+        assert worker is not None and inline.recovery_runner.worker is None
+    finally:
+        inline.release()
     release = threading.Event()
     worker._build = partial(HeldSearch, release, worker._build)     # built on the worker's thread
     tracker.start(reader.meta.initial_pose)
@@ -161,7 +165,7 @@ def _policy(**kw) -> RecoveryPolicy:
 
 
 def test_policy_counts_bad_frames_and_waits_while_hidden():
-    policy = _policy(after_lost_s=_s(3), cooldown_s=_s(1), respreads=1)   # stamps 0: the nominal 90 Hz
+    policy = _policy(after_lost_s=_s(3), respreads=1)   # stamps 0: the nominal 90 Hz
     lost, unc = TrackingStatus.LOST, TrackingStatus.UNCERTAIN
     for _ in range(2):
         policy.update(lost, True, False, 0.9, np.eye(4), 0.0)
@@ -178,7 +182,7 @@ def test_policy_counts_bad_frames_and_waits_while_hidden():
 
 
 def test_the_lifecycle_follows_the_policy_and_the_trigger_is_recorded():
-    policy = _policy(after_lost_s=_s(3), cooldown_s=_s(1))
+    policy = _policy(after_lost_s=_s(3))
     lost, unc, ok = TrackingStatus.LOST, TrackingStatus.UNCERTAIN, TrackingStatus.OK
     policy.update(ok, True, True, 0.9, np.eye(4), 0.0)
     states = [policy.lifecycle.state.value]
@@ -194,7 +198,7 @@ def test_the_lifecycle_follows_the_policy_and_the_trigger_is_recorded():
 
 
 def test_policy_escalates_to_smc_at_the_point_prior_and_backs_off():
-    policy = _policy(after_lost_s=0.01, respreads=2, cooldown_s=0.04, search=False)   # 1 and 4 frames at 100 Hz
+    policy = _policy(after_lost_s=0.01, respreads=2, search=False)   # 1 frame at 100 Hz, the cooldown's base too
     T = se3.from_rotvec_trans(np.array([0.0, 0.0, 0.3]), np.array([0.1, 0.2, 0.3]))
     policy.set_start(T)
     np.testing.assert_allclose(policy.smc_point(), T[:3, :3] @ [0, 0, 0.01] + T[:3, 3])
@@ -217,7 +221,7 @@ def test_the_backoff_doubles_the_cooldown_up_to_after_uncertain_s():
     frames at the stamps' rate (here the nominal 90 Hz: 0.1 s is 9 frames, 1 s 90); with the slow triggers off
     (after_uncertain_s 0) it does not back off."""
     for after_uncertain_s, expected in ((1.0, [9, 18, 36, 72, 90, 90]), (0.0, [9] * 6)):
-        policy = _policy(cooldown_s=0.1, after_uncertain_s=after_uncertain_s)
+        policy = _policy(after_lost_s=0.1, after_uncertain_s=after_uncertain_s)
         waits = []
         for k in range(6):
             _due(policy).done(float(k), "search")
@@ -228,7 +232,7 @@ def test_the_backoff_doubles_the_cooldown_up_to_after_uncertain_s():
 def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retries_without_backoff():
     from app.filter.recovery import SEARCH_RETRY_S
 
-    policy = _policy(after_lost_s=0.01, respreads=1, cooldown_s=0.04)   # 1 and 4 frames at the stamps' 100 Hz
+    policy = _policy(after_lost_s=0.01, respreads=1)   # 1 frame at the stamps' 100 Hz, the cooldown's base too
     T = np.eye(4)
     frames, due = 0, []
 
@@ -255,7 +259,7 @@ def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retrie
 def test_the_slow_trigger_does_not_count_frames_the_rules_find_ok_while_unconfirmed():
     """After a re-initialisation away from the last ok pose the reported status is uncertain until
     confirmed; those frames must not fire the slow trigger (it would re-spread at the old pose)."""
-    policy = _policy(after_uncertain_s=0.5, confirm_frames=8, cooldown_s=0.1)   # 5 and 1 frames at 10 Hz
+    policy = _policy(after_uncertain_s=0.5, confirm_frames=8, after_lost_s=0.1)   # 5 and 1 frames at 10 Hz (after_lost_s is the cooldown's base)
     _due(policy).done(0.0, "search")
     T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.1, 0.0, 0.0]))
     statuses = [policy.update(TrackingStatus.OK, True, True, 0.9, T_far, 0.1 * k) for k in range(8)]
@@ -455,7 +459,7 @@ def test_recovery_keys_are_checked_and_named_with_the_fix():
     # a key of an earlier configuration names what replaced it and how to convert
     for old, new, example in (("after_lost_frames", "after_lost_s", "10 -> 0.11"),
                               ("after_uncertain_frames", "after_uncertain_s", "90 -> 1.0"),
-                              ("cooldown_frames", "cooldown_s", "15 -> 0.16")):
+                              ("cooldown_frames", "after_lost_s", "10 -> 0.11")):
         with pytest.raises(ConfigError, match=rf"recovery\.{old}.*replaced by recovery\.{new}, in seconds.*{example}"):
             config_from_dict({"recovery": {old: 10}})
     with pytest.raises(ConfigError, match=r"recovery\.respread_sigma_p.*outside"):
@@ -511,7 +515,7 @@ def test_a_ct_crest_moved_out_of_view_is_found_again_within_2_s_of_being_visible
 
 
 def test_a_track_weighed_again_after_being_out_of_view_far_from_the_last_ok_pose_is_searched_at_once():
-    policy = _policy(after_lost_s=0.3, after_uncertain_s=100.0, cooldown_s=0.1)   # 3, 1000 and 1 frames at 10 Hz
+    policy = _policy(after_lost_s=0.3, after_uncertain_s=100.0)   # 3 and 1000 frames at 10 Hz (the cooldown 3)
     unc = TrackingStatus.UNCERTAIN
     T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.1, 0.0, 0.0]))
     for k in range(5):
@@ -519,7 +523,7 @@ def test_a_track_weighed_again_after_being_out_of_view_far_from_the_last_ok_pose
     assert policy.pending is None
     policy.update(unc, True, True, 0.9, T_far, 0.6)                          # seen again, 10 cm from the last ok pose
     assert policy.pending and "unseen" in policy.pending and policy.next_kind() == "search"
-    near = _policy(after_lost_s=0.3, after_uncertain_s=100.0, cooldown_s=0.1)
+    near = _policy(after_lost_s=0.3, after_uncertain_s=100.0)
     for k in range(5):
         near.update(unc, False, False, float("nan"), np.eye(4), 0.1 * k)
     near.update(unc, True, True, 0.9, np.eye(4), 0.6)                       # back where it was ok: nothing due
@@ -547,7 +551,7 @@ def test_a_declined_search_is_retried_while_not_ok_even_when_the_estimate_moves(
                 due = k - start + 1
         return due
 
-    policy = _policy(after_lost_s=_s(3), after_uncertain_s=_s(1000), cooldown_s=_s(1))
+    policy = _policy(after_lost_s=_s(3), after_uncertain_s=_s(1000))
     policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0)
     T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.1, 0.0, 0.0]))
     for k in range(5):
@@ -584,14 +588,14 @@ def test_the_slow_trigger_needs_an_ok_frame_since_the_start():
     after_uncertain_s: issue 32 merged never_ok_search_s into it); after an ok frame the same gap counts."""
     unc = TrackingStatus.UNCERTAIN
     T_off = se3.from_rotvec_trans(np.zeros(3), np.array([0.006, 0.0, 0.0]))
-    never = _policy(after_uncertain_s=0.5, cooldown_s=0.1)   # 5 and 1 frames at the stamps' 10 Hz
+    never = _policy(after_uncertain_s=0.5, after_lost_s=0.1)   # 5 and 1 frames at the stamps' 10 Hz
     for k in range(4):                                       # 0.4 s: before after_uncertain_s
         never.update(unc, True, True, 0.9, T_off, 0.1 * k)
     assert never.pending is None
     for k in range(4, 8):
         never.update(unc, True, True, 0.9, T_off, 0.1 * k)
     assert never.pending is not None and never.pending.startswith("never ok") and never.due_code == "never_ok_once"
-    was_ok = _policy(after_uncertain_s=0.5, cooldown_s=0.1)
+    was_ok = _policy(after_uncertain_s=0.5, after_lost_s=0.1)
     was_ok.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0)
     for k in range(10):
         was_ok.update(unc, True, True, 0.9, T_off, 0.1 * (k + 1))
@@ -608,7 +612,7 @@ def test_a_never_ok_track_outside_the_start_prior_is_searched_for():
 
     def run(offset_m=0.0, angle_rad=0.0):
         # 10 Hz stamps: the slow trigger after 5 frames; after_lost_s 1 s (10 frames, as the 10 the count had)
-        policy = RecoveryPolicy(RecoveryConfig(after_lost_s=1.0, after_uncertain_s=0.5, cooldown_s=0.1), np.zeros(3),
+        policy = RecoveryPolicy(RecoveryConfig(after_lost_s=1.0, after_uncertain_s=0.5), np.zeros(3),
                                 np.array([0.0, 0.0, 0.01]), refine_enabled=True, start_sigmas=(0.01, 0.1),
                                 points_bone=np.array([[0.06, 0.0, 0.0]]))   # "far" is the template's move
         policy.set_start(np.eye(4))
@@ -627,7 +631,7 @@ def test_a_never_ok_track_outside_the_start_prior_is_searched_for():
     assert "not ok" in run(angle_rad=1.01 * START_SIGMAS * 0.1)
     assert "not ok" in run(offset_m=0.045, angle_rad=math.radians(80.0))
     # without a start prior (the policy's default) a never-ok track is never searched for by this rule
-    default = _policy(after_lost_s=1.0, after_uncertain_s=0.5, cooldown_s=0.1)
+    default = _policy(after_lost_s=1.0, after_uncertain_s=0.5)
     for k in range(9):   # 0.9 s
         default.update(unc, True, True, 0.9, se3.from_rotvec_trans(np.zeros(3), np.array([0.2, 0, 0])), 0.1 * k)
     assert never_ok_once(default.pending)
@@ -642,7 +646,7 @@ def test_a_never_ok_track_sliding_outside_the_start_prior_is_searched_for_withou
     unc = TrackingStatus.UNCERTAIN
 
     def policy():
-        p = RecoveryPolicy(RecoveryConfig(after_lost_s=_s(10), after_uncertain_s=1.0, cooldown_s=_s(1)),
+        p = RecoveryPolicy(RecoveryConfig(after_lost_s=_s(10), after_uncertain_s=1.0),
                            np.zeros(3), np.array([0.0, 0.0, 0.01]), refine_enabled=True, start_sigmas=(0.01, 0.1))
         p.set_start(np.eye(4))
         return p
@@ -862,7 +866,7 @@ def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
 
     unc = TrackingStatus.UNCERTAIN
     T_near = se3.from_rotvec_trans(np.zeros(3), np.array([0.003, 0.0, 0.0]))
-    policy = _policy(cooldown_s=0.1)
+    policy = _policy(after_lost_s=0.1)
     frames = 0
 
     def still(n):
@@ -995,7 +999,7 @@ def test_a_found_pose_whose_fit_falls_below_the_search_bar_is_searched_again():
         return None, None
 
     wait = math.ceil(lost_s * hz - 0.01)
-    first = math.ceil(RecoveryConfig().cooldown_s * hz - 0.01)    # the cooldown after the find
+    first = math.ceil(RecoveryConfig().after_lost_s * hz - 0.01)    # the cooldown after the find
     frames, reason = fired_after(MIN_SHARP - 0.2)
     assert frames == max(wait, first) and "below the search's bar" in reason
     assert fired_after(MIN_SHARP)[0] is None

@@ -136,13 +136,16 @@ under the hand the SMC put crest_left_03 78-105 mm off with a fit of 0.95).
   evaluations (work, never seconds).
 
 Without any ok frame yet, the last confident pose is the start pose. After attempt k the next one
-waits at least min(``cooldown_s`` · 2^k, ``after_uncertain_s``) (a scene that can never be tracked, e.g. a
+waits at least min(``after_lost_s`` · 2^k, ``after_uncertain_s``) (a scene that can never be tracked, e.g. a
 crest buried in tissue, is not re-initialised every few frames; no retry waits longer than the slow
 trigger's own wait for a track not ok; it was capped at 2^3 by ``recovery.max_backoff_doublings``
-until issue 32). A declined search is retried after ``search_retry_s`` (0.33 s): retrying it after
-``cooldown_s`` (0.16 s, one retry period for both) or both at 0.33 s found a moved bone later on 2 and 3
-of the 8 fast repositions of BENCHMARKS.md "Decision numbers" (an earlier search on a partial view
-found a wrong pose), so the two periods stay. The slow trigger counts only
+until issue 32). One reaction time since issue 32: the base was ``recovery.cooldown_s`` (0.16 s), now the
+0.11 s of bad frames a re-initialisation waits for (the 48-run recovery matrix: every bone found within
+2 s, none ok while more than 1 mm off; BENCHMARKS.md "Decision numbers"). A declined search is retried after
+``search_retry_s`` (0.33 s): retrying it after the cooldown's 0.16 s (one retry period for both) or both
+at 0.33 s found a moved bone later on 2 and 3 of the 8 fast repositions of BENCHMARKS.md "Decision
+numbers" (an earlier search on a partial view found a wrong pose), and at ``status.settle_s`` (0.3 s)
+or_fast_reposition crest_left_05 seed 2 was found 0.47 s later instead of at once, so the retry keeps its own. The slow trigger counts only
 frames the rules do not find ok: a found pose awaiting its confirmation (below) is reported
 uncertain, and counting those frames fired a re-spread at the old pose before it was confirmed.
 
@@ -206,8 +209,8 @@ class RecoveryConfig:
     in a row before a re-initialisation); after_uncertain_s (s of weighed frames not ok in a row
     before one; 0 = off); respread_sigma_p (m) / respread_sigma_r (rad); respreads
     (re-spreads before each SMC attempt); smc_evaluations (the initialiser's likelihood evaluations);
-    cooldown_s (s between two, doubled
-    per attempt); the seconds are counted in processed frames (module docstring, "Seconds and frames");
+    after_lost_s is also the wait between two, doubled
+    per attempt (recovery.cooldown_s until issue 32); the seconds are counted in processed frames (module docstring, "Seconds and frames");
     confirm_frames (after one,
     weighed frames in a row that the rules find ok before a pose away from the last ok one may be ok);
     search (the wide search, app/filter/wide_search.py, replaces the one-point SMC attempts);
@@ -215,8 +218,8 @@ class RecoveryConfig:
     share a search's verified fit needs to be found, and below which a found pose is searched again:
     wide_search.MIN_SHARP's default); the triggers' numbers (module
     docstring, "Trigger"; defaults the module constants): search_retry_s, sliding_factor,
-    still_window_s. After attempt k the next waits min(cooldown_s 2^k, after_uncertain_s) (issue 32: the
-    cap was recovery.max_backoff_doublings, 3).
+    still_window_s. After attempt k the next waits min(after_lost_s 2^k, after_uncertain_s) (issue 32: the
+    cap was recovery.max_backoff_doublings, 3; the base recovery.cooldown_s).
     Since issue 32 the "far" gap is ``refine.competitor_distance`` of the template's points (it was
     recovery.far_m / far_angle, 5 mm / 5 deg of the bone frame's origin; :class:`RecoveryPolicy`'s ``far``) and the never-ok
     track's one search waits ``after_uncertain_s`` (it was recovery.never_ok_search_s, the same 1 s)."""
@@ -228,7 +231,6 @@ class RecoveryConfig:
     respread_sigma_r: float = math.radians(10.0)
     respreads: int = 0
     smc_evaluations: int = 30_000
-    cooldown_s: float = 0.16
     confirm_frames: int = 90
     search: bool = True
     search_evaluations: int = 4000
@@ -536,12 +538,13 @@ class RecoveryPolicy:
         return None
 
     def _cooldown(self) -> int:
-        """After attempt k (attempts counts it already): cooldown_s * 2^k in frames, at most the slow trigger's
-        after_uncertain_s (no retry waits longer than a track not ok waits for its search)."""
+        """After attempt k (attempts counts it already): after_lost_s * 2^k in frames, at most the slow trigger's
+        after_uncertain_s (no retry waits longer than a track not ok waits for its search). One reaction time
+        since issue 32: the cooldown's base was recovery.cooldown_s (0.16 s), now the bad frames' wait."""
         k = max(self._attempts - 1, 0)
         frames = self.period.frames
-        backed_off = frames(self.config.cooldown_s) * 2 ** min(k, 30)
-        return max(min(backed_off, frames(self.config.after_uncertain_s)), frames(self.config.cooldown_s))
+        base = frames(self.config.after_lost_s)       # the cooldown's base (recovery.cooldown_s until issue 32)
+        return max(min(base * 2 ** min(k, 30), frames(self.config.after_uncertain_s)), base)
 
     def next_kind(self) -> str:
         """The kind of the due attempt (module docstring)."""
