@@ -250,32 +250,64 @@ class Output(Protocol):
 
 
 class DropOldestQueue:
-    """A bounded FIFO whose ``put`` never blocks: when full, the oldest item goes and is counted."""
+    """A bounded FIFO whose ``put`` never blocks: when full, the oldest item goes and is counted.
 
-    def __init__(self, maxlen: int):
+    ``maxlen`` bounds the items. ``max_bytes`` (with ``nbytes``, an item's size in bytes) also bounds
+    what the held items weigh: an item that would take the total past it drops the oldest items that
+    weigh something (items of size 0, e.g. joint batches, stay) until it fits, each counted in
+    ``dropped``. An item heavier than ``max_bytes`` alone is still taken (it is then the only weighty
+    one). ``nbytes_held`` is the current total.
+    """
+
+    def __init__(self, maxlen: int, max_bytes: int | None = None, nbytes=None):
         if maxlen < 1:
             raise ValueError(f"maxlen must be >= 1, got {maxlen}")
+        if (max_bytes is None) != (nbytes is None):
+            raise ValueError("max_bytes and nbytes go together")
+        if max_bytes is not None and max_bytes < 1:
+            raise ValueError(f"max_bytes must be >= 1, got {max_bytes}")
         self._items: collections.deque = collections.deque()
+        self._sizes: collections.deque = collections.deque()   # each item's nbytes (0 without a budget)
         self._maxlen = maxlen
+        self._max_bytes, self._nbytes = max_bytes, nbytes
+        self.nbytes_held = 0
         self._cond = threading.Condition()
         self.dropped = 0
         self.put_count = 0
 
     def put(self, item) -> None:
+        size = int(self._nbytes(item)) if self._nbytes is not None else 0
         with self._cond:
             if len(self._items) >= self._maxlen:
-                self._items.popleft()
+                self._pop(0)
                 self.dropped += 1
+            if self._max_bytes is not None and size:
+                while self.nbytes_held + size > self._max_bytes and self.nbytes_held:
+                    self._pop(next(i for i, s in enumerate(self._sizes) if s))   # the oldest weighty item
+                    self.dropped += 1
             self._items.append(item)
+            self._sizes.append(size)
+            self.nbytes_held += size
             self.put_count += 1
             self._cond.notify()
+
+    def _pop(self, i: int):
+        """Remove and return the item at index ``i`` (0: the oldest); the lock is held."""
+        if i == 0:
+            self.nbytes_held -= self._sizes.popleft()
+            return self._items.popleft()
+        self.nbytes_held -= self._sizes[i]
+        del self._sizes[i]
+        item = self._items[i]
+        del self._items[i]
+        return item
 
     def get(self, timeout: float | None = None):
         """The oldest item, or None after ``timeout`` seconds without one."""
         with self._cond:
             if not self._items:
                 self._cond.wait(timeout)
-            return self._items.popleft() if self._items else None
+            return self._pop(0) if self._items else None
 
     def get_latest(self, timeout: float | None = None):
         """The newest item (older ones are discarded and counted as dropped), or None."""
@@ -286,14 +318,19 @@ class DropOldestQueue:
                 return None
             item = self._items.pop()
             self.dropped += len(self._items)
-            self._items.clear()
+            self._clear()
             return item
 
     def drain(self) -> list:
         with self._cond:
             items = list(self._items)
-            self._items.clear()
+            self._clear()
             return items
+
+    def _clear(self) -> None:
+        self._items.clear()
+        self._sizes.clear()
+        self.nbytes_held = 0
 
     def __len__(self) -> int:
         with self._cond:

@@ -2,9 +2,13 @@
 
 Used by ``osteonav record`` and by a session's ``record: DIR``. Every accepted frame and joint
 sample is queued (``on_frame``/``on_joints`` return at once) and a writer thread hands them to
-:class:`app.trial.writer.TrialWriter`: the loop never waits for the disk. The queue is bounded
-(``max_queue`` items, about 10 s of 30 Hz frames by default); if the disk falls that far behind,
-the oldest items are dropped, counted and reported, never silently lost.
+:class:`app.trial.writer.TrialWriter`: the loop never waits for the disk. The queue is bounded twice:
+by what its frames weigh (``max_queue_mb``, 256 MB by default: about 200 frames of 640x480 float32
+depth, ~7 s at 30 Hz, fewer with infrared and colour images) and by its items (``max_queue``, frames
+and joint batches together). If the disk falls that far behind, the oldest frames (for the byte
+bound) or items are dropped, counted and reported, never silently lost. The item bound alone let a
+writer slower than the camera (a busy host) hold up to 2048 frames, 2.5 GB of depth: the session's
+memory grew by 150-350 MB a minute until it was reached.
 
 Crash safety rests on the writer's order of work: ``trial.yaml`` first, each PNG complete before
 its ``frames.csv`` row, rows flushed as written, so a kill leaves every frame listed so far
@@ -41,10 +45,12 @@ DEPTH_SCALE_MM = 0.1  # PNG unit: 0.1 mm, up to 6.55 m
 class Recorder:
     kind, name = "output", "recorder"
 
-    def __init__(self, dir: str, overwrite: bool = False, max_queue: int = 2048):
+    def __init__(self, dir: str, overwrite: bool = False, max_queue: int = 2048, max_queue_mb: float = 256.0):
         self.dir = Path(dir)
         self.overwrite = bool(overwrite)
-        self.queue = DropOldestQueue(int(max_queue))
+        if not max_queue_mb > 0:
+            raise ValueError(f"max_queue_mb must be > 0, got {max_queue_mb}")
+        self.queue = DropOldestQueue(int(max_queue), max_bytes=int(max_queue_mb * 1e6), nbytes=_item_bytes)
         self.writer = None
         self._thread = None
         self._done = threading.Event()
@@ -178,6 +184,15 @@ class Recorder:
         return {"dir": str(self.dir), "frames": self.frames_written, "joint_samples": self.joints_written,
                 "dropped": dropped, "joint_samples_lost": self.joint_samples_lost, "complete": complete, "renumbered": self.renumbered, "incomplete": self.incomplete,
                 "error": self.error}
+
+
+def _item_bytes(item) -> int:
+    """What a queued item weighs against ``max_queue_mb``: a frame's depth and images; a joint batch 0
+    (small, bounded by ``max_queue``)."""
+    what, data = item
+    if what != "frame":
+        return 0
+    return sum(int(getattr(a, "nbytes", 0)) for a in (data.depth_m, data.infrared, data.color) if a is not None)
 
 
 def _failure(exc: Exception) -> str:

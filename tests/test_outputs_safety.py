@@ -161,13 +161,13 @@ def _full_disk_after(monkeypatch, k: int) -> None:
     monkeypatch.setattr(TrialWriter, "_write_png", staticmethod(write_png))
 
 
-def _recorder(tmp_path, max_queue: int = 2048):
+def _recorder(tmp_path, max_queue: int = 2048, max_queue_mb: float = 256.0):
     from app.trial.meta import TrialMeta  # noqa: F401 (the recorder builds one)
     from plugins.recorder import Recorder
     from test_trial_images import bone_mesh, make_meta
 
     meta = make_meta(np.random.default_rng(3))
-    rec = Recorder(str(tmp_path / "rec"), max_queue=max_queue)
+    rec = Recorder(str(tmp_path / "rec"), max_queue=max_queue, max_queue_mb=max_queue_mb)
     rec.open({"mesh_path": bone_mesh(tmp_path), "camera": meta.camera, "robot": {"model": "ur5e"}, "dh": meta.dh,
               "T_flange_camera": np.eye(4)})
     return rec, meta
@@ -224,6 +224,59 @@ def test_frames_the_queue_drops_are_counted_and_mark_the_trial_incomplete(tmp_pa
     report = rec.close()
     assert report["dropped"] == {"camera": 0, "queue": 7, "disk": 0} and report["frames"] == 3
     assert not report["complete"] and (tmp_path / "rec" / MARKER_FILE).exists()
+
+
+def test_a_recorder_behind_the_camera_holds_a_bounded_weight_of_frames_however_many_come(tmp_path, monkeypatch):
+    """The live session's memory grew 150-350 MB a minute with a recording (issue: RSS soak): the writer
+    fell behind the camera on a busy host and its queue, bounded only by items (2048: frames and joint
+    batches alike), held up to 2048 frames. Now what the queued frames weigh is bounded by max_queue_mb,
+    whatever the number of frames; joint batches (weightless) stay and are written."""
+    from app.interfaces import JointSamples
+
+    from test_trial_io import HEIGHT, WIDTH
+
+    frame_bytes = HEIGHT * WIDTH * 4                     # float32 depth
+    rec, meta = _recorder(tmp_path, max_queue_mb=5.5 * frame_bytes / 1e6)   # room for five frames
+    assert _frame(meta, 0).depth_m.nbytes == frame_bytes
+    release, taken = threading.Event(), threading.Event()
+    original = rec._write
+
+    def stalled_write(item):   # the disk falls behind: the first write waits until every frame is queued
+        taken.set()
+        release.wait(10)
+        original(item)
+
+    monkeypatch.setattr(rec, "_write", stalled_write)
+    rec.on_frame(_frame(meta, 0))
+    assert taken.wait(10)
+    n = 200
+    for k in range(1, n + 1):
+        rec.on_frame(_frame(meta, k))
+        rec.on_joints(JointSamples(np.array([0.5 + 0.1 * k]), np.zeros((1, 6))))
+        assert rec.queue.nbytes_held <= 5 * frame_bytes
+    frames_queued = sum(1 for what, _ in rec.queue._items if what == "frame")
+    assert frames_queued == 5 and len(rec.queue) == 5 + n         # every joint batch kept
+    release.set()
+    report = rec.close()
+    assert report["frames"] == 1 + 5 and report["dropped"] == {"camera": 0, "queue": n - 5, "disk": 0}
+    assert report["joint_samples"] == n and report["joint_samples_lost"] == 0 and not report["complete"]
+
+
+def test_the_drop_oldest_queue_bounds_the_weight_of_its_items():
+    from app.interfaces import DropOldestQueue
+
+    q = DropOldestQueue(100, max_bytes=10, nbytes=len)
+    for item in ("aaaa", "", "bbbb", "", "cccc"):     # 4 + 4 + 4 > 10: "aaaa" goes, the weightless "" stay
+        q.put(item)
+    assert q.nbytes_held == 8 and q.dropped == 1 and q.drain() == ["", "bbbb", "", "cccc"]
+    q.put("x" * 25)                                   # heavier than the budget alone: taken, alone
+    q.put("")
+    assert q.nbytes_held == 25 and q.get() == "x" * 25 and q.nbytes_held == 0 and q.get() == ""
+    q.put("abc")
+    q.put("de")
+    assert q.get_latest() == "de" and q.nbytes_held == 0 and q.dropped == 2
+    with pytest.raises(ValueError):
+        DropOldestQueue(4, max_bytes=10)
 
 
 def test_record_onto_a_full_disk_exits_non_zero_and_the_retry_can_overwrite_it(tmp_path, capsys, monkeypatch,
