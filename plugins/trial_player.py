@@ -160,7 +160,7 @@ class RecordedCamera(ThreadedSource):
                 i = j + 1
                 continue
             self.skipped += j - i
-            self._push(DepthFrame(int(self.reader.frame_ids[j]) + lap * 10_000_000, float(host[j]),
+            self._push(DepthFrame(lap_frame_id(self.reader.frame_ids, j, lap), float(host[j]),
                                   np.asarray(depth, np.float32), self.clock.now(),
                                   infrared=self.reader.read_infrared(j), color=self.reader.read_color(j)))
             self.pushed += 1
@@ -213,6 +213,14 @@ class RecordedRobot(ThreadedSource):
                 break
             lap += 1
         self.finished.set()
+
+
+def lap_frame_id(frame_ids, j: int, lap: int) -> int:
+    """The id of frame ``j`` of a looped trial on lap ``lap``: the trial's ids shifted by ``lap`` times their span
+    (last - first + 1), so the laps' ids run on without a gap (a jump of millions was counted as frames the
+    camera dropped, and a looped session's recording was reported incomplete)."""
+    first, last = int(frame_ids[0]), int(frame_ids[-1])
+    return int(frame_ids[j]) + lap * (last - first + 1)
 
 
 def _check_sensor(sensor: str, kind: str) -> None:

@@ -340,3 +340,15 @@ def test_a_slow_tracker_over_a_recording_keeps_a_flat_latency_and_counts_the_dro
     accepted = summary["frames"]["frames_accepted"]
     assert accepted + camera.skipped == n
     assert accepted - summary["processed"] - summary["frames_skipped_by_tracker"] in (0, 1)
+
+
+def test_a_looped_trials_frame_ids_run_on_across_laps():
+    """A looped recorded camera's ids continue from lap to lap (last + 1), keeping the trial's own gaps: the
+    recorder counts an id jump as frames the camera dropped (it was + 10,000,000 a lap, ~390 million "dropped")."""
+    from plugins.trial_player import lap_frame_id
+
+    ids = [3, 4, 6, 7]                                    # one frame (5) missing in the trial itself
+    laps = [lap_frame_id(ids, j, lap) for lap in range(3) for j in range(len(ids))]
+    assert laps == [3, 4, 6, 7, 8, 9, 11, 12, 13, 14, 16, 17]
+    gaps = sum(b - a - 1 for a, b in zip(laps, laps[1:]))
+    assert gaps == 3                                      # the trial's own gap, once a lap, and nothing more

@@ -66,8 +66,9 @@ def _tracking_errors(out: Path, rec: Path, sim_trial: Path):
     points = np.asarray(truth.load_mesh().vertices)
     _, statuses = read_status_csv(out / "status.csv")
     errors_mm = []
+    first, span = int(truth.frame_ids[0]), int(truth.frame_ids[-1]) - int(truth.frame_ids[0]) + 1
     for t, T in zip(stamps, T_est):
-        k = gt_index[rec_index[round(float(t), 6)] % 10_000_000]
+        k = gt_index[(rec_index[round(float(t), 6)] - first) % span + first]   # a looped lap's ids run on (lap_frame_id)
         errors_mm.append(1e3 * add(T, truth.groundtruth[k], points))
     return np.asarray(statuses), np.asarray(errors_mm), len(truth.frame_ids)
 
