@@ -179,6 +179,24 @@ def _frame(meta, k: int):
     return DepthFrame(k, 0.5 + 0.1 * k, np.full((meta.camera.height, meta.camera.width), 0.4, np.float32), 0.0)
 
 
+def _stall_after_first_frame(rec, meta, monkeypatch) -> threading.Event:
+    """The disk falls behind: frame 0 is handed to the recorder, whose writer then waits on its first write
+    until the returned event is set, so every frame queued meanwhile stays in the queue (events, no clock:
+    the 10 s are a safety net against a hung test)."""
+    release, taken = threading.Event(), threading.Event()
+    original = rec._write
+
+    def stalled_write(item):
+        taken.set()
+        release.wait(10)
+        original(item)
+
+    monkeypatch.setattr(rec, "_write", stalled_write)
+    rec.on_frame(_frame(meta, 0))
+    assert taken.wait(10)
+    return release
+
+
 def test_a_full_disk_leaves_the_trial_marked_incomplete_with_its_losses_counted(tmp_path, monkeypatch):
     from app.trial.reader import open_trial
 
@@ -207,17 +225,7 @@ def test_camera_gaps_are_counted_and_a_gap_alone_leaves_the_trial_complete(tmp_p
 
 def test_frames_the_queue_drops_are_counted_and_mark_the_trial_incomplete(tmp_path, monkeypatch):
     rec, meta = _recorder(tmp_path, max_queue=2)
-    release, taken = threading.Event(), threading.Event()
-    original = rec._write
-
-    def slow_write(item):      # the disk falls behind: the first write waits until every frame is queued
-        taken.set()
-        release.wait(10)
-        original(item)
-
-    monkeypatch.setattr(rec, "_write", slow_write)
-    rec.on_frame(_frame(meta, 0))
-    assert taken.wait(10)
+    release = _stall_after_first_frame(rec, meta, monkeypatch)
     for k in range(1, 10):
         rec.on_frame(_frame(meta, k))
     release.set()
@@ -238,17 +246,7 @@ def test_a_recorder_behind_the_camera_holds_a_bounded_weight_of_frames_however_m
     frame_bytes = HEIGHT * WIDTH * 4                     # float32 depth
     rec, meta = _recorder(tmp_path, max_queue_mb=5.5 * frame_bytes / 1e6)   # room for five frames
     assert _frame(meta, 0).depth_m.nbytes == frame_bytes
-    release, taken = threading.Event(), threading.Event()
-    original = rec._write
-
-    def stalled_write(item):   # the disk falls behind: the first write waits until every frame is queued
-        taken.set()
-        release.wait(10)
-        original(item)
-
-    monkeypatch.setattr(rec, "_write", stalled_write)
-    rec.on_frame(_frame(meta, 0))
-    assert taken.wait(10)
+    release = _stall_after_first_frame(rec, meta, monkeypatch)
     n = 200
     for k in range(1, n + 1):
         rec.on_frame(_frame(meta, k))

@@ -18,7 +18,7 @@ bit for bit:
   ``refine.nearby_every`` frames: ``nearby_starts`` refinements from poses drawn first): independent
   fits, taken in their order, the search stopping at the same one as serially (a fit computed ahead
   of one that stops it is dropped). Only where ``refine.nearby_per_frame`` allows two on a frame (0, or
-  2 and more); at the default 1 the search's one refinement a frame runs on the calling thread.
+  2 and more: the default 2); at 1 the search's one refinement a frame runs on the calling thread.
 
 The refiner (app/filter/refine.py) keeps no state between calls and its kernels release the GIL
 (app/render/cpu_raster.py ``_njit``), so two refinements, or a refinement and the likelihood, run
