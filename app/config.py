@@ -110,6 +110,13 @@ class TrackerConfig(FilterConfig):
     refine: RefineConfig = field(default_factory=RefineConfig)
     recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
 
+    def __post_init__(self):
+        """One patience with a track that is not ok (issue 32): a frame without a camera pose is lost after
+        ``recovery.after_uncertain_s`` without one (the status' ``lost_no_pose_s``, a key of its own until
+        then: 0.5 s, our choice, not measured). 0 (the triggers off) makes such a frame lost at once."""
+        if self.status.lost_no_pose_s != self.recovery.after_uncertain_s:
+            self.status = replace(self.status, lost_no_pose_s=self.recovery.after_uncertain_s)
+
 
 @dataclass(frozen=True)
 class _Key:
@@ -169,7 +176,6 @@ KEYS: dict[str, _Key] = {
     "likelihood.background_ratio": _Key(("likelihood", "background_ratio"), "bool"),
     "likelihood.pixel_weight": _f("likelihood.pixel_weight", 0.0, 1.0, lo_open=True),
     "likelihood.occluder_margin": _f("likelihood.occluder_margin", 0.0, 1.0, lo_open=True),
-    "status.lost_no_pose_s": _f("status.lost_no_pose_s", 0.0, 60.0),
     "status.lost_spread": _f("status.lost_spread", 0.0, 1.0, lo_open=True),
     "status.lost_inlier_fraction": _f("status.lost_inlier_fraction", 0.0, 1.0),
     "status.min_covered_pixels": _i("status.min_covered_pixels", 0, 10_000_000),
@@ -424,6 +430,9 @@ RENAMED = {   # keys of earlier configurations: what replaced them
                                "within the tolerance; its scene (crest_left_02 or_model_mismatch) is never ok while "
                                "> 1 mm off without it, and the status and recovery matrices kept every run's safety; "
                                "remove the key",
+    "status.lost_no_pose_s": "replaced by recovery.after_uncertain_s (issue 32: one patience with a track that is "
+                             "not ok): a frame without a camera pose is lost after that long without one (1 s; "
+                             "it was 0.5 s, our choice, not measured); remove the key",
     "recovery.kept_move_angle": "replaced by status.max_template_std (the template's largest displacement covers the "
                                 "rotation: 1 deg moves points 50 mm out 0.9 mm); remove the key",
 }

@@ -28,10 +28,30 @@ def test_weak_evidence_is_uncertain(change):
 
 @pytest.mark.parametrize("change", [
     {"template_spread": 0.011}, {"inlier_fraction": 0.1},
-    {"weighed": False, "seconds_without_pose": 0.6}, {"n_nan": 200}, {"template_spread": float("nan")},
+    {"weighed": False, "seconds_without_pose": 1.1}, {"n_nan": 200}, {"template_spread": float("nan")},
 ])
 def test_no_evidence_or_a_wide_cloud_is_lost(change):
     assert classify(replace(GOOD, **change)) == TrackingStatus.LOST
+
+
+def test_without_a_camera_pose_the_track_is_lost_after_the_lifecycles_patience(tmp_path):
+    """Issue 32: one patience with a track that is not ok: a frame without a camera pose is uncertain, and lost
+    once recovery.after_uncertain_s has passed without one (status.lost_no_pose_s, 0.5 s, is gone: a key names
+    its replacement); the configuration ties the two, also when only the recovery's value is set."""
+    from app.config import TrackerConfig, config_from_dict
+    from app.errors import ConfigError
+    from app.filter.recovery import RecoveryConfig
+
+    assert TrackerConfig().status.lost_no_pose_s == RecoveryConfig().after_uncertain_s == 1.0
+    config = config_from_dict({"recovery": {"after_uncertain_s": 0.4}})
+    assert config.status.lost_no_pose_s == 0.4
+    blind = replace(GOOD, weighed=False)
+    assert classify(replace(blind, seconds_without_pose=0.39), config.status) == TrackingStatus.UNCERTAIN
+    assert classify(replace(blind, seconds_without_pose=0.41), config.status) == TrackingStatus.LOST
+    assert classify(replace(blind, seconds_without_pose=0.9), TrackerConfig().status) == TrackingStatus.UNCERTAIN
+    assert replace(config, recovery=RecoveryConfig(after_uncertain_s=0.0)).status.lost_no_pose_s == 0.0
+    with pytest.raises(ConfigError, match="recovery.after_uncertain_s"):
+        config_from_dict({"status": {"lost_no_pose_s": 0.5}})
 
 
 def test_low_inliers_without_enough_covered_pixels_is_not_lost():

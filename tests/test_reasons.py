@@ -30,7 +30,7 @@ def test_each_failed_rule_gives_its_code():
     assert status.verdict(good) == (status.TrackingStatus.OK, [])
     moving = status.verdict(status.StatusInputs(0.001, 0.01, 0.5, 0.95, 400, 0, 100, True, 0.0, speed=0.1, template_spread=0.002))
     assert moving[0] == "uncertain" and status.codes(moving[1]) == ("moving",)
-    lost = status.verdict(status.StatusInputs(0.02, 0.01, 0.5, 0.95, 400, 0, 100, True, 1.0, template_spread=0.02))
+    lost = status.verdict(status.StatusInputs(0.02, 0.01, 0.5, 0.95, 400, 0, 100, True, 1.5, template_spread=0.02))
     assert lost[0] == "lost" and status.codes(lost[1]) == ("no_pose", "spread")
     evidence = status.RefinementEvidence(0.3, 0.002, True, 0.01, 9.0, 0.002)
     got = status.codes(status.refinement_reasons(evidence, status.StatusThresholds()))

@@ -48,7 +48,7 @@ def test_hardware_example_names_the_robot_address_and_calibration():
     (minimal(calibration={"handeye": []}), "calibration.handeye", "hand_eye"),
     (minimal(bone={"pose": []}), "bone.pose", "initial_pose"),
     (minimal(loop={"stall": 1}), "loop.stall", "stall_timeout_s"),
-    (minimal(loop={"robot_lost_s": 1.0}), "loop.robot_lost_s", "status.lost_no_pose_s"),
+    (minimal(loop={"robot_lost_s": 1.0}), "loop.robot_lost_s", "recovery.after_uncertain_s"),
     (minimal(format="osteonav-session/9"), "format", "osteonav-session/1"),
     ({"robot": {"plugin": "ur"}}, "camera", "realsense"),
 ])
@@ -149,7 +149,7 @@ def test_missing_hardware_package_names_the_install_command(monkeypatch):
 
 
 def test_the_live_loop_has_one_missing_pose_clock_the_trackers(tmp_path):
-    """Issue 32: the session's floor reads the tracker's status.lost_no_pose_s (it had its own
+    """Issue 32: the session's floor reads the tracker's missing-pose clock (it had its own
     loop.robot_lost_s, 1 s against the tracker's 0.5 s); a tracker without one gets the status default."""
     from types import SimpleNamespace
 

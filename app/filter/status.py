@@ -23,7 +23,9 @@ the seconds since the last frame with a camera pose, and whether this frame was 
 Rules, first match wins (defaults in :class:`StatusThresholds`):
 
 LOST if
-- no camera pose for more than ``lost_no_pose_s`` = 0.5 s (the robot's data stopped), or
+- no camera pose for more than ``lost_no_pose_s`` = 1 s (the robot's data stopped): the lifecycle's patience
+  with a track that is not ok, ``recovery.after_uncertain_s`` (:class:`app.config.TrackerConfig` ties them;
+  issue 32: it was its own key, ``status.lost_no_pose_s`` = 0.5 s, our choice, not measured), or
 - the template's points spread over the particles by more than ``lost_spread`` = 10 mm (RMS, the largest over
   the points; :func:`app.filter.estimate.template_spread`: the replay's lost frame is ADD > 10 mm; one spread
   since issue 32, it was 10 mm of the bone frame's origin or 10 deg), or
@@ -165,7 +167,7 @@ import numpy as np
 
 from app.tracking import levels
 
-LOST_NO_POSE_S = 0.5
+LOST_NO_POSE_S = 1.0                 # recovery.after_uncertain_s's default: TrackerConfig ties them (issue 32)
 LOST_SPREAD_M = 0.010
 LOST_INLIER_FRACTION = 0.2
 MIN_COVERED_PIXELS = 30
@@ -213,7 +215,10 @@ def codes(reasons) -> tuple[str, ...]:
 
 @dataclass
 class StatusThresholds:
-    """Thresholds of the rules in the module docstring (metres, radians, seconds, fractions)."""
+    """Thresholds of the rules in the module docstring (metres, radians, seconds, fractions).
+
+    ``lost_no_pose_s`` is not a key of its own: :class:`app.config.TrackerConfig` sets it to
+    ``recovery.after_uncertain_s`` (issue 32: one patience with a track that is not ok)."""
 
     lost_no_pose_s: float = LOST_NO_POSE_S
     lost_spread: float = LOST_SPREAD_M

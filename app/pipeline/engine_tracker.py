@@ -23,7 +23,8 @@ class EngineTracker:
 
     @property
     def lost_no_pose_s(self) -> float:
-        """s without a camera pose before the status is lost: the engine's ``status.lost_no_pose_s`` (the
+        """s without a camera pose before the status is lost: the engine's ``recovery.after_uncertain_s`` (its
+        ``status.lost_no_pose_s``, tied by :class:`app.config.TrackerConfig`; the
         live loop's floor reads it, so a session has one missing-pose clock; issue 32)."""
         config = getattr(self.engine, "config", None)
         status = getattr(config, "status", None)

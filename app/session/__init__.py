@@ -41,7 +41,7 @@ The loop (:func:`run_session`), one thread (the tracker's GL context lives on it
 2. For each frame the joint buffer is interpolated at the frame's stamp (waiting up to
    ``robot_wait_s`` for the robot to catch up): ``T_base_camera = FK(q) T_flange_camera``.
 3. The tracker steps; the status is capped at ``uncertain`` without a camera pose and at ``lost``
-   after the tracker's ``status.lost_no_pose_s`` without one (one missing-pose clock; it was the session's
+   after the tracker's ``recovery.after_uncertain_s`` without one (one missing-pose clock, the lifecycle's patience; it was the session's
    ``loop.robot_lost_s`` too before issue 32); with no frames for ``stall_timeout_s`` the loop emits
    ``lost`` estimates (the projector shows no template) until frames return.
 4. Frame-to-estimate latency (host time at the estimate minus the frame's capture stamp) is

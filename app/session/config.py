@@ -34,7 +34,7 @@ class PluginSpec:
 
 RENAMED_LOOP = {   # loop keys of earlier session files: what replaced them
     "robot_lost_s": "removed (issue 32: one missing-pose clock): the status is lost after the tracker's "
-                    "status.lost_no_pose_s (0.5 s by default) without a camera pose; set it in the tracker's "
+                    "recovery.after_uncertain_s (1 s by default) without a camera pose; set it in the tracker's "
                     "config (tracker.params.config) and remove this key",
 }
 

@@ -237,7 +237,7 @@ class LiveLoop:
             self.progress(est)
 
     def _lost_no_pose_s(self) -> float:
-        """The one missing-pose clock (issue 32): the tracker's ``status.lost_no_pose_s``
+        """The one missing-pose clock (issue 32): the tracker's ``recovery.after_uncertain_s``
         (:attr:`app.pipeline.engine_tracker.EngineTracker.lost_no_pose_s`), the status module's default for a
         tracker that has none."""
         return float(getattr(self.tracker, "lost_no_pose_s", LOST_NO_POSE_S))

@@ -12,7 +12,7 @@ from collections import Counter
 
 # code: (test, what it means, the config key(s) behind it)
 REASONS: dict[str, tuple[str, str, str]] = {
-    "no_pose": ("session", "no camera pose (robot joints missing at the frame's stamp)", "status.lost_no_pose_s"),
+    "no_pose": ("session", "no camera pose (robot joints missing at the frame's stamp)", "recovery.after_uncertain_s"),
     "no_frames": ("session", "the camera delivered no frame", "loop.stall_timeout_s"),
     "not_tracking": ("session", "the session has no tracker", "-"),
     "not_weighed": ("seen", "the frame was not weighed (no pose, no valid depth, or the bone hidden)", "-"),
