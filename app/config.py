@@ -111,11 +111,18 @@ class TrackerConfig(FilterConfig):
     recovery: RecoveryConfig = field(default_factory=RecoveryConfig)
 
     def __post_init__(self):
-        """One patience with a track that is not ok (issue 32): a frame without a camera pose is lost after
-        ``recovery.after_uncertain_s`` without one (the status' ``lost_no_pose_s``, a key of its own until
-        then: 0.5 s, our choice, not measured). 0 (the triggers off) makes such a frame lost at once."""
-        if self.status.lost_no_pose_s != self.recovery.after_uncertain_s:
-            self.status = replace(self.status, lost_no_pose_s=self.recovery.after_uncertain_s)
+        """Values that one key decides in several places (issue 32: toward 15 decision numbers), set here so
+        that no caller can hold them apart:
+
+        - one patience with a track that is not ok: a frame without a camera pose is lost after
+          ``recovery.after_uncertain_s`` without one (the status' ``lost_no_pose_s``, a key of its own until
+          then: 0.5 s, our choice, not measured). 0 (the triggers off) makes such a frame lost at once;
+        - one distance between two answers: the particles' cloud spread over the template's points by more
+          than ``refine.competitor_distance`` holds no one answer and is lost (the status' ``lost_spread``,
+          a key of its own until then: 10 mm, the replay's definition of a lost frame)."""
+        tied = {"lost_no_pose_s": self.recovery.after_uncertain_s, "lost_spread": self.refine.competitor_distance}
+        if any(getattr(self.status, name) != value for name, value in tied.items()):
+            self.status = replace(self.status, **tied)
 
 
 @dataclass(frozen=True)
@@ -176,7 +183,6 @@ KEYS: dict[str, _Key] = {
     "likelihood.background_ratio": _Key(("likelihood", "background_ratio"), "bool"),
     "likelihood.pixel_weight": _f("likelihood.pixel_weight", 0.0, 1.0, lo_open=True),
     "likelihood.occluder_margin": _f("likelihood.occluder_margin", 0.0, 1.0, lo_open=True),
-    "status.lost_spread": _f("status.lost_spread", 0.0, 1.0, lo_open=True),
     "status.lost_inlier_fraction": _f("status.lost_inlier_fraction", 0.0, 1.0),
     "status.min_covered_pixels": _i("status.min_covered_pixels", 0, 10_000_000),
     "status.uncertain_speed": _f("status.uncertain_speed", 0.0, 100.0, lo_open=True),
@@ -430,6 +436,9 @@ RENAMED = {   # keys of earlier configurations: what replaced them
                                "within the tolerance; its scene (crest_left_02 or_model_mismatch) is never ok while "
                                "> 1 mm off without it, and the status and recovery matrices kept every run's safety; "
                                "remove the key",
+    "status.lost_spread": "replaced by refine.competitor_distance (issue 32: one distance between two answers): the "
+                          "particles spread over the template's points by more than that (5 mm; it was 10 mm) hold "
+                          "no one answer and the frame is lost; remove the key",
     "status.lost_no_pose_s": "replaced by recovery.after_uncertain_s (issue 32: one patience with a track that is "
                              "not ok): a frame without a camera pose is lost after that long without one (1 s; "
                              "it was 0.5 s, our choice, not measured); remove the key",

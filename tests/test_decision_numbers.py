@@ -79,6 +79,8 @@ def test_a_number_without_its_kind_is_refused(tmp_path):
     ("status.uncertain_angular_speed", "status.uncertain_speed"),
     ("recovery.hold_frames", "status.settle_s"),
     ("recovery.cooldown_s", "recovery.after_lost_s"),
+    ("status.lost_no_pose_s", "recovery.after_uncertain_s"),
+    ("status.lost_spread", "refine.competitor_distance"),
 ])
 def test_a_merged_key_names_the_key_that_replaced_it(old, new):
     section, name = old.split(".")
@@ -100,7 +102,7 @@ def test_the_merged_numbers_are_the_ones_they_replaced():
     assert c.status.max_template_std == 0.001 and c.status.min_fitness == 0.6
     policy = RecoveryPolicy(c.recovery, [0, 0, 0], [0, 0, 0], True)
     assert policy.far == RefineConfig.competitor_distance
-    assert c.status.lost_spread == 0.01
+    assert c.status.lost_spread == c.refine.competitor_distance == 0.005   # tied since merge 10
     assert StatusThresholds().max_template_std == 0.001
 
 

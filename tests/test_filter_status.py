@@ -27,7 +27,7 @@ def test_weak_evidence_is_uncertain(change):
 
 
 @pytest.mark.parametrize("change", [
-    {"template_spread": 0.011}, {"inlier_fraction": 0.1},
+    {"template_spread": 0.006}, {"inlier_fraction": 0.1},
     {"weighed": False, "seconds_without_pose": 1.1}, {"n_nan": 200}, {"template_spread": float("nan")},
 ])
 def test_no_evidence_or_a_wide_cloud_is_lost(change):
@@ -62,10 +62,21 @@ def test_low_inliers_without_enough_covered_pixels_is_not_lost():
 def test_a_spread_below_the_lost_one_does_not_lower_the_status():
     """Issue 32: the template's predicted error (the refinement's) says how precise the output is; the cloud's
     spread of a few mm / deg only gates the feedback (refine.feedback_spread); the template's points spread
-    10 mm over the particles is lost (status.lost_spread)."""
+    5 mm over the particles, two answers apart (refine.competitor_distance), is lost."""
     assert classify(replace(GOOD, position_spread=0.004, rotation_spread=math.radians(3),
-                            template_spread=0.009)) == TrackingStatus.OK
-    assert classify(replace(GOOD, template_spread=0.011)) == TrackingStatus.LOST
+                            template_spread=0.0045)) == TrackingStatus.OK
+    assert classify(replace(GOOD, template_spread=0.0055)) == TrackingStatus.LOST
+
+
+def test_the_lost_spread_is_the_distance_between_two_answers():
+    """Issue 32, merge 10: status.lost_spread is gone; the configuration ties the lost spread to
+    refine.competitor_distance, also when only that key is set."""
+    from app.config import config_from_dict
+
+    config = config_from_dict({"refine": {"competitor_distance": 0.008}})
+    assert config.status.lost_spread == 0.008
+    assert classify(replace(GOOD, template_spread=0.0075), config.status) == TrackingStatus.OK
+    assert classify(replace(GOOD, template_spread=0.0085), config.status) == TrackingStatus.LOST
 
 
 def test_thresholds_are_configurable():

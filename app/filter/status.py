@@ -26,9 +26,11 @@ LOST if
 - no camera pose for more than ``lost_no_pose_s`` = 1 s (the robot's data stopped): the lifecycle's patience
   with a track that is not ok, ``recovery.after_uncertain_s`` (:class:`app.config.TrackerConfig` ties them;
   issue 32: it was its own key, ``status.lost_no_pose_s`` = 0.5 s, our choice, not measured), or
-- the template's points spread over the particles by more than ``lost_spread`` = 10 mm (RMS, the largest over
-  the points; :func:`app.filter.estimate.template_spread`: the replay's lost frame is ADD > 10 mm; one spread
-  since issue 32, it was 10 mm of the bone frame's origin or 10 deg), or
+- the template's points spread over the particles by more than ``lost_spread`` = 5 mm (RMS, the largest over
+  the points; :func:`app.filter.estimate.template_spread`): ``refine.competitor_distance``, the distance at
+  which two poses are two answers, so the cloud holds no one answer (:class:`app.config.TrackerConfig` ties
+  them; issue 32: it was its own key, 10 mm, the replay's lost frame ADD > 10 mm; before, 10 mm of the bone
+  frame's origin or 10 deg), or
 - every likelihood was NaN (n_nan >= n_particles), or
 - the frame was weighed, the estimate covers at least ``min_covered_pixels`` valid pixels and
   fewer than ``lost_inlier_fraction`` = 20 % of them are inliers (the bone is not where we think:
@@ -45,8 +47,8 @@ UNCERTAIN if
   along the crest's length the image hardly shows it; measured on or_fast_reposition).
 OK otherwise.
 
-The particles' spread only makes a frame lost (10 mm of the template's points matches the replay's definition of a lost
-frame, ADD > 10 mm, app/pipeline/replay.py); a spread of a few millimetres no longer lowers an otherwise
+The particles' spread only makes a frame lost (5 mm of the template's points: two answers apart, so the cloud
+holds none; 10 mm, the replay's lost frame ADD > 10 mm, until issue 32's merge 10); a spread of a few millimetres no longer lowers an otherwise
 ok frame (issue 32: the template's predicted error from the refined fit says how precise the output is;
 ``status.uncertain_position_spread`` / ``uncertain_rotation_spread`` are now ``refine.feedback_spread`` /
 ``feedback_spread_angle``, the cloud's convergence the feedback waits for). The lost inlier fraction comes from a synthetic
@@ -168,7 +170,7 @@ import numpy as np
 from app.tracking import levels
 
 LOST_NO_POSE_S = 1.0                 # recovery.after_uncertain_s's default: TrackerConfig ties them (issue 32)
-LOST_SPREAD_M = 0.010
+LOST_SPREAD_M = 0.005                 # refine.competitor_distance's default: TrackerConfig ties them (issue 32)
 LOST_INLIER_FRACTION = 0.2
 MIN_COVERED_PIXELS = 30
 UNCERTAIN_SPEED_M_S = 0.03
@@ -217,8 +219,9 @@ def codes(reasons) -> tuple[str, ...]:
 class StatusThresholds:
     """Thresholds of the rules in the module docstring (metres, radians, seconds, fractions).
 
-    ``lost_no_pose_s`` is not a key of its own: :class:`app.config.TrackerConfig` sets it to
-    ``recovery.after_uncertain_s`` (issue 32: one patience with a track that is not ok)."""
+    ``lost_no_pose_s`` and ``lost_spread`` are not keys of their own: :class:`app.config.TrackerConfig` sets
+    them to ``recovery.after_uncertain_s`` (one patience with a track that is not ok) and
+    ``refine.competitor_distance`` (one distance between two answers; issue 32)."""
 
     lost_no_pose_s: float = LOST_NO_POSE_S
     lost_spread: float = LOST_SPREAD_M

@@ -33,7 +33,7 @@ REASONS: dict[str, tuple[str, str, str]] = {
     "held": ("steady", "the image's own fit contradicts the pose held by the static prior",
              "status.alpha, status.covariance_inflation"),
     "spread": ("filter", "the particles are spread too wide (lost)",
-               "status.lost_spread"),
+               "refine.competitor_distance"),
     "nan": ("filter", "NaN log-likelihoods", "-"),
     "initialising": ("lifecycle", "no pose yet: waiting for a frame to start from", "init.method"),
     "point_start": ("lifecycle", "started from a point without the detector's confirmation", "init.method"),
