@@ -119,10 +119,15 @@ class TrackerConfig(FilterConfig):
           then: 0.5 s, our choice, not measured). 0 (the triggers off) makes such a frame lost at once;
         - one distance between two answers: the particles' cloud spread over the template's points by more
           than ``refine.competitor_distance`` holds no one answer and is lost (the status' ``lost_spread``,
-          a key of its own until then: 10 mm, the replay's definition of a lost frame)."""
+          a key of its own until then: 10 mm, the replay's definition of a lost frame);
+        - one settling time: a wide search that found nothing (or a start's detector) is tried again after
+          ``status.settle_s``, the time the motion test gives a bone to settle (the recovery's
+          ``search_retry_s``, a key of its own until then: 0.33 s, 30 frames at 90 Hz)."""
         tied = {"lost_no_pose_s": self.recovery.after_uncertain_s, "lost_spread": self.refine.competitor_distance}
         if any(getattr(self.status, name) != value for name, value in tied.items()):
             self.status = replace(self.status, **tied)
+        if self.recovery.search_retry_s != self.status.settle_s:
+            self.recovery = replace(self.recovery, search_retry_s=self.status.settle_s)
 
 
 @dataclass(frozen=True)
@@ -234,7 +239,6 @@ KEYS: dict[str, _Key] = {
     "recovery.search": _Key(("recovery", "search"), "bool"),
     "recovery.search_evaluations": _i("recovery.search_evaluations", 100, 10_000_000),
     "recovery.search_min_sharp": _f("recovery.search_min_sharp", 0.0, 1.0),
-    "recovery.search_retry_s": _f("recovery.search_retry_s", 0.0, 3600.0),
     "recovery.sliding_factor": _f("recovery.sliding_factor", 1.0, 1000.0),
     "recovery.still_window_s": _f("recovery.still_window_s", 0.0, 60.0),
     "recovery.confirm_moved": _Key(("recovery", "confirm_moved"), "bool"),
@@ -436,6 +440,9 @@ RENAMED = {   # keys of earlier configurations: what replaced them
                                "within the tolerance; its scene (crest_left_02 or_model_mismatch) is never ok while "
                                "> 1 mm off without it, and the status and recovery matrices kept every run's safety; "
                                "remove the key",
+    "recovery.search_retry_s": "replaced by status.settle_s (issue 32: one settling time): a wide search that found "
+                               "nothing, or a start's detector, is tried again after the time the motion test gives a "
+                               "bone to settle (0.3 s; it was 0.33 s); remove the key",
     "status.lost_spread": "replaced by refine.competitor_distance (issue 32: one distance between two answers): the "
                           "particles spread over the template's points by more than that (5 mm; it was 10 mm) hold "
                           "no one answer and the frame is lost; remove the key",

@@ -250,8 +250,8 @@ def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retrie
     assert run_until_due() == "search"
     _due(policy).declined()                                        # found nothing: no attempt, no hold
     assert policy.report()["declined_searches"] == 1 and len(policy.events) == 1
-    # retried, not backed off: SEARCH_RETRY_S (0.33 s, 30 frames at 90 Hz) is 33 frames at 100 Hz
-    assert run_until_due() == "search" and due[-1] == math.ceil(SEARCH_RETRY_S / 0.01 - 0.01) == 33
+    # retried, not backed off: SEARCH_RETRY_S (status.settle_s, 0.3 s) is 30 frames at 100 Hz
+    assert run_until_due() == "search" and due[-1] == math.ceil(SEARCH_RETRY_S / 0.01 - 0.01) == 30
     _due(policy).done(1.0, "search")
     assert run_until_due() == "respread"
 

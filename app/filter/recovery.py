@@ -142,10 +142,10 @@ trigger's own wait for a track not ok; it was capped at 2^3 by ``recovery.max_ba
 until issue 32). One reaction time since issue 32: the base was ``recovery.cooldown_s`` (0.16 s), now the
 0.11 s of bad frames a re-initialisation waits for (the 48-run recovery matrix: every bone found within
 2 s, none ok while more than 1 mm off; BENCHMARKS.md "Decision numbers"). A declined search is retried after
-``search_retry_s`` (0.33 s): retrying it after the cooldown's 0.16 s (one retry period for both) or both
-at 0.33 s found a moved bone later on 2 and 3 of the 8 fast repositions of BENCHMARKS.md "Decision
-numbers" (an earlier search on a partial view found a wrong pose), and at ``status.settle_s`` (0.3 s)
-or_fast_reposition crest_left_05 seed 2 was found 0.47 s later instead of at once, so the retry keeps its own. The slow trigger counts only
+``status.settle_s`` (0.3 s), the time the motion test gives a bone to settle (issue 32, merge 11: it was
+``search_retry_s``, 0.33 s; retrying after the cooldown's 0.16 s, one retry period for both, or both at
+0.33 s found a moved bone later on 2 and 3 of the 8 fast repositions of BENCHMARKS.md "Decision numbers":
+an earlier search on a partial view found a wrong pose). The slow trigger counts only
 frames the rules do not find ok: a found pose awaiting its confirmation (below) is reported
 uncertain, and counting those frames fired a re-spread at the old pose before it was confirmed.
 
@@ -185,7 +185,7 @@ from app import metrics
 from app.filter.motion import ParticleState, draws_about_centroid
 from app.filter.motion_gate import template_speed
 from app.filter.refine_track import RefineConfig, pose_gap
-from app.filter.status import TrackingStatus
+from app.filter.status import SETTLE_S, TrackingStatus
 from app.filter.weights import uniform_log_weights
 from app.geometry import quaternion as quat
 from app.tracking.lifecycle import Lifecycle, frame_event
@@ -195,7 +195,7 @@ from app.tracking import levels
 RESPREAD, SMC, SEARCH = "respread", "smc", "search"
 FOUND_SIGMA_M, FOUND_SIGMA_RAD = 0.003, math.radians(3.0)   # the cloud about a pose the wide search found
 NOMINAL_PERIOD_S = 1.0 / 90.0        # the frame period until two stamps are known (the D415's 90 Hz, the trials')
-SEARCH_RETRY_S = 0.33                # s between two wide searches that found nothing (30 frames at 90 Hz)
+SEARCH_RETRY_S = SETTLE_S            # s between two wide searches that found nothing: status.settle_s (TrackerConfig ties them; 0.33 s until issue 32)
 PERIOD_FRAMES = 31                   # the period is the median of the last 30 stamp differences
 TRACK_FRAMES, TRACK_POSES = 90, 8      # the search's track candidates: up to 8 of the last 90 not-lost estimates
 SLIDING_FACTOR = 2.0                 # x after_uncertain_s: not ok this long, far, moving or not: a search
@@ -217,7 +217,7 @@ class RecoveryConfig:
     search_evaluations (its likelihood evaluations per search); search_min_sharp (the consistent sharp
     share a search's verified fit needs to be found, and below which a found pose is searched again:
     wide_search.MIN_SHARP's default); the triggers' numbers (module
-    docstring, "Trigger"; defaults the module constants): search_retry_s, sliding_factor,
+    docstring, "Trigger"; defaults the module constants): sliding_factor,
     still_window_s. After attempt k the next waits min(after_lost_s 2^k, after_uncertain_s) (issue 32: the
     cap was recovery.max_backoff_doublings, 3; the base recovery.cooldown_s).
     Since issue 32 the "far" gap is ``refine.competitor_distance`` of the template's points (it was

@@ -183,7 +183,7 @@ class DepthTracker:
         ``point_base`` (base frame, m) when given, or from the first point ``point_source`` locates
         (app/tracking/start.py's PointSource, e.g. the session's pointed pixel: the frames before it has
         one are lost, 'initialising', with its reason), else over the whole image (experimental); retried
-        every ``recovery.search_retry_s`` while it finds nothing (those frames are lost, 'initialising'). A found
+        every ``status.settle_s`` while it finds nothing (those frames are lost, 'initialising'). A found
         pose seeds the particles (the recovery's FOUND_SIGMA_M / _RAD about it) and the refined track as
         a verified fit, and is ok only once confirmed (RecoveryPolicy.set_found_start). Needs the
         refinement; without it (or without the recovery, which confirms) a point starts the one-point

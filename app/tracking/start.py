@@ -3,7 +3,7 @@
 Import as ``from app.tracking.start import StartByDetection, PointedPixel``. Used by
 :meth:`app.pipeline.tracker.DepthTracker.start_by_detection` (``init.method: auto`` with no coarse
 pose; issue 33). On each usable frame while the start is pending, at most every ``retry_s``
-(``recovery.search_retry_s``: a detector that found nothing on one frame is asked again a third of
+(``status.settle_s``: a detector that found nothing on one frame is asked again a third of
 a second later, not on every frame), the detector (app/tracking/detector.py) looks for the bone
 from the point prior, or over the whole image without one. The work (attempts, likelihood
 evaluations, refinements, CPU and wall seconds, the stamp it was found at) is counted for the

@@ -112,7 +112,7 @@ TRIGGERS: tuple[Trigger, ...] = (
             lambda e: e.retrying and e.weighed and not e.rules_ok and e.far,
             lambda e: (f"still searching ({e.declined} searches found nothing, {e.kept} kept the track), "
                        f"{gap_text(e)} from the last ok pose"),
-            "recovery.search_retry_s, recovery.after_lost_s",
+            "status.settle_s, recovery.after_lost_s",
             "a search found nothing or kept the track, and the track is still far and not ok (after the retry wait)"),
 )
 CODES = tuple(t.code for t in TRIGGERS)
