@@ -238,7 +238,6 @@ KEYS: dict[str, _Key] = {
     "recovery.confirm_frames": _i("recovery.confirm_frames", 0, 1_000_000),
     "recovery.search": _Key(("recovery", "search"), "bool"),
     "recovery.search_evaluations": _i("recovery.search_evaluations", 100, 10_000_000),
-    "recovery.search_min_sharp": _f("recovery.search_min_sharp", 0.0, 1.0),
     "recovery.sliding_factor": _f("recovery.sliding_factor", 1.0, 1000.0),
     "recovery.still_window_s": _f("recovery.still_window_s", 0.0, 60.0),
     "recovery.confirm_moved": _Key(("recovery", "confirm_moved"), "bool"),
@@ -440,6 +439,9 @@ RENAMED = {   # keys of earlier configurations: what replaced them
                                "within the tolerance; its scene (crest_left_02 or_model_mismatch) is never ok while "
                                "> 1 mm off without it, and the status and recovery matrices kept every run's safety; "
                                "remove the key",
+    "recovery.search_min_sharp": "replaced by status.min_fitness (issue 32: the search's bar on a fit's share within "
+                                 "1 sigma is the fitness bar's share at 1 sigma for Gaussian residuals, "
+                                 "0.6 x 0.683 / 0.997 = 0.411, app/tracking/levels.py sharp_bar; it was 0.5); remove the key",
     "recovery.search_retry_s": "replaced by status.settle_s (issue 32: one settling time): a wide search that found "
                                "nothing, or a start's detector, is tried again after the time the motion test gives a "
                                "bone to settle (0.3 s; it was 0.33 s); remove the key",

@@ -82,6 +82,7 @@ def test_a_number_without_its_kind_is_refused(tmp_path):
     ("status.lost_no_pose_s", "recovery.after_uncertain_s"),
     ("status.lost_spread", "refine.competitor_distance"),
     ("recovery.search_retry_s", "status.settle_s"),
+    ("recovery.search_min_sharp", "status.min_fitness"),
 ])
 def test_a_merged_key_names_the_key_that_replaced_it(old, new):
     section, name = old.split(".")

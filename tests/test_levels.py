@@ -50,3 +50,18 @@ def test_alpha_must_be_a_probability_below_one_half():
     with pytest.raises(ConfigError, match="status.alpha"):
         config_from_dict({"status": {"alpha": 0.7}})
     assert config_from_dict({"status": {"alpha": 0.01}}).status.alpha == 0.01
+
+
+def test_the_search_bar_is_the_fitness_bar_at_one_sigma(monkeypatch):
+    """Issue 32, merge 12 (recovery.search_min_sharp merged into status.min_fitness): the share within 1 sigma that
+    goes with a share within 3 sigma for Gaussian residuals, 0.6 x 0.682689 / 0.997300 (the normal table's
+    P(|Z| < 1) and P(|Z| < 3)); the wide search built from a config takes it from status.min_fitness."""
+    import app.filter.wide_search as wide_search
+    from app.pipeline.recovery_runner import build_wide_search
+
+    assert levels.sharp_bar(0.6) == pytest.approx(0.6 * 0.682689 / 0.997300, abs=1e-6)
+    assert wide_search.MIN_SHARP == levels.sharp_bar(0.6) == pytest.approx(0.41072, abs=1e-5)
+    assert levels.sharp_bar(0.6, 3.0, 3.0) == pytest.approx(0.6)
+    monkeypatch.setattr(wide_search, "WideSearch", lambda *args: args[-1])     # the search's config, not a search
+    search = build_wide_search(config_from_dict({"status": {"min_fitness": 0.7}}), None, None, None, None)
+    assert search.min_fitness == 0.7 and search.min_sharp == pytest.approx(0.7 * 0.682689 / 0.997300, abs=1e-6)

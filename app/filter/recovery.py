@@ -74,7 +74,7 @@ sliding trigger searched again 2 s later, which found the bone: 2.03 s after it 
 with the factor 1; BENCHMARKS.md §6m). Searching again costs only CPU there: a kept pose's
 confirmation count under way goes on (:meth:`RecoveryPolicy.kept`).
 A sixth: a found or kept pose awaiting its confirmation whose refined fit falls below the bar the
-wide search found it by (``search_bar``, wide_search.MIN_SHARP: a consistent sharp share of 0.5;
+wide search found it by (``search_bar``, wide_search.MIN_SHARP: a consistent sharp share of 0.411, status.min_fitness at 1 σ;
 the frame's best fit, kept or not) on ``after_lost_s`` of weighed frames in a row that the rules do
 not find ok, far from the last ok pose: the search would not accept it on this image. On
 or_fast_reposition crest_right_02 seed 3 at the filter's seed 1, a pose found 11 mm / 34 deg off at
@@ -214,9 +214,9 @@ class RecoveryConfig:
     confirm_frames (after one,
     weighed frames in a row that the rules find ok before a pose away from the last ok one may be ok);
     search (the wide search, app/filter/wide_search.py, replaces the one-point SMC attempts);
-    search_evaluations (its likelihood evaluations per search); search_min_sharp (the consistent sharp
-    share a search's verified fit needs to be found, and below which a found pose is searched again:
-    wide_search.MIN_SHARP's default); the triggers' numbers (module
+    search_evaluations (its likelihood evaluations per search; its bar on a found fit's consistent sharp
+    share, below which a found pose is searched again, is status.min_fitness at 1 sigma since issue 32:
+    wide_search.MIN_SHARP); the triggers' numbers (module
     docstring, "Trigger"; defaults the module constants): sliding_factor,
     still_window_s. After attempt k the next waits min(after_lost_s 2^k, after_uncertain_s) (issue 32: the
     cap was recovery.max_backoff_doublings, 3; the base recovery.cooldown_s).
@@ -234,7 +234,6 @@ class RecoveryConfig:
     confirm_frames: int = 90
     search: bool = True
     search_evaluations: int = 4000
-    search_min_sharp: float = 0.5
     search_retry_s: float = SEARCH_RETRY_S
     sliding_factor: float = SLIDING_FACTOR
     still_window_s: float = STILL_WINDOW_S

@@ -47,9 +47,11 @@ drawn from the image and the track instead of a template bank:
    whose every fit ends at the default width could not verify the bone there. A candidate
    is found only when its refined fit confirms at least ``min_fitness`` (status.min_fitness, 0.6)
    of the expected visible surface within 3 σ, its consistent sharp share (within 1 σ, less the
-   share behind the model beyond the noise) is at least ``min_sharp`` = 0.5: a right pose leaves
-   Gaussian noise, ~68 % within 1 σ (0.83 at the truth of crest_left_02, or_fast_reposition at 5 s),
-   while wrong fits that confirmed 0.63-0.65 within 3 σ had 0.17-0.23; and its share behind the
+   share behind the model beyond the noise) is at least ``min_sharp`` = 0.411, the same share at 1 σ for
+   Gaussian residuals (:func:`app.tracking.levels.sharp_bar`; it was ``recovery.search_min_sharp`` = 0.5
+   until issue 32's merge 12): a right pose leaves Gaussian noise, ~68 % within 1 σ (0.83 at the truth of
+   crest_left_02, or_fast_reposition at 5 s), while wrong fits that confirmed 0.63-0.65 within 3 σ had
+   0.17-0.23; and its share behind the
    model exceeds the noise's bound by no more than ``max_behind_excess`` (status.max_behind_excess,
    0.2 %): the status never finds such a fit ok, so the search must not find it either. On
    crest_right_02 seed 3 (a third of the crest in view, 2.7-3.9 s) the crest rolled 20-30 deg lay its
@@ -106,9 +108,10 @@ import numpy as np
 from app.filter.motion import draws_about_centroid
 from app.filter.refine_track import behind_excess, consistent_sharp
 from app.filter.smc_init.levels import backend_level
-from app.filter.status import MAX_BEHIND_EXCESS
+from app.filter.status import MAX_BEHIND_EXCESS, MIN_FITNESS
 from app.geometry import quaternion as quat
 from app.geometry import se3
+from app.tracking import levels
 
 UP_BASE = np.array([0.0, 0.0, 1.0])
 ANCHOR_SPACING_M = 0.03
@@ -122,7 +125,7 @@ CEM_ROUNDS = 2
 CEM_SIGMA_M, CEM_SIGMA_RAD = 0.004, math.radians(4.0)
 ANCHOR_SHARE = 0.6
 TRACK_CLUSTERS = 2
-MIN_SHARP = 0.5
+MIN_SHARP = levels.sharp_bar(MIN_FITNESS)   # 0.411: status.min_fitness's default at 1 sigma (levels.sharp_bar)
 # a candidate's verification chains: (first width, second widths from its result), x start_width (module docstring, 5)
 VERIFY_CHAINS = ((2.0, (1.0,)), (0.0, (0.0, 1.0)))
 INCUMBENT_CHAINS = ((0.0, (0.0, 1.0)),)   # the incumbent's: width 0, then width 0 and the default width from it (6)
@@ -146,7 +149,7 @@ class SearchConfig:
     yaw_steps: int = 24
     clusters: int = 6
     refine_top: int = 5
-    min_fitness: float = 0.6
+    min_fitness: float = MIN_FITNESS
     min_sharp: float = MIN_SHARP
     margin: float = 0.015
     max_behind_excess: float = MAX_BEHIND_EXCESS

@@ -31,6 +31,7 @@ from app.filter.recovery import FOUND_SIGMA_M, FOUND_SIGMA_RAD, RESPREAD, SEARCH
 from app.filter.refine_track import RefinedTrack
 from app.filter.visibility import point_visible, visible_share
 from app.geometry.camera import PinholeCamera
+from app.tracking import levels
 from app.tracking.search_worker import SearchJob
 from app.tracking import levels
 
@@ -247,13 +248,13 @@ def _wide_search(config, backend, camera: PinholeCamera, refined_track: RefinedT
 
 def build_wide_search(config, backend, camera: PinholeCamera, refiner, vertices: np.ndarray):
     """The wide search with the configured budget and bars (``recovery.search_evaluations``,
-    ``recovery.search_min_sharp``,
-    ``status.min_fitness``, ``refine.nearby_margin``, ``status.max_behind_excess``): the recovery's,
+    ``status.min_fitness`` and its share at 1 sigma, :func:`app.tracking.levels.sharp_bar`, ``refine.nearby_margin``, ``status.max_behind_excess``): the recovery's,
     and the detector's for a start without a pose (app/tracking/detector.py)."""
     from app.filter.wide_search import SearchConfig, WideSearch
 
-    search = SearchConfig(evaluations=config.recovery.search_evaluations, min_sharp=config.recovery.search_min_sharp,
-                          min_fitness=config.status.min_fitness,
+    fitness = config.status.min_fitness
+    search = SearchConfig(evaluations=config.recovery.search_evaluations, min_sharp=levels.sharp_bar(fitness),
+                          min_fitness=fitness,
                           margin=config.refine.nearby_margin, max_behind_excess=config.status.max_behind_excess)
     return WideSearch(backend, camera, refiner, vertices, search)
 

@@ -9,6 +9,8 @@ Import as ``from app.tracking import levels``. Each test turns the one level int
 - the held pose's test (``held``; app/filter/static_prior.py): Δχ² = δᵀ (H / inflation) δ is χ²₆ / inflation
   under the image's uninflated noise, so the bound is χ²₆(1 - α) / ``status.covariance_inflation``
   (:func:`held_level`; it was ``status.max_held_chi2`` = 4, P ~ 5e-4);
+- the wide search's bar on a found fit's share within 1 σ (:func:`sharp_bar`): ``status.min_fitness``'s share
+  within 3 σ carried to 1 σ for Gaussian residuals (0.411; it was ``recovery.search_min_sharp`` = 0.5);
 - the start's prior (the ``outside_start`` trigger; app/filter/recovery.py): a never-ok track farther from
   its start pose than k of the start's sigmas, k² = χ²₃(1 - α) (:func:`chi_level`; it was
   ``recovery.start_sigmas`` = 4.03, α 0.1 %).
@@ -31,6 +33,15 @@ _STANDARD = NormalDist()
 def normal_level(alpha: float) -> float:
     """z with P(Z > z) = alpha, Z standard normal (one-sided)."""
     return -_STANDARD.inv_cdf(alpha)
+
+
+def sharp_bar(min_fitness: float, sharp_sigmas: float = 1.0, confirm_sigmas: float = 3.0) -> float:
+    """The share within ``sharp_sigmas`` σ that goes with a fitness of ``min_fitness`` within ``confirm_sigmas`` σ
+    for Gaussian residuals: min_fitness (2Φ(s) − 1) / (2Φ(c) − 1) (0.6 -> 0.411 at 1 and 3 σ). The wide search's
+    bar on a found fit's consistent sharp share (issue 32, merge 12: it was ``recovery.search_min_sharp``, 0.5;
+    one fit-quality share, ``status.min_fitness``, asked of the fit at both widths)."""
+    within = lambda k: 2.0 * _STANDARD.cdf(k) - 1.0      # noqa: E731  P(|Z| < k)
+    return float(min_fitness) * within(sharp_sigmas) / within(confirm_sigmas)
 
 
 def chi2_sf(x: float, dof: int) -> float:
