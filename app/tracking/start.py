@@ -98,7 +98,7 @@ class StartByDetection:
         if point is not None and source is not None:
             raise ValueError("a start takes a point or a point source, not both")
         self.detector, self.point, self.source = detector, point, source
-        self.retry_s = float(retry_s)   # s between two attempts that found nothing (recovery.search_retry_s)
+        self.retry_s = float(retry_s)   # s between two attempts that found nothing (status.settle_s)
         self.waiting = ""           # why the source located no point on the last frame ('' once it has)
         self.located_stamp: float | None = None
         self.pending = True
