@@ -1165,7 +1165,7 @@ def test_a_track_ok_again_far_from_the_last_ok_pose_needs_confirming_frames():
         assert policy.update(ok, True, True, 0.9, np.eye(4), 0.0) == ok
         assert policy.update(unc, True, True, 0.9, near, 0.0) == unc                 # moving: not ok
         assert policy.update(ok, True, True, 0.9, near, 0.0) == ok                   # near: no hypothesis
-        policy.update(unc, True, True, 0.9, far, 0.0)
+        policy.update(unc, True, True, 0.3, far, 0.0)                                # the fit broke on the way
         got = [policy.update(ok, True, True, 0.9, far, 0.0) for _ in range(6)]
         if confirm_moved:
             assert got == [unc] * 4 + [ok, ok] and policy.capped == ""
@@ -1175,6 +1175,27 @@ def test_a_track_ok_again_far_from_the_last_ok_pose_needs_confirming_frames():
             assert got == [ok] * 6
     policy = _policy(after_uncertain_s=0.0, confirm_frames=5)                          # before any ok: the start
     assert policy.update(ok, True, True, 0.9, far, 0.0) == ok                         # is no ok pose
+
+
+@pytest.mark.parametrize("broken", [None, (TrackingStatus.LOST, True, True, 0.9), (TrackingStatus.UNCERTAIN, False, True, 0.9),
+                                    (TrackingStatus.UNCERTAIN, True, False, math.nan), (TrackingStatus.UNCERTAIN, True, True, 0.59)])
+def test_a_track_that_followed_a_moved_bone_with_its_fit_held_needs_no_confirming(broken):
+    """Issue 32: a track not ok only because the bone moved (its fit held on every frame: weighed, refined, at
+    least status.min_fitness) is ok again at once far from the last ok pose; one frame on the way lost, not
+    weighed (the bone hidden), not refined or refined below min_fitness makes it a hypothesis again."""
+    ok, unc = TrackingStatus.OK, TrackingStatus.UNCERTAIN
+    policy = _policy(after_uncertain_s=0.0, confirm_frames=5)
+    assert policy.update(ok, True, True, 0.9, np.eye(4), 0.0) == ok
+    for k in range(1, 19):                                                     # moving: 36 mm in 2 mm steps
+        step = se3.from_rotvec_trans(np.zeros(3), np.array([0.002 * k, 0.0, 0.0]))
+        if broken is not None and k == 9:
+            status, weighed, refined, fitness = broken
+            policy.update(status, weighed, refined, fitness, step, 0.0)
+        else:
+            assert policy.update(unc, True, True, 0.8, step, 0.0) == unc
+    far = se3.from_rotvec_trans(np.zeros(3), np.array([0.036, 0.0, 0.0]))
+    got = [policy.update(ok, True, True, 0.9, far, 0.0) for _ in range(6)]
+    assert got == ([ok] * 6 if broken is None else [unc] * 4 + [ok, ok])
 
 
 @pytest.mark.slow

@@ -327,6 +327,7 @@ class RecoveryPolicy:
         self._since = 10**9                    # frames since the last re-initialisation
         self._wait = 0                         # frames the next one waits after it (_due)
         self._ok_run = 0                       # weighed frames in a row the rules find ok (after the hold)
+        self._followed = True                  # every frame since the last ok one weighed with the fit held (_confirmed)
         self._track: collections.deque = collections.deque(maxlen=TRACK_FRAMES)   # recent not-lost estimates
         self._unseen = 0                       # not-weighed frames in a row while not ok
         self.declined_searches = 0
@@ -368,10 +369,12 @@ class RecoveryPolicy:
         rules_ok = status == TrackingStatus.OK
         if status != TrackingStatus.LOST:
             self._track.append(np.array(T_base_bone, float))
+        self._followed = self._followed and self._fit_held(status, weighed, refined, fitness)
         status = self._capped(status, weighed, T_base_bone)
         if status == TrackingStatus.OK:
             self.lifecycle.passed()
             self.T_base_bone_confident = np.array(T_base_bone, float)
+            self._followed = True
             self._attempts, self._bad, self._not_ok, self._unseen, self._not_ok_moving = 0, 0, 0, 0, 0
             return self._frame(status, weighed)
         back = self._back_in_view(weighed)
@@ -456,9 +459,14 @@ class RecoveryPolicy:
         moved bone while not ok) is such a hypothesis too (``recovery.confirm_moved``): on the
         device's or_fast_reposition trials two tracks slid 36 and 51 mm off with the bone and were ok
         there for 77 and 46 frames (the rules found the wrong fit consistent; 2026-11-27, BENCHMARKS.md
-        "Recovery"). The start is no ok pose: this applies once the track has been ok."""
+        "Recovery"). The start is no ok pose: this applies once the track has been ok. A track whose fit held
+        on every frame since it was last ok (:meth:`_fit_held`: weighed, refined, at least ``min_fitness``; only
+        the motion test, the held pose or the template's precision kept it below ok) followed the bone with
+        evidence on every frame, and is no hypothesis (issue 32: bone_moves, 8 crests x 3 seeds, waited
+        confirm_frames after every tracked move, ok on 69-87 % of the eligible frames; the slid tracks above
+        were lost and misfit on their way off)."""
         if (status == TrackingStatus.OK and not self._unconfirmed and self.lifecycle.ever_ok
-                and self.config.confirm_moved and self._far(T_base_bone)):
+                and self.config.confirm_moved and self._far(T_base_bone) and not self._followed):
             self.lifecycle.moved()             # back to ok far from the last ok pose without a detection
             self._ok_run = 0
         if not self._unconfirmed or status != TrackingStatus.OK:
@@ -471,6 +479,14 @@ class RecoveryPolicy:
         if self._ok_run >= self.config.confirm_frames:
             return status
         return TrackingStatus.UNCERTAIN
+
+    def _fit_held(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float) -> bool:
+        """Whether this frame is evidence that the track is on the bone: weighed, not lost and, with the
+        refinement, refined with a fit confirming at least ``min_fitness`` (what :meth:`_bad_reason` calls
+        bad, wherever the track is). A hidden frame is no evidence: the bone may have moved unseen."""
+        if status == TrackingStatus.LOST or not weighed:
+            return False
+        return not self.refine_enabled or (refined and fitness >= self.min_fitness)
 
     def _gap(self, T_base_bone: np.ndarray) -> tuple[float, float]:
         return pose_gap(self.T_base_bone_confident, T_base_bone)
