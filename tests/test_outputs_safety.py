@@ -397,3 +397,14 @@ def test_track_with_a_recording_onto_a_full_disk_exits_non_zero(tmp_path, capsys
     captured = capsys.readouterr()
     assert "is incomplete" in captured.err and "Traceback" not in captured.err
     assert (tmp_path / "rec" / MARKER_FILE).exists()
+
+
+@pytest.mark.parametrize("bad", [0, -1.0, float("nan"), "big", True])
+def test_a_bad_queue_bound_names_its_key_and_writes_nothing(tmp_path, bad):
+    """output.params.max_queue_mb: a ConfigError naming the key and an example, before any file is written."""
+    from app.errors import ConfigError
+    from plugins.recorder import Recorder
+
+    with pytest.raises(ConfigError, match=r"output\.params\.max_queue_mb.*positive number of megabytes"):
+        Recorder(str(tmp_path / "rec"), max_queue_mb=bad)
+    assert not (tmp_path / "rec").exists()

@@ -481,12 +481,10 @@ class RecoveryPolicy:
         return TrackingStatus.UNCERTAIN
 
     def _fit_held(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float) -> bool:
-        """Whether this frame is evidence that the track is on the bone: weighed, not lost and, with the
-        refinement, refined with a fit confirming at least ``min_fitness`` (what :meth:`_bad_reason` calls
-        bad, wherever the track is). A hidden frame is no evidence: the bone may have moved unseen."""
-        if status == TrackingStatus.LOST or not weighed:
-            return False
-        return not self.refine_enabled or (refined and fitness >= self.min_fitness)
+        """Whether this frame is evidence that the track is on the bone: weighed, and nothing that
+        :meth:`_bad_reason` calls bad, wherever the track is. A hidden frame is no evidence: the bone may have
+        moved unseen."""
+        return weighed and self._bad_reason(status, weighed, refined, fitness) is None
 
     def _gap(self, T_base_bone: np.ndarray) -> tuple[float, float]:
         return pose_gap(self.T_base_bone_confident, T_base_bone)
@@ -543,12 +541,15 @@ class RecoveryPolicy:
         return self.lifecycle.hypothesis is not None
 
     def _bad_reason(self, status: TrackingStatus, weighed: bool, refined: bool, fitness: float,
-                    T_base_bone: np.ndarray) -> str | None:
+                    T_base_bone: np.ndarray | None = None) -> str | None:
+        """Why this frame counts as bad (None: it does not): lost, or weighed with the refinement's track broken,
+        or refined below ``min_fitness`` far from the last ok pose (anywhere when ``T_base_bone`` is None)."""
         if status == TrackingStatus.LOST:
             return "lost"
         if weighed and self.refine_enabled and not refined:
             return "refined track broken while the bone is visible"
-        if weighed and self.refine_enabled and not fitness >= self.min_fitness and self._far(T_base_bone):
+        if (weighed and self.refine_enabled and not fitness >= self.min_fitness
+                and (T_base_bone is None or self._far(T_base_bone))):
             return f"refined fit {fitness:.2f} below {self.min_fitness:.2f}"
         return None
 
