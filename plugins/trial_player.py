@@ -9,6 +9,10 @@ them took. Like a real camera the player never delivers a stale frame: behind it
 host), it decodes the frame that will be due once decoded and skips the older ones (``skipped``, in
 the summary).
 ``loop: true`` plays the trial again and again (a soak, or a session as long as asked).
+``preload_mb`` (default 512) decodes the camera's first frames once, before the session's clock
+starts, as many as fit (app/trial/preload.py): a live camera hands the host frames already made, and
+a PNG decode a frame would take close to half of one of two cores from the tracker. 0 decodes every
+frame when it is played.
 
 ``camera: simulated`` / ``robot: simulated`` first simulate a trial (``app.sim.simulate``) into a
 cache directory named by scenario, seed and duration (reused when already there), then play it the
@@ -34,11 +38,13 @@ from pathlib import Path
 import numpy as np
 
 from app.interfaces import DepthFrame, JointSamples, SessionClock
+from app.trial.preload import check_budget, preload
 from plugins._base import ThreadedSource
 
 log = logging.getLogger(__name__)
 
 _SIM_LOCK = threading.Lock()
+PRELOAD_MB = 512   # the camera's frames decoded ahead, MB (app/trial/preload.py): a 6 s 640x480 trial takes 330
 
 
 def _open(trial: str | Path):
@@ -99,10 +105,11 @@ class RecordedCamera(ThreadedSource):
 
     kind, name = "camera", "recorded"
 
-    def __init__(self, trial: str, loop: bool = False):
+    def __init__(self, trial: str, loop: bool = False, preload_mb: float = PRELOAD_MB):
         super().__init__()
         self.trial = Path(trial)
         self.loop = loop
+        self.preload_mb = check_budget(preload_mb, "camera.params.preload_mb")
         self.reader = None
         self.skipped = 0      # frames due while the player was behind its schedule, never pushed
         self.pushed = 0
@@ -110,7 +117,7 @@ class RecordedCamera(ThreadedSource):
 
     def open(self, clock: SessionClock, event):
         self._bind(clock, event)
-        self.reader = _open(self.trial)
+        self.reader = preload(_open(self.trial), self.preload_mb)
         return self.reader.meta.camera
 
     def session_defaults(self) -> dict:
@@ -257,11 +264,11 @@ class SimulatedCamera(RecordedCamera):
 
     def __init__(self, scenario: str = "static_clear", seconds: float | None = None, seed: int = 0,
                  mesh: str | None = None, trial_dir: str | None = None, loop: bool = False, streams: str = "depth",
-                 sensor: str = "independent", pointer: bool = False):
+                 sensor: str = "independent", pointer: bool = False, preload_mb: float = PRELOAD_MB):
         _check_sensor(sensor, "camera")
         _check_pointer(pointer, streams, "camera")
         self._sim = (scenario, seconds, seed, mesh, trial_dir, streams, sensor, bool(pointer))
-        super().__init__(trial="", loop=loop)
+        super().__init__(trial="", loop=loop, preload_mb=preload_mb)
 
     def open(self, clock: SessionClock, event):
         self.trial = simulated_trial(*self._sim)

@@ -224,6 +224,10 @@ class TrialReader:
 
     def read_depth(self, index: int) -> np.ndarray:
         """Depth (H, W) float32 metres of frame ``index`` (0 .. N-1); 0 = no measurement."""
+        return png_to_depth(self.read_depth_png(index), self.meta.depth_scale)
+
+    def read_depth_png(self, index: int) -> np.ndarray:
+        """The depth PNG of frame ``index`` as stored: (H, W) uint16 in units of ``depth_scale`` mm, checked."""
         import cv2
 
         frame_id = int(self.frame_ids[index])
@@ -242,7 +246,7 @@ class TrialReader:
         if png.shape != expected:
             raise TrialFormatError(path, f"expected {expected[1]}x{expected[0]} pixels (camera width x height in "
                                    f"{META_FILE}), got {png.shape[1]}x{png.shape[0]}", where)
-        return png_to_depth(png, self.meta.depth_scale)
+        return png
 
     def _read_image(self, index: int, stream: str, dtype, channels: int, size: tuple[int, int]) -> np.ndarray:
         """An image stream's PNG of frame ``index`` as stored, checked for dtype, channels and (width, height)."""
