@@ -137,19 +137,18 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
         ``NAME:KEY=VALUE,...`` text (:func:`app.sim.sensors.parse_sensor`); default ``independent``
     pointer : an :class:`app.sim.pointer.SimulatedPointer` held on the crest, its marker drawn into the
         infrared images (``streams`` must include ``ir``), or None
+
+    The random draws come from ``seed`` in one fixed order (the bone's pose, the frame drops, the tissue,
+    the calibration errors, the joints, then each frame's sensor noise), and the image streams from a
+    stream of their own, so a depth-only trial is the same with or without them.
     """
     from app.sim.images import parse_streams
+    from app.trial.writer import TrialWriter
 
     stream_names = parse_streams(streams)
     if pointer is not None and "ir" not in stream_names:
         raise ValueError(f"a simulated pointer is drawn into the infrared images: streams must include ir, got {streams!r}")
     sensor = parse_sensor(sensor) if isinstance(sensor, str) else sensor
-    from app.mesh import check_units, load_mesh
-    from app.render.context import shared_context
-    from app.render.scene import SceneRenderer
-    from app.trial.meta import TrialMeta
-    from app.trial.writer import TrialWriter
-
     if seconds is not None and not 0 < seconds < float("inf"):   # 0 never means "the scenario's default"
         raise ValueError(f"seconds must be a finite duration > 0 (None: the scenario's), got {seconds!r}")
     if isinstance(scenario_name, Scenario):
@@ -157,91 +156,150 @@ def simulate(out: str | Path, mesh_path: str | Path | None = None, scenario_name
     else:
         scenario = get_scenario(scenario_name, seconds)
     rng = np.random.default_rng(seed)
-    image_rng = np.random.default_rng([seed, 14])   # its own stream: depth-only trials are unchanged
-    mesh_path = Path(mesh_path) if mesh_path else DEFAULT_MESH
-    bone = load_mesh(mesh_path)
-    check_units(bone, mesh_path)
-    dh = UR_MODELS["ur5e"]
-    T_flange_camera = world.T_FLANGE_CAMERA
-    T_base_bone0 = world.initial_bone_pose(dh, T_flange_camera, rng, scenario.camera_distance_m, scenario.bone_yaw_deg)
-    frame_ids, stamps = frame_schedule(scenario, rng)
-    t_rel = stamps - CLOCK_START
-    T_base_bone = world.bone_trajectory(t_rel, T_base_bone0, scenario.bone_motion)
-    q_frames = world.joint_trajectory(t_rel)
-    T_base_camera = forward_kinematics(dh, q_frames) @ T_flange_camera
+    scene = _Scene.build(scenario, Path(mesh_path) if mesh_path else DEFAULT_MESH, camera, rng)
+    images = _image_simulator(stream_names, emitter, scene.bone, scene.T_base_bone[0], camera,
+                              np.random.default_rng([seed, 14]), scene.objects)   # its own stream: depth-only trials unchanged
+    meta, drawing = _trial_meta(scene, sensor, images, pointer, seed, rng)
+    out = Path(out)
+    with TrialWriter(out, meta, mesh_source=scene.mesh_path, overwrite=overwrite) as writer:
+        _write_joints(writer, scene.stamps, scenario, rng)
+        occlusions = _write_frames(writer, out, scene, sensor, images, drawing, rng, progress)
+        wrote(out / CAMERA_TRUTH_FILE)
+        write_tum(out / CAMERA_TRUTH_FILE, scene.stamps, scene.T_base_camera)
+        _write_simulation_yaml(out, scenario, seed, scene.T_flange_camera, scene.mesh_path, sensor, drawing)
+    scene.renderer.release()
+    if images is not None:
+        images.release()
+    log.info("simulated %s: %d frames in %s", scenario.name, len(scene.stamps), out)
+    return SimulationSummary(str(out), scenario.name, len(scene.stamps), scenario.seconds,
+                             float(np.mean(occlusions)), float(np.max(occlusions)))
 
-    # the table 6 cm below the bone's lowest point, in the base frame (z up)
-    T_base_table = np.eye(4)
-    T_base_table[2, 3] = (T_base_bone0[:3, :3] @ bone.vertices.T).T[:, 2].min() + T_base_bone0[2, 3] - 0.06
-    tissue = world.soft_tissue_mesh(bone, rng)
-    renderer = SceneRenderer(shared_context(), camera)
-    objects = (("bone", bone, LABEL_BONE), ("tissue", tissue, LABEL_TISSUE), ("table", world.table_mesh(), LABEL_TABLE),
-               ("hand", world.hand_mesh(), LABEL_HAND), ("instrument", world.instrument_mesh(), LABEL_INSTRUMENT))
-    for name, mesh, label in objects:
-        renderer.add_mesh(name, mesh.vertices, mesh.faces, label)
-    images = _image_simulator(stream_names, emitter, bone, T_base_bone0, camera, image_rng, objects)
-    errors = SceneErrors(invalid_probability=scenario.invalid_probability, scale_error=scenario.depth_scale_error,
-                         bias=scenario.depth_bias_m, specular_fraction=scenario.specular_fraction)
-    graft = _GraftCut(bone)
 
-    hand_eye_in_file = perturb_pose(T_flange_camera, scenario.hand_eye_error_mm, scenario.hand_eye_error_deg, rng)
-    initial_pose = perturb_pose(T_base_bone[0], scenario.init_error_mm, scenario.init_error_deg, rng)
-    top = bone.vertices[np.argmax(bone.vertices[:, 2])]
-    point_prior = T_base_bone[0, :3, :3] @ top + T_base_bone[0, :3, 3]
+@dataclass
+class _Scene:
+    """The simulated world of one trial: the bone and its tissue on the table, their poses and the camera's at
+    every frame (base frame), and the renderer holding their meshes."""
+
+    scenario: Scenario
+    mesh_path: Path
+    bone: trimesh.Trimesh
+    camera: PinholeCamera
+    dh: object
+    T_flange_camera: np.ndarray
+    frame_ids: np.ndarray
+    stamps: np.ndarray
+    t_rel: np.ndarray               # s since the clock's start, per frame
+    T_base_bone: np.ndarray         # (N, 4, 4) the bone's true pose per frame
+    T_base_camera: np.ndarray       # (N, 4, 4) the camera's true pose per frame
+    T_base_table: np.ndarray
+    objects: tuple
+    renderer: object
+
+    @classmethod
+    def build(cls, scenario: Scenario, mesh_path: Path, camera: PinholeCamera, rng: np.random.Generator) -> "_Scene":
+        """Draws from ``rng``: the bone's initial pose, the frame schedule, then the soft tissue, in that order."""
+        from app.mesh import check_units, load_mesh
+        from app.render.context import shared_context
+        from app.render.scene import SceneRenderer
+
+        bone = load_mesh(mesh_path)
+        check_units(bone, mesh_path)
+        dh = UR_MODELS["ur5e"]
+        T_flange_camera = world.T_FLANGE_CAMERA
+        T_base_bone0 = world.initial_bone_pose(dh, T_flange_camera, rng, scenario.camera_distance_m,
+                                               scenario.bone_yaw_deg)
+        frame_ids, stamps = frame_schedule(scenario, rng)
+        t_rel = stamps - CLOCK_START
+        T_base_bone = world.bone_trajectory(t_rel, T_base_bone0, scenario.bone_motion)
+        T_base_camera = forward_kinematics(dh, world.joint_trajectory(t_rel)) @ T_flange_camera
+        # the table 6 cm below the bone's lowest point, in the base frame (z up)
+        T_base_table = np.eye(4)
+        T_base_table[2, 3] = (T_base_bone0[:3, :3] @ bone.vertices.T).T[:, 2].min() + T_base_bone0[2, 3] - 0.06
+        tissue = world.soft_tissue_mesh(bone, rng)
+        renderer = SceneRenderer(shared_context(), camera)
+        objects = (("bone", bone, LABEL_BONE), ("tissue", tissue, LABEL_TISSUE),
+                   ("table", world.table_mesh(), LABEL_TABLE), ("hand", world.hand_mesh(), LABEL_HAND),
+                   ("instrument", world.instrument_mesh(), LABEL_INSTRUMENT))
+        for name, mesh, label in objects:
+            renderer.add_mesh(name, mesh.vertices, mesh.faces, label)
+        return cls(scenario, mesh_path, bone, camera, dh, T_flange_camera, frame_ids, stamps, t_rel, T_base_bone,
+                   T_base_camera, T_base_table, objects, renderer)
+
+
+def _trial_meta(scene: _Scene, sensor, images, pointer, seed: int, rng: np.random.Generator):
+    """(the trial's :class:`app.trial.meta.TrialMeta`, the pointer's drawing or None): the hand-eye and the
+    initial pose as a user would give them, with the scenario's errors (drawn from ``rng`` in that order),
+    and the point prior at the crest's top."""
+    from app.trial.meta import TrialMeta
+
+    scenario = scene.scenario
+    hand_eye_in_file = perturb_pose(scene.T_flange_camera, scenario.hand_eye_error_mm, scenario.hand_eye_error_deg, rng)
+    initial_pose = perturb_pose(scene.T_base_bone[0], scenario.init_error_mm, scenario.init_error_deg, rng)
+    top = scene.bone.vertices[np.argmax(scene.bone.vertices[:, 2])]
+    point_prior = scene.T_base_bone[0, :3, :3] @ top + scene.T_base_bone[0, :3, 3]
     drawing = None
     if pointer is not None:
         from app.sim.pointer import PointerDrawing
 
-        drawing = PointerDrawing.held(pointer, point_prior, T_base_bone[0], T_base_camera[0],
+        drawing = PointerDrawing.held(pointer, point_prior, scene.T_base_bone[0], scene.T_base_camera[0],
                                       np.random.default_rng([seed, 33]))
     meta = TrialMeta(
-        camera=camera, depth_scale=DEPTH_SCALE_MM, robot={"model": "ur5e"}, dh=dh,
-        T_flange_camera=hand_eye_in_file, mesh=mesh_path.name, initial_pose=initial_pose,
+        camera=scene.camera, depth_scale=DEPTH_SCALE_MM, robot={"model": "ur5e"}, dh=scene.dh,
+        T_flange_camera=hand_eye_in_file, mesh=scene.mesh_path.name, initial_pose=initial_pose,
         point_prior=point_prior, extra={"sensor": sensor_to_dict(sensor)}, streams=images.streams if images else None,
     )
-    out = Path(out)
+    return meta, drawing
+
+
+def _write_frames(writer, out: Path, scene: _Scene, sensor, images, drawing, rng: np.random.Generator,
+                  progress) -> list[float]:
+    """Render, measure and write every frame (depth, images, ground truth, a ``simulation.csv`` row); the
+    occluded fraction of the bone per frame."""
+    scenario = scene.scenario
+    errors = SceneErrors(invalid_probability=scenario.invalid_probability, scale_error=scenario.depth_scale_error,
+                         bias=scenario.depth_bias_m, specular_fraction=scenario.specular_fraction)
+    graft = _GraftCut(scene.bone)
     occlusions = []
-    with TrialWriter(out, meta, mesh_source=mesh_path, overwrite=overwrite) as writer:
-        _write_joints(writer, stamps, scenario, rng)
-        wrote(out / "simulation.csv")
-        with open(out / "simulation.csv", "w") as sim_csv:
-            sim_csv.write("frame,stamp,occlusion,bone_pixels\n")
-            for k, (frame_id, stamp) in enumerate(zip(frame_ids, stamps)):
-                T_camera_base = se3.inverse(T_base_camera[k])
-                T_camera_bone = T_camera_base @ T_base_bone[k]
-                poses = {"bone": T_camera_bone, "tissue": T_camera_bone, "table": T_camera_base @ T_base_table}
-                _, labels_clear = renderer.render(poses)
-                bone_mask = labels_clear == LABEL_BONE
-                _add_occluders(poses, scenario, t_rel[k], bone_mask, camera)
-                depth, labels = renderer.render(poses)
-                if scenario.graft_cut_at_s is not None and t_rel[k] >= scenario.graft_cut_at_s:
-                    depth = graft.apply(depth, labels, T_camera_bone, camera)
-                if scenario.tissue_patch_m:
-                    depth = _tissue_patch(depth, labels, camera, scenario.tissue_patch_m)
-                measured = sensor.measure(depth, rng, camera=camera, depth_scale_mm=DEPTH_SCALE_MM, errors=errors,
-                                          bone_mask=labels == LABEL_BONE)
-                n_bone = int(bone_mask.sum())
-                occlusion = 1.0 - float((bone_mask & (labels == LABEL_BONE)).sum()) / n_bone if n_bone else 1.0
-                occlusions.append(occlusion)
-                ir = rgb = None
-                if images is not None:
-                    ir, rgb = images.frame(depth, labels, poses, T_camera_base, float(t_rel[k]))
-                if drawing is not None:
-                    ir = drawing.draw(ir, camera, T_camera_bone)
-                writer.write_frame(int(frame_id), float(stamp), measured, infrared=ir, color=rgb)
-                writer.write_groundtruth(float(stamp), T_base_bone[k])
-                sim_csv.write(f"{frame_id},{stamp:.6f},{occlusion:.4f},{n_bone}\n")
-                if progress:
-                    progress(k + 1, len(stamps))
-        wrote(out / CAMERA_TRUTH_FILE)
-        write_tum(out / CAMERA_TRUTH_FILE, stamps, T_base_camera)
-        _write_simulation_yaml(out, scenario, seed, T_flange_camera, mesh_path, sensor, drawing)
-    renderer.release()
-    if images is not None:
-        images.release()
-    log.info("simulated %s: %d frames in %s", scenario.name, len(stamps), out)
-    return SimulationSummary(str(out), scenario.name, len(stamps), scenario.seconds,
-                             float(np.mean(occlusions)), float(np.max(occlusions)))
+    wrote(out / "simulation.csv")
+    with open(out / "simulation.csv", "w") as sim_csv:
+        sim_csv.write("frame,stamp,occlusion,bone_pixels\n")
+        for k, (frame_id, stamp) in enumerate(zip(scene.frame_ids, scene.stamps)):
+            T_camera_base = se3.inverse(scene.T_base_camera[k])
+            T_camera_bone = T_camera_base @ scene.T_base_bone[k]
+            poses = {"bone": T_camera_bone, "tissue": T_camera_bone, "table": T_camera_base @ scene.T_base_table}
+            depth, labels, bone_mask = _render_frame(scene, poses, float(scene.t_rel[k]), graft, T_camera_bone)
+            measured = sensor.measure(depth, rng, camera=scene.camera, depth_scale_mm=DEPTH_SCALE_MM, errors=errors,
+                                      bone_mask=labels == LABEL_BONE)
+            n_bone = int(bone_mask.sum())
+            occlusion = 1.0 - float((bone_mask & (labels == LABEL_BONE)).sum()) / n_bone if n_bone else 1.0
+            occlusions.append(occlusion)
+            ir = rgb = None
+            if images is not None:
+                ir, rgb = images.frame(depth, labels, poses, T_camera_base, float(scene.t_rel[k]))
+            if drawing is not None:
+                ir = drawing.draw(ir, scene.camera, T_camera_bone)
+            writer.write_frame(int(frame_id), float(stamp), measured, infrared=ir, color=rgb)
+            writer.write_groundtruth(float(stamp), scene.T_base_bone[k])
+            sim_csv.write(f"{frame_id},{stamp:.6f},{occlusion:.4f},{n_bone}\n")
+            if progress:
+                progress(k + 1, len(scene.stamps))
+    return occlusions
+
+
+def _render_frame(scene: _Scene, poses: dict, t: float, graft: "_GraftCut", T_camera_bone: np.ndarray):
+    """(true depth, labels, the bone's pixels without occluders) of one frame at scenario time ``t``: the scene
+    rendered clear, the occluders placed on that view (``poses`` gets theirs), rendered again; then the graft's
+    cut and the tissue patch when the scenario has them."""
+    scenario = scene.scenario
+    _, labels_clear = scene.renderer.render(poses)
+    bone_mask = labels_clear == LABEL_BONE
+    _add_occluders(poses, scenario, t, bone_mask, scene.camera)
+    depth, labels = scene.renderer.render(poses)
+    if scenario.graft_cut_at_s is not None and t >= scenario.graft_cut_at_s:
+        depth = graft.apply(depth, labels, T_camera_bone, scene.camera)
+    if scenario.tissue_patch_m:
+        depth = _tissue_patch(depth, labels, scene.camera, scenario.tissue_patch_m)
+    return depth, labels, bone_mask
 
 
 class _FrameImages:
