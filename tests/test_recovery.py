@@ -889,7 +889,9 @@ def test_a_kept_search_is_no_reinitialisation_and_waits_the_cooldown():
     assert policy.pending is None
     assert policy.update(TrackingStatus.OK, True, True, 0.9, T_near, frames / 90) == TrackingStatus.OK   # no hold
     T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.05, 0.0, 0.0]))
-    while not policy.pending:                                 # the bone moved 5 cm: the slow trigger
+    policy.update(unc, False, False, math.nan, T_far, frames / 90)   # the bone moved 5 cm while hidden
+    frames += 1
+    while not policy.pending:                                 # the slow trigger
         policy.update(unc, True, True, 0.9, T_far, frames / 90)
         frames += 1
     _due(policy).kept()
@@ -1196,6 +1198,34 @@ def test_a_track_that_followed_a_moved_bone_with_its_fit_held_needs_no_confirmin
     far = se3.from_rotvec_trans(np.zeros(3), np.array([0.036, 0.0, 0.0]))
     got = [policy.update(ok, True, True, 0.9, far, 0.0) for _ in range(6)]
     assert got == ([ok] * 6 if broken is None else [unc] * 4 + [ok, ok])
+
+
+@pytest.mark.parametrize("hidden", [False, True])
+def test_a_search_that_keeps_a_track_that_followed_the_bone_with_its_fit_held_adds_no_confirming(hidden):
+    """Issue 32 (bone_moves crest_right_02 seed 2): the slow trigger searched during a 2 s move and three searches
+    kept the track; its fit had held on every frame, so the kept pose is no hypothesis: ok at once when the rules
+    find it ok. One frame on the way with the bone hidden makes it one: confirm_frames."""
+    ok, unc = TrackingStatus.OK, TrackingStatus.UNCERTAIN
+    policy = _policy(after_uncertain_s=0.1, confirm_frames=5)
+    frames = 0
+
+    def frame(status, weighed, refined, fitness, T):
+        nonlocal frames
+        got = policy.update(status, weighed, refined, fitness, T, frames / 90)
+        frames += 1
+        return got
+
+    assert frame(ok, True, True, 0.9, np.eye(4)) == ok
+    T_far = np.eye(4)
+    for k in range(1, 19):                                     # moving: 36 mm in 2 mm steps
+        T_far = se3.from_rotvec_trans(np.zeros(3), np.array([0.002 * k, 0.0, 0.0]))
+        frame(unc, not (hidden and k == 9), not (hidden and k == 9), math.nan if hidden and k == 9 else 0.8, T_far)
+    while not policy.pending:                                  # far and not ok: the slow trigger
+        frame(unc, True, True, 0.8, T_far)
+    _due(policy).kept()
+    assert policy.report()["kept_searches"] == 1 and policy.events == []
+    got = [frame(ok, True, True, 0.9, T_far) for _ in range(6)]
+    assert got == ([unc] * 4 + [ok, ok] if hidden else [ok] * 6)
 
 
 @pytest.mark.slow

@@ -133,12 +133,14 @@ class Lifecycle:
         evidence_only = self.hypothesis is not None and self.hypothesis.evidence_only
         self.due, self.hypothesis = None, Hypothesis(evidence_only=evidence_only)
 
-    def kept(self) -> None:
+    def kept(self, hypothesis: bool = True) -> None:
         """The due search kept the track: the kept pose is a hypothesis too (a confirmation under way goes
-        on); retried if the track was ever ok, else its one search is spent (``kept_once``)."""
+        on), unless ``hypothesis`` is False (the recovery's: the track followed the bone with its fit held
+        since it was last ok, and the search found nothing better: evidence, not a new pose); retried if the
+        track was ever ok, else its one search is spent (``kept_once``)."""
         self.step("kept" if self.ever_ok else "kept_once")
         self.due = None
-        if self.hypothesis is None:
+        if hypothesis and self.hypothesis is None:
             self.hypothesis = Hypothesis()
 
     def declined(self) -> None:
