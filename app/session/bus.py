@@ -73,23 +73,46 @@ class EventLog:
 
 
 class JointBuffer:
-    """The recent joint samples (host stamps), interpolated at a frame's stamp. Thread-safe."""
+    """The recent joint samples (host stamps, increasing: the bus drops the others), interpolated at a
+    frame's stamp. Thread-safe.
+
+    The samples live in preallocated arrays, appended in place; ``_t`` / ``_q`` are views of the last
+    ``seconds``. A batch is one slice copy, not a copy of the whole history (at 500 Hz and 10 s that was
+    5,000 rows a batch). A reader's views stay valid: rows are written only past every view's end, and
+    a full buffer moves into new arrays (never over the old ones)."""
+
+    CAPACITY = 1024   # rows to start with; a full buffer moves its live rows into arrays twice their count
 
     def __init__(self, seconds: float = 10.0, max_gap_s: float = 0.05):
         self.seconds = seconds
         self.max_gap_s = max_gap_s
-        self._t = np.empty(0)
-        self._q = np.empty((0, 6))
+        self._tbuf, self._qbuf = np.empty(self.CAPACITY), np.empty((self.CAPACITY, 6))
+        self._lo = self._hi = 0
+        self._t, self._q = self._tbuf[:0], self._qbuf[:0]
         self._cond = threading.Condition()
 
     def add(self, stamps: np.ndarray, q: np.ndarray) -> None:
+        n = len(stamps)
+        if n == 0:
+            return
         with self._cond:
-            self._t = np.concatenate([self._t, stamps])
-            self._q = np.concatenate([self._q, q])
-            keep = self._t >= self._t[-1] - self.seconds
-            if not keep.all():
-                self._t, self._q = self._t[keep], self._q[keep]
+            if self._hi + n > len(self._tbuf):
+                self._move(n)
+            self._tbuf[self._hi:self._hi + n] = stamps
+            self._qbuf[self._hi:self._hi + n] = q
+            self._hi += n
+            cutoff = self._tbuf[self._hi - 1] - self.seconds
+            self._lo += int(np.searchsorted(self._tbuf[self._lo:self._hi], cutoff, side="left"))
+            self._t, self._q = self._tbuf[self._lo:self._hi], self._qbuf[self._lo:self._hi]
             self._cond.notify_all()
+
+    def _move(self, n: int) -> None:
+        """Room for ``n`` more rows: the live rows into new arrays of twice (live + n) rows."""
+        live = self._hi - self._lo
+        size = max(2 * (live + n), self.CAPACITY)
+        tbuf, qbuf = np.empty(size), np.empty((size, 6))
+        tbuf[:live], qbuf[:live] = self._tbuf[self._lo:self._hi], self._qbuf[self._lo:self._hi]
+        self._tbuf, self._qbuf, self._lo, self._hi = tbuf, qbuf, 0, live
 
     def latest(self) -> float | None:
         with self._cond:
