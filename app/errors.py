@@ -39,3 +39,16 @@ class MeshError(OsteonavError, ValueError):
 
 class GLError(OsteonavError, RuntimeError):
     """OpenGL context or shader failure; the message names the file, the stage and the driver log."""
+
+
+def megabytes(value, key: str, example: float, zero_means: str | None = None) -> float:
+    """``value`` as a memory budget in megabytes for the configuration key ``key``, else a ConfigError naming
+    it and ``example``: a finite number > 0, or >= 0 when ``zero_means`` says what 0 does. Text and booleans
+    are refused (YAML gives numbers)."""
+    import math
+
+    number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not (number and (value > 0 or (zero_means is not None and value == 0))):
+        bound = "positive number" if zero_means is None else f"number >= 0 (0: {zero_means})"
+        raise ConfigError(key, f"expected a {bound} of megabytes, e.g. {example:g}; got {value!r}")
+    return float(value)

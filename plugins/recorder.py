@@ -32,10 +32,10 @@ report's ``complete`` is false (``osteonav record`` then exits non-zero).
 from __future__ import annotations
 
 import logging
-import math
 import threading
 from pathlib import Path
 
+from app.errors import megabytes
 from app.interfaces import DepthFrame, DropOldestQueue, Estimate, JointSamples, SessionEvent
 
 log = logging.getLogger(__name__)
@@ -49,7 +49,8 @@ class Recorder:
     def __init__(self, dir: str, overwrite: bool = False, max_queue: int = 2048, max_queue_mb: float = 256.0):
         self.dir = Path(dir)
         self.overwrite = bool(overwrite)
-        self.queue = DropOldestQueue(int(max_queue), max_bytes=int(_queue_mb(max_queue_mb) * 1e6), nbytes=_item_bytes)
+        queue_mb = megabytes(max_queue_mb, "output.params.max_queue_mb", 256)
+        self.queue = DropOldestQueue(int(max_queue), max_bytes=int(queue_mb * 1e6), nbytes=_item_bytes)
         self.writer = None
         self._thread = None
         self._done = threading.Event()
@@ -183,17 +184,6 @@ class Recorder:
         return {"dir": str(self.dir), "frames": self.frames_written, "joint_samples": self.joints_written,
                 "dropped": dropped, "joint_samples_lost": self.joint_samples_lost, "complete": complete, "renumbered": self.renumbered, "incomplete": self.incomplete,
                 "error": self.error}
-
-
-def _queue_mb(value) -> float:
-    """``output.params.max_queue_mb`` as a positive number of megabytes, else a ConfigError naming the key."""
-    from app.errors import ConfigError
-
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0
-    if not ok:
-        raise ConfigError("output.params.max_queue_mb", f"expected a positive number of megabytes (e.g. 256), "
-                          f"got {value!r}")
-    return float(value)
 
 
 def _item_bytes(item) -> int:

@@ -37,8 +37,9 @@ from pathlib import Path
 
 import numpy as np
 
+from app.errors import megabytes
 from app.interfaces import DepthFrame, JointSamples, SessionClock
-from app.trial.preload import check_budget, preload
+from app.trial.preload import preload
 from plugins._base import ThreadedSource
 
 log = logging.getLogger(__name__)
@@ -109,7 +110,8 @@ class RecordedCamera(ThreadedSource):
         super().__init__()
         self.trial = Path(trial)
         self.loop = loop
-        self.preload_mb = check_budget(preload_mb, "camera.params.preload_mb")
+        self.preload_mb = megabytes(preload_mb, "camera.params.preload_mb", PRELOAD_MB,
+                                    zero_means="decode every frame when it is played")
         self.reader = None
         self.skipped = 0      # frames due while the player was behind its schedule, never pushed
         self.pushed = 0

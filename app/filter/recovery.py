@@ -612,10 +612,11 @@ class RecoveryPolicy:
         is no hypothesis without a search, and the search's keeping it adds evidence: it stays none (issue 32:
         bone_moves crest_right_02 seed 2, the slow trigger searched during a 2 s move, three searches kept the
         track 0.2-0.35 mm off, and it waited confirm_frames, ok on 79 % of the eligible frames)."""
+        # retried if ever ok (a never-ok track has no last ok pose to be far from: its one search is spent); a kept
+        # pose needs evidence, as a found one (a count under way goes on), unless the track followed the bone
         followed = self._followed and self.lifecycle.ever_ok and self.lifecycle.hypothesis is None
-        self.lifecycle.kept(hypothesis=not followed)   # retried if ever ok (a never-ok track has no last ok pose to be
-        self.kept_searches += 1    # far from: its one search is spent); a kept pose needs evidence, as a found one (a count
-                                   # under way goes on), unless the track followed the bone with its fit held (_confirmed)
+        self.lifecycle.kept(hypothesis=not followed)
+        self.kept_searches += 1
         self._attempts += 1
         self._bad, self._not_ok, self._not_ok_moving, self._below_bar = 0, 0, 0, 0
         self._since, self._wait = 0, self._cooldown()

@@ -150,9 +150,14 @@ class SearchConfig:
     clusters: int = 6
     refine_top: int = 5
     min_fitness: float = MIN_FITNESS
-    min_sharp: float = MIN_SHARP
     margin: float = 0.015
     max_behind_excess: float = MAX_BEHIND_EXCESS
+
+    @property
+    def min_sharp(self) -> float:
+        """The bar on a found fit's consistent sharp share: ``min_fitness`` carried to 1 sigma
+        (:func:`app.tracking.levels.sharp_bar`), never a number of its own (issue 32, merge 12)."""
+        return levels.sharp_bar(self.min_fitness)
 
 
 @dataclass

@@ -33,7 +33,6 @@ from app.filter.visibility import point_visible, visible_share
 from app.geometry.camera import PinholeCamera
 from app.tracking import levels
 from app.tracking.search_worker import SearchJob
-from app.tracking import levels
 
 log = logging.getLogger(__name__)
 
@@ -252,9 +251,7 @@ def build_wide_search(config, backend, camera: PinholeCamera, refiner, vertices:
     and the detector's for a start without a pose (app/tracking/detector.py)."""
     from app.filter.wide_search import SearchConfig, WideSearch
 
-    fitness = config.status.min_fitness
-    search = SearchConfig(evaluations=config.recovery.search_evaluations, min_sharp=levels.sharp_bar(fitness),
-                          min_fitness=fitness,
+    search = SearchConfig(evaluations=config.recovery.search_evaluations, min_fitness=config.status.min_fitness,
                           margin=config.refine.nearby_margin, max_behind_excess=config.status.max_behind_excess)
     return WideSearch(backend, camera, refiner, vertices, search)
 

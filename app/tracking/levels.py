@@ -40,8 +40,12 @@ def sharp_bar(min_fitness: float, sharp_sigmas: float = 1.0, confirm_sigmas: flo
     for Gaussian residuals: min_fitness (2Φ(s) − 1) / (2Φ(c) − 1) (0.6 -> 0.411 at 1 and 3 σ). The wide search's
     bar on a found fit's consistent sharp share (issue 32, merge 12: it was ``recovery.search_min_sharp``, 0.5;
     one fit-quality share, ``status.min_fitness``, asked of the fit at both widths)."""
-    within = lambda k: 2.0 * _STANDARD.cdf(k) - 1.0      # noqa: E731  P(|Z| < k)
-    return float(min_fitness) * within(sharp_sigmas) / within(confirm_sigmas)
+    return float(min_fitness) * _within(sharp_sigmas) / _within(confirm_sigmas)
+
+
+def _within(k: float) -> float:
+    """P(|Z| < k) for a standard normal Z: 2Φ(k) − 1."""
+    return 2.0 * _STANDARD.cdf(k) - 1.0
 
 
 def chi2_sf(x: float, dof: int) -> float:

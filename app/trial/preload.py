@@ -19,7 +19,6 @@ Usage::
 from __future__ import annotations
 
 import logging
-import math
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -94,17 +93,3 @@ def _decode(reader, index: int):
         return reader.read_depth_png(index), reader.read_infrared(index), reader.read_color(index)
     except (TrialFormatError, OSError):
         return None
-
-
-def check_budget(value, key: str) -> float:
-    """``value`` as a budget in MB, or a ConfigError naming ``key`` (a number >= 0; 0 turns the preload off)."""
-    from app.errors import ConfigError
-
-    try:
-        mb = float(value)
-    except (TypeError, ValueError):
-        mb = math.nan
-    if isinstance(value, bool) or not math.isfinite(mb) or mb < 0:
-        raise ConfigError(key, f"expected a memory budget in MB, a number >= 0 (0: decode every frame when it is "
-                          f"played), e.g. 512; got {value!r}")
-    return mb
