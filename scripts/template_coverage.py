@@ -13,6 +13,13 @@ template's points, Σ = H⁻¹), and the measured template error e = max over th
 quantile_q(e / σ₁)²; the script prints, per inflation candidate, the coverage (share of frames with
 e <= sqrt(inflation) σ₁) over all frames and for the worst trial, and the share of frames whose
 bound stays under status.max_template_std (1 mm), i.e. what the ok status could keep.
+
+``--edge-band PX`` is a probe of where the error comes from: each frame's measured pixels within PX
+pixels of a depth discontinuity (a jump over ``EDGE_JUMP_M`` between 3x3 neighbours) are made invalid
+before the tracker sees them (the time-of-flight model's multipath bias and mixed pixels sit there;
+BENCHMARKS.md "The seen test on time of flight"). The filter and every status test see the masked
+image too, so its ok share is not the product's. ``scripts/seen_candidates.py`` compares bounds over
+several sensor models' JSON files.
 """
 from __future__ import annotations
 
@@ -24,9 +31,23 @@ import numpy as np
 
 INFLATIONS = (1.0, 2.0, 4.0, 6.0, 9.0, 16.0, 25.0)
 QUANTILES = (0.5, 0.68, 0.9, 0.95)
+EDGE_JUMP_M = 0.010   # m, a depth jump between 3x3 neighbours that --edge-band treats as a discontinuity (probe only)
 
 
-def frames_of(trial: Path, settle_s: float) -> dict:
+def edge_masked(depth_m: np.ndarray, band_px: int, jump_m: float = EDGE_JUMP_M) -> np.ndarray:
+    """``depth_m`` with the pixels within ``band_px`` of a depth discontinuity set to 0 (invalid);
+    invalid pixels count as far (a jump), ``band_px`` 0 returns the image unchanged."""
+    if band_px <= 0:
+        return depth_m
+    from scipy import ndimage
+
+    far = np.where(depth_m > 0, depth_m, 10.0)
+    edge = (ndimage.maximum_filter(far, 3) - ndimage.minimum_filter(far, 3)) > jump_m
+    edge = ndimage.binary_dilation(edge, iterations=band_px)
+    return np.where(edge, 0.0, depth_m).astype(depth_m.dtype)
+
+
+def frames_of(trial: Path, settle_s: float, edge_band: int = 0) -> dict:
     """Per refined frame of ``trial``: raw predicted std (m), measured template error (m), ADD (mm), status."""
     from app import metrics
     from app.config import load_config
@@ -47,7 +68,7 @@ def frames_of(trial: Path, settle_s: float) -> dict:
     t0 = reader.stamps[0]
     for frame in reader.iter_frames():
         i = frame.index
-        r = tracker.process(frame.depth_m, frame.stamp, T_base_camera[i] if valid[i] else None)
+        r = tracker.process(edge_masked(frame.depth_m, edge_band), frame.stamp, T_base_camera[i] if valid[i] else None)
         if not getattr(r, "refined", False) or frame.stamp - t0 < settle_s or not np.isfinite(r.template_std):
             continue
         T_gt = reader.groundtruth[i]
@@ -93,6 +114,7 @@ def main() -> None:
     parser.add_argument("trials", nargs="+", type=Path)
     parser.add_argument("--settle", type=float, default=0.5, help="seconds left out at the start (convergence)")
     parser.add_argument("--out", type=Path, help="JSON of the per-frame values and the table")
+    parser.add_argument("--edge-band", type=int, default=0, help="px about depth discontinuities made invalid (a probe)")
     args = parser.parse_args()
     runs = {}
     for trial in args.trials:
@@ -100,7 +122,7 @@ def main() -> None:
         if not (trial / "groundtruth.txt").is_file():
             print(f"{trial}: skipped (not a simulated trial with groundtruth.txt)")
             continue
-        runs[name] = frames_of(trial, args.settle)
+        runs[name] = frames_of(trial, args.settle, args.edge_band)
         if args.out:
             args.out.write_text(json.dumps({"runs": runs}))
         r = runs[name]
