@@ -28,6 +28,7 @@ time; below 1 keeps up in real time). For the fused tracker, which path found th
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -87,41 +88,53 @@ def run(seconds: float = 60.0, seed: int = 0, camera_fps: float = 10.0, imu_rate
     """Run the three methods on one simulated sequence; returns the results (see the module docstring)."""
     sc = MarkerScenario(seconds=seconds, seed=seed, camera_fps=camera_fps, imu_rate_hz=imu_rate_hz, **scenario_overrides)
     X, calib = calibrate(sc)
-    q_S_M = quat.from_matrix(X)
     if progress:
         progress(f"calibration: {calib['detections']}/{calib['images']} images, {calib['pairs']} pairs, "
                  f"error {calib['error_deg']:.2f} deg")
     sim = MarkerSimulator(sc)
+    fusion = MarkerImuFusion(MarkerDetector(sim.K, None, sc.dictionary, sc.marker_id, sc.marker_length_m),
+                             quat.from_matrix(X), OrientationKalman())
+    played = _play(sc, sim, fusion, X, np.random.default_rng(seed + 3000), progress)
+    results = {"scenario": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in sc.__dict__.items()},
+               "calibration": calib, "render_s": played.render_s,
+               "methods": {m: _method_result(sc, sim, played, m) for m in METHODS}}
+    results["methods"]["marker"]["detected"] = f"{len(played.out['marker']['stamps'])}/{len(played.frames)}"
+    results["methods"]["fused"]["paths"] = {k: fusion.counts[k] for k in ("roi", "full", "none")}
+    results["methods"]["fused"]["gated"] = fusion.counts["gated"]
+    results["methods"]["fused"]["kalman_resets"] = fusion.kalman.resets
+    return results
+
+
+@dataclass
+class _Played:
+    """What :func:`_play` gathered: per method (METHODS) the output stamps, R (orientation: R_C_M for the
+    marker, R_W_M for the IMU alone, R_P_M for the fused tracker) and compute seconds; the image and IMU
+    stamps; the seconds spent rendering images (not a method's cost)."""
+
+    out: dict
+    frames: np.ndarray
+    imu_stamps: np.ndarray
+    render_s: float
+
+
+def _play(sc: MarkerScenario, sim: MarkerSimulator, fusion: MarkerImuFusion, R_S_M: np.ndarray, rng,
+          progress=None) -> _Played:
+    """Feed the sequence to the three methods in time order: each IMU sample, after the images stamped
+    before it (module docstring)."""
     imu = sim.imu()
     frames = sim.frame_stamps()
-    rng = np.random.default_rng(seed + 3000)
     marker_det = MarkerDetector(sim.K, None, sc.dictionary, sc.marker_id, sc.marker_length_m)
-    fusion = MarkerImuFusion(MarkerDetector(sim.K, None, sc.dictionary, sc.marker_id, sc.marker_length_m), q_S_M,
-                             OrientationKalman())
     out = {m: {"stamps": [], "R": [], "compute_s": 0.0} for m in METHODS}
     reg_imu: list[np.ndarray] = []   # R_W_M of the IMU on the registration device (the fused tracker's APP)
     R_W_P = None
-    R_S_M_est = X
     k_img = 0
     render_s = 0.0
     for i, t_imu in enumerate(imu["stamp"]):
         while k_img < len(frames) and frames[k_img] < t_imu:
-            t_f = frames[k_img]
-            t0 = time.perf_counter()
-            gray = sim.image(t_f, rng)
-            render_s += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            d = marker_det.detect(gray)
-            out["marker"]["compute_s"] += time.perf_counter() - t0
-            if d.found:
-                out["marker"]["stamps"].append(t_f)
-                out["marker"]["R"].append(d.T_C_M[:3, :3])
-            t0 = time.perf_counter()
-            fusion.on_image(gray, t_f)   # its correction shows in the next IMU-rate output
-            out["fused"]["compute_s"] += time.perf_counter() - t0
+            render_s += _on_image(sim, marker_det, fusion, frames[k_img], rng, out)
             k_img += 1
         t0 = time.perf_counter()
-        R_W_M = quat.to_matrix(imu["q_W_S"][i]) @ R_S_M_est
+        R_W_M = quat.to_matrix(imu["q_W_S"][i]) @ R_S_M
         out["imu"]["compute_s"] += time.perf_counter() - t0
         out["imu"]["stamps"].append(t_imu)
         out["imu"]["R"].append(R_W_M)
@@ -136,37 +149,50 @@ def run(seconds: float = 60.0, seed: int = 0, camera_fps: float = 10.0, imu_rate
         if est.q_C_M is not None and R_C_P is not None:
             out["fused"]["stamps"].append(t_imu)
             out["fused"]["R"].append(R_C_P.T @ quat.to_matrix(est.q_C_M))   # R_P_M: the plane is per sample
-        if progress and i % int(10 * imu_rate_hz) == 0 and i:
+        if progress and i % int(10 * sc.imu_rate_hz) == 0 and i:
             progress(f"t = {t_imu:.0f} s")
+    return _Played(out, frames, imu["stamp"], render_s)
+
+
+def _on_image(sim: MarkerSimulator, marker_det: MarkerDetector, fusion: MarkerImuFusion, t_f: float, rng,
+              out: dict) -> float:
+    """One camera image at ``t_f`` to the marker alone and to the fused tracker (its correction shows in
+    the next IMU-rate output); returns the seconds spent rendering it."""
+    t0 = time.perf_counter()
+    gray = sim.image(t_f, rng)
+    render_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    d = marker_det.detect(gray)
+    out["marker"]["compute_s"] += time.perf_counter() - t0
+    if d.found:
+        out["marker"]["stamps"].append(t_f)
+        out["marker"]["R"].append(d.T_C_M[:3, :3])
+    t0 = time.perf_counter()
+    fusion.on_image(gray, t_f)
+    out["fused"]["compute_s"] += time.perf_counter() - t0
+    return render_s
+
+
+def _method_result(sc: MarkerScenario, sim: MarkerSimulator, played: _Played, m: str) -> dict:
+    """One method's errors against the truth, its own and held at the IMU's rate, and its cost."""
+    st = np.asarray(played.out[m]["stamps"])
+    R = np.asarray(played.out[m]["R"])
+    if m == "fused":
+        R_ref_P = np.eye(3)   # its orientations are R_P_M already
+    else:
+        reg = (st >= 0.5) & (st < sc.registration_s)
+        R_ref_P = app_plane.register_pelvic_plane(R[reg])
     t_from = sim.fragment_start
-    duration = sc.seconds - t_from
-    results = {"scenario": {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in sc.__dict__.items()},
-               "calibration": calib, "render_s": render_s, "methods": {}}
-    for m in METHODS:
-        st = np.asarray(out[m]["stamps"])
-        R = np.asarray(out[m]["R"])
-        if m == "fused":
-            R_ref_P = np.eye(3)   # its orientations are R_P_M already
-        else:
-            reg = (st >= 0.5) & (st < sc.registration_s)
-            R_ref_P = app_plane.register_pelvic_plane(R[reg])
-        own = _errors(sim, st, R, R_ref_P, t_from)
-        at, Rh = _held(st, imu["stamp"], R)
-        held = _errors(sim, at, Rh, R_ref_P, t_from)
-        n_frag = int((st >= t_from).sum())
-        results["methods"][m] = {
-            **own,
+    own = _errors(sim, st, R, R_ref_P, t_from)
+    at, Rh = _held(st, played.imu_stamps, R)
+    held = _errors(sim, at, Rh, R_ref_P, t_from)
+    compute_s = played.out[m]["compute_s"]
+    return {**own,
             "held_inclination_mae_deg": held["inclination_mae_deg"],
             "held_anteversion_mae_deg": held["anteversion_mae_deg"],
-            "rate_hz": n_frag / duration,
-            "compute_ms_per_update": 1e3 * out[m]["compute_s"] / max(len(st), 1),
-            "host_load": out[m]["compute_s"] / sc.seconds,
-        }
-    results["methods"]["marker"]["detected"] = f"{len(out['marker']['stamps'])}/{len(frames)}"
-    results["methods"]["fused"]["paths"] = {k: fusion.counts[k] for k in ("roi", "full", "none")}
-    results["methods"]["fused"]["gated"] = fusion.counts["gated"]
-    results["methods"]["fused"]["kalman_resets"] = fusion.kalman.resets
-    return results
+            "rate_hz": int((st >= t_from).sum()) / (sc.seconds - t_from),
+            "compute_ms_per_update": 1e3 * compute_s / max(len(st), 1),
+            "host_load": compute_s / sc.seconds}
 
 
 def table(results: dict) -> str:
