@@ -47,7 +47,15 @@ def register(subparsers) -> None:
         description=_plain(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="calibrate_command", metavar="STEP")
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
+    _add_intrinsics(sub)
+    _add_hand_eye(sub)
+    _add_capture(sub)
+    _add_simulate(sub)
+    _add_projector(sub)
 
+
+def _add_intrinsics(sub) -> None:
+    """``calibrate intrinsics``: K and distortion from ChArUco images."""
     s = sub.add_parser("intrinsics", help="K and distortion from ChArUco images")
     s.add_argument("--images", required=True, type=Path, help="folder of board images")
     s.add_argument("--board", default=DEFAULT_BOARD,
@@ -61,6 +69,9 @@ def register(subparsers) -> None:
     add_overwrite_argument(s, "an existing --out file")
     s.set_defaults(func=run_intrinsics)
 
+
+def _add_hand_eye(sub) -> None:
+    """``calibrate hand-eye``: T_flange_camera from captures, every method compared."""
     s = sub.add_parser("hand-eye", help="T_flange_camera from captures (AX = XB), all methods compared")
     s.add_argument("--captures", required=True, type=Path, help="capture folder")
     s.add_argument("--camera", type=Path,
@@ -76,6 +87,9 @@ def register(subparsers) -> None:
     add_overwrite_argument(s, "existing --out / --rrd files")
     s.set_defaults(func=run_hand_eye)
 
+
+def _add_capture(sub) -> None:
+    """``calibrate capture``: captures taken live from a session's camera and robot."""
     s = sub.add_parser("capture", help="collect captures live from a session's camera and robot",
                        description="A session with camera and robot plugins (e.g. realsense with streams "
                                    "depth,ir + ur): captures when the robot rested 0.5 s with the board seen, "
@@ -95,6 +109,9 @@ def register(subparsers) -> None:
     add_overwrite_argument(s, "the captures in --out")
     s.set_defaults(func=run_capture)
 
+
+def _add_simulate(sub) -> None:
+    """``calibrate simulate``: a folder of simulated captures."""
     s = sub.add_parser("simulate", help="write a folder of simulated captures (no hardware needed)")
     s.add_argument("--out", required=True, type=Path, help="capture folder to create")
     s.add_argument("--count", type=int_at_least(3, "a capture count"), default=20,
@@ -107,6 +124,9 @@ def register(subparsers) -> None:
     add_overwrite_argument(s, "the captures in --out")
     s.set_defaults(func=run_simulate)
 
+
+def _add_projector(sub) -> None:
+    """``calibrate projector``: K_p and T_camera_projector from Gray-code captures."""
     s = sub.add_parser("projector", help="K_p and T_camera_projector from Gray-code captures of the board",
                        description="Gray-code structured light on a ChArUco board (calibration/projector.py). "
                                    "Try: osteonav calibrate projector --simulate 5 --captures /tmp/projcal")
