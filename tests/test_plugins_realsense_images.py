@@ -4,6 +4,8 @@ once, with the infrared and colour frames of its instant, bit-exact; the colour 
 distortion and T_depth_color and the emitter state come back as recorded."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -96,9 +98,14 @@ def test_pairer_waits_for_late_images_and_never_pairs_across_instants():
     assert pairer.flush() == [(d(3), None, None)]
 
 
-def test_a_realsense_session_with_images_records_a_1_1_trial(tmp_path):
+def test_a_realsense_session_with_images_records_a_1_1_trial(tmp_path, capsys):
     """A 1.1 trial -> SDK recording (software device) -> ``camera: realsense`` with streams depth,ir,color +
-    ``robot: recorded`` -> ``osteonav record``: the recorded trial holds the same images, K and T_depth_color."""
+    ``robot: recorded`` -> ``osteonav record``: the recorded trial holds the same images, K and T_depth_color.
+
+    The recording is played in real time, so a frame read after its successor was due is skipped (the
+    SDK's non-real-time playback now and then hangs for seconds: librealsense issues 6340, 10312; seen
+    here once, 6 of 9 frames skipped after a 12 s hang). Every recorded frame must be the source's frame
+    of that id, and every missing one must be counted in the summary's drops."""
     import yaml
 
     from app.cli import main
@@ -117,7 +124,12 @@ def test_a_realsense_session_with_images_records_a_1_1_trial(tmp_path):
     rec, src = open_trial(tmp_path / "rec"), open_trial(source)
     assert rec.meta.streams.infrared.emitter is False
     np.testing.assert_allclose(rec.meta.streams.color.T_depth_color, COLOR.T_depth_color, atol=1e-6)
-    assert list(rec.frame_ids) == list(src.frame_ids)
-    for a, b in zip(rec.iter_frames(), src.iter_frames()):
-        np.testing.assert_array_equal(a.infrared, b.infrared)
-        np.testing.assert_array_equal(a.color, b.color)
+    recorded, source_ids = list(rec.frame_ids), list(src.frame_ids)
+    assert recorded and set(recorded) <= set(source_ids) and recorded == sorted(recorded)
+    missing = len(source_ids) - len(recorded)
+    dropped = re.search(r"dropped (\d+) by the camera", capsys.readouterr().out)
+    assert dropped is not None and int(dropped.group(1)) >= missing
+    by_id = {f.frame_id: f for f in src.iter_frames()}
+    for a in rec.iter_frames():
+        np.testing.assert_array_equal(a.infrared, by_id[a.frame_id].infrared)
+        np.testing.assert_array_equal(a.color, by_id[a.frame_id].color)
