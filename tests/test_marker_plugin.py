@@ -83,13 +83,18 @@ def test_rerun_log_file_and_angles_after_imu_registration(tmp_path):
 def test_rerun_auto_without_a_recording_does_not_log():
     import rerun as rr
 
-    if rr.get_data_recording() is not None:
-        pytest.skip("a rerun recording is active in this process")
-    tracker = _create(imu="simulated", seed=4)
-    assert tracker.rerun is None
-    tracker.start(np.eye(4))
-    assert tracker.process(_tick(0.0), None).path in ("roi", "full", "none")
-    tracker.release()
+    # an earlier test in this worker may have left a recording active: none for this one, then put back
+    held = rr.set_thread_local_data_recording(None), rr.set_global_data_recording(None)
+    try:
+        assert rr.get_data_recording() is None
+        tracker = _create(imu="simulated", seed=4)
+        assert tracker.rerun is None
+        tracker.start(np.eye(4))
+        assert tracker.process(_tick(0.0), None).path in ("roi", "full", "none")
+        tracker.release()
+    finally:
+        rr.set_thread_local_data_recording(held[0])
+        rr.set_global_data_recording(held[1])
 
 
 def test_in_a_session_the_tracker_logs_into_the_rerun_outputs_recording(tmp_path):
