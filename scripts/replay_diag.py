@@ -1,6 +1,6 @@
 """Replay a simulated trial and write every frame's tests against the truth (a probe for wrong ok frames).
 
-    python scripts/replay_diag.py TRIAL OUT.csv [--config YAML]
+    python scripts/replay_diag.py TRIAL OUT.csv [--config YAML] [--start-at-truth]
 
 One row per frame: the stamp (s from the start), the status and lifecycle state, ADD (mm, against the
 trial's groundtruth.txt), the refinement's evidence the status's tests read (fitness, consistent sharp
@@ -32,12 +32,15 @@ def main(argv=None) -> int:
     ap.add_argument("trial", type=Path)
     ap.add_argument("out", type=Path)
     ap.add_argument("--config", type=Path, default=None)
+    ap.add_argument("--start-at-truth", action="store_true",
+                    help="start the tracker at the first frame's true pose instead of the trial's initial pose (a probe)")
     args = ap.parse_args(argv)
     reader = open_trial(args.trial)
     mesh = reader.load_mesh()
     points = np.asarray(mesh.vertices)
     tracker = DepthTracker(load_config(args.config), mesh, reader.meta.camera)
-    start_tracker(tracker, reader.meta.initial_pose, reader.meta.point_prior)
+    start_tracker(tracker, reader.groundtruth[0] if args.start_at_truth else reader.meta.initial_pose,
+                  reader.meta.point_prior)
     last: dict = {}
     if tracker.refined_track is not None:                       # keep each frame's refinement outcome
         update = tracker.refined_track.update
