@@ -1,6 +1,8 @@
 """Exceptions shared across osteonav. Each message says what was expected, what arrived and the fix."""
 from __future__ import annotations
 
+import math
+
 
 class OsteonavError(Exception):
     """Base of osteonav's own errors."""
@@ -45,8 +47,6 @@ def megabytes(value, key: str, example: float, zero_means: str | None = None) ->
     """``value`` as a memory budget in megabytes for the configuration key ``key``, else a ConfigError naming
     it and ``example``: a finite number > 0, or >= 0 when ``zero_means`` says what 0 does. Text and booleans
     are refused (YAML gives numbers)."""
-    import math
-
     number = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
     if not (number and (value > 0 or (zero_means is not None and value == 0))):
         bound = "positive number" if zero_means is None else f"number >= 0 (0: {zero_means})"

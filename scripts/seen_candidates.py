@@ -23,9 +23,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def columns(run: dict) -> dict[str, np.ndarray]:
@@ -65,9 +68,14 @@ def main(argv=None) -> int:
     ap.add_argument("--calibrate", default="independent", help="the sensor model c is chosen on")
     ap.add_argument("--crests", default="left", help="c is chosen on the runs whose name holds this")
     ap.add_argument("--quantile", type=float, default=0.9)
-    ap.add_argument("--inflation", type=float, default=6.0, help="the fixed bound's inflation (status.covariance_inflation)")
+    ap.add_argument("--inflation", type=float, default=None,
+                    help="the fixed bound's inflation (default: configs/default.yaml's status.covariance_inflation)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
+    if args.inflation is None:
+        from app.config import load_config
+
+        args.inflation = load_config(None).status.covariance_inflation
     sensors = {}
     for item in args.files:
         sensor, _, path = item.partition("=")

@@ -15,7 +15,7 @@ e <= sqrt(inflation) σ₁) over all frames and for the worst trial, and the sha
 bound stays under status.max_template_std (1 mm), i.e. what the ok status could keep.
 
 ``--edge-band PX`` is a probe of where the error comes from: each frame's measured pixels within PX
-pixels of a depth discontinuity (a jump over ``EDGE_JUMP_M`` between 3x3 neighbours) are made invalid
+pixels of a depth discontinuity (a jump over ``EDGE_JUMP_M`` between neighbours) are made invalid
 before the tracker sees them (the time-of-flight model's multipath bias and mixed pixels sit there;
 BENCHMARKS.md "The seen test on time of flight"). The filter and every status test see the masked
 image too, so its ok share is not the product's. ``scripts/seen_candidates.py`` compares bounds over
@@ -31,19 +31,21 @@ import numpy as np
 
 INFLATIONS = (1.0, 2.0, 4.0, 6.0, 9.0, 16.0, 25.0)
 QUANTILES = (0.5, 0.68, 0.9, 0.95)
-EDGE_JUMP_M = 0.010   # m, a depth jump between 3x3 neighbours that --edge-band treats as a discontinuity (probe only)
+EDGE_JUMP_M = 0.010   # m, a depth jump between neighbours that --edge-band treats as a discontinuity (probe only)
 
 
 def edge_masked(depth_m: np.ndarray, band_px: int, jump_m: float = EDGE_JUMP_M) -> np.ndarray:
-    """``depth_m`` with the pixels within ``band_px`` of a depth discontinuity set to 0 (invalid);
-    invalid pixels count as far (a jump), ``band_px`` 0 returns the image unchanged."""
+    """``depth_m`` with the pixels within ``band_px`` of a depth discontinuity set to 0 (invalid): the pixels
+    either side of a jump over ``jump_m``, or next to an invalid one (app/sim/sensors/common.py
+    :func:`depth_edges`, the sensor models' own), grown by ``band_px`` pixels; ``band_px`` 0 returns the
+    image unchanged."""
     if band_px <= 0:
         return depth_m
     from scipy import ndimage
 
-    far = np.where(depth_m > 0, depth_m, 10.0)
-    edge = (ndimage.maximum_filter(far, 3) - ndimage.minimum_filter(far, 3)) > jump_m
-    edge = ndimage.binary_dilation(edge, iterations=band_px)
+    from app.sim.sensors.common import depth_edges
+
+    edge = ndimage.binary_dilation(depth_edges(depth_m, jump_m), iterations=band_px)
     return np.where(edge, 0.0, depth_m).astype(depth_m.dtype)
 
 

@@ -102,10 +102,10 @@ def test_a_realsense_session_with_images_records_a_1_1_trial(tmp_path, capsys):
     """A 1.1 trial -> SDK recording (software device) -> ``camera: realsense`` with streams depth,ir,color +
     ``robot: recorded`` -> ``osteonav record``: the recorded trial holds the same images, K and T_depth_color.
 
-    The recording is played in real time, so a frame read after its successor was due is skipped (the
-    SDK's non-real-time playback now and then hangs for seconds: librealsense issues 6340, 10312; seen
-    here once, 6 of 9 frames skipped after a 12 s hang). Every recorded frame must be the source's frame
-    of that id, and every missing one must be counted in the summary's drops."""
+    The recording is played in real time, so a frame read after its successor was due is skipped, and the
+    SDK's non-real-time playback now and then hangs for seconds (librealsense issues 6340, 10312; seen here
+    once: 2 of 5 frames skipped after a 12 s hang). An attempt that lost frames must have recorded only the
+    source's frames and counted every missing id in its drops; one of two attempts must record every frame."""
     import yaml
 
     from app.cli import main
@@ -120,16 +120,23 @@ def test_a_realsense_session_with_images_records_a_1_1_trial(tmp_path, capsys):
     session = {"camera": {"plugin": "realsense", "params": {"recording": str(recording), "streams": "depth,ir,color"}},
                "robot": {"plugin": "recorded", "params": {"trial": str(source)}}, "tracker": False}
     (tmp_path / "s.yaml").write_text(yaml.safe_dump(session))
-    assert main(["record", "--config", str(tmp_path / "s.yaml"), "--out", str(tmp_path / "rec")]) == 0
-    rec, src = open_trial(tmp_path / "rec"), open_trial(source)
-    assert rec.meta.streams.infrared.emitter is False
-    np.testing.assert_allclose(rec.meta.streams.color.T_depth_color, COLOR.T_depth_color, atol=1e-6)
-    recorded, source_ids = list(rec.frame_ids), list(src.frame_ids)
-    assert recorded and set(recorded) <= set(source_ids) and recorded == sorted(recorded)
-    missing = len(source_ids) - len(recorded)
-    dropped = re.search(r"dropped (\d+) by the camera", capsys.readouterr().out)
-    assert dropped is not None and int(dropped.group(1)) >= missing
+    src = open_trial(source)
+    source_ids = list(src.frame_ids)
     by_id = {f.frame_id: f for f in src.iter_frames()}
-    for a in rec.iter_frames():
-        np.testing.assert_array_equal(a.infrared, by_id[a.frame_id].infrared)
-        np.testing.assert_array_equal(a.color, by_id[a.frame_id].color)
+    for attempt in range(2):
+        out = tmp_path / f"rec{attempt}"
+        assert main(["record", "--config", str(tmp_path / "s.yaml"), "--out", str(out)]) == 0
+        rec = open_trial(out)
+        assert rec.meta.streams.infrared.emitter is False
+        np.testing.assert_allclose(rec.meta.streams.color.T_depth_color, COLOR.T_depth_color, atol=1e-6)
+        for a in rec.iter_frames():
+            np.testing.assert_array_equal(a.infrared, by_id[a.frame_id].infrared)
+            np.testing.assert_array_equal(a.color, by_id[a.frame_id].color)
+        recorded = list(rec.frame_ids)
+        if recorded == source_ids:
+            return
+        # a hang: only the source's frames, in order, and every id gap between them counted as dropped
+        assert recorded and set(recorded) <= set(source_ids) and recorded == sorted(recorded)
+        dropped = re.search(r"dropped (\d+) by the camera", capsys.readouterr().out)
+        assert dropped is not None and int(dropped.group(1)) == int(np.sum(np.diff(recorded) - 1))
+    pytest.fail(f"two recordings both lost frames of {source_ids}")
