@@ -256,6 +256,44 @@ def test_policy_alternates_respread_and_wide_search_and_a_declined_search_retrie
     assert run_until_due() == "respread"
 
 
+def test_a_declined_search_is_retried_while_the_track_stays_held_as_hidden():
+    """A track the filter holds as hidden (not weighed) after a search that found nothing was never searched
+    again: every retry counted weighed frames only. A live session on or_fast_reposition (2026-11-28, 1 of 14
+    runs) held its estimate for 20 s, the bone in view elsewhere. Now, unseen for after_uncertain_s after a
+    declined or kept search, the search is due again (``still_unseen``), and again after each retry wait while
+    the hold lasts; weighed again or ok ends it."""
+    after_uncertain = 45                                        # frames at the stamps' 90 Hz (more than the retry wait)
+    unc = TrackingStatus.UNCERTAIN
+    policy = _policy(after_lost_s=_s(3), after_uncertain_s=_s(after_uncertain))
+    policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0)
+    policy.pending = "a due search"
+    _due(policy).declined()
+
+    def held(frames, start):
+        for k in range(start, start + frames):
+            policy.update(unc, False, False, float("nan"), np.eye(4), (1 + k) / 90)   # held where it was ok
+            if policy.pending:
+                return k - start + 1
+        return None
+
+    assert held(100, 0) == after_uncertain
+    assert policy.pending.startswith("still searching (1 searches found nothing") and "unseen for 45 frames" in policy.pending
+    assert policy.due_code == "still_unseen"
+    _due(policy).declined()
+    retry = math.ceil(policy.config.search_retry_s * 90 - 0.01)
+    assert held(100, 100) == retry                              # the hold goes on: retried after the retry wait
+    _due(policy).declined()
+    policy.update(unc, True, True, 0.9, np.eye(4), 3.0)          # weighed again where it was ok: nothing due
+    assert policy.pending is None
+    assert held(after_uncertain - 1, 300) is None               # a new hold waits after_uncertain_s again
+    policy.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 4.0)
+    fresh = _policy(after_lost_s=_s(3), after_uncertain_s=_s(after_uncertain))
+    fresh.update(TrackingStatus.OK, True, True, 0.9, np.eye(4), 0.0)
+    for k in range(100):                                        # a hold with no search before it (a hand): waits
+        fresh.update(unc, False, False, float("nan"), np.eye(4), (1 + k) / 90)
+    assert fresh.pending is None
+
+
 def test_the_slow_trigger_does_not_count_frames_the_rules_find_ok_while_unconfirmed():
     """After a re-initialisation away from the last ok pose the reported status is uncertain until
     confirmed; those frames must not fire the slow trigger (it would re-spread at the old pose)."""

@@ -27,7 +27,8 @@ class Evidence:
     prior; ``ever_ok``, ``retrying`` (the lifecycle's), ``untried`` (no attempt, declined or kept search
     yet); the thresholds in frames (``after_lost``, ``uncertain``: after_uncertain_s or 0 when off, also
     the never-ok track's one search, ``sliding``); ``gap_m`` / ``gap_rad``: the pose's distance and angle to the last ok pose
-    (NaN without one), formatted only when a trigger fires (:func:`gap_text`)."""
+    (NaN without one), formatted only when a trigger fires (:func:`gap_text`); ``unseen``: frames in a row not
+    weighed (the filter's occlusion hold, or no camera pose or depth) while not ok."""
 
     bad_reason: str | None
     bad: int
@@ -52,6 +53,7 @@ class Evidence:
     search_bar: float
     declined: int
     kept: int
+    unseen: int = 0
 
 
 @dataclass(frozen=True)
@@ -114,6 +116,13 @@ TRIGGERS: tuple[Trigger, ...] = (
                        f"{gap_text(e)} from the last ok pose"),
             "status.settle_s, recovery.after_lost_s",
             "a search found nothing or kept the track, and the track is still far and not ok (after the retry wait)"),
+    Trigger("still_unseen",
+            lambda e: e.retrying and not e.rules_ok and not e.weighed and e.uncertain > 0 and e.unseen >= e.uncertain,
+            lambda e: (f"still searching ({e.declined} searches found nothing, {e.kept} kept the track), the track "
+                       f"unseen for {e.unseen} frames"),
+            "recovery.after_uncertain_s, status.settle_s",
+            "a search found nothing or kept the track, and the track has not been weighed for after_uncertain_s since "
+            "(held as hidden; after the retry wait)"),
 )
 CODES = tuple(t.code for t in TRIGGERS)
 
