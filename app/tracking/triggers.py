@@ -53,7 +53,7 @@ class Evidence:
     search_bar: float
     declined: int
     kept: int
-    unseen: int = 0
+    unseen: int
 
 
 @dataclass(frozen=True)
@@ -117,7 +117,7 @@ TRIGGERS: tuple[Trigger, ...] = (
             "status.settle_s, recovery.after_lost_s",
             "a search found nothing or kept the track, and the track is still far and not ok (after the retry wait)"),
     Trigger("still_unseen",
-            lambda e: e.retrying and not e.rules_ok and not e.weighed and e.uncertain > 0 and e.unseen >= e.uncertain,
+            lambda e: e.retrying and 0 < e.uncertain <= e.unseen,      # unseen: reset by a weighed frame, never ok
             lambda e: (f"still searching ({e.declined} searches found nothing, {e.kept} kept the track), the track "
                        f"unseen for {e.unseen} frames"),
             "recovery.after_uncertain_s, status.settle_s",
